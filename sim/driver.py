@@ -1,0 +1,262 @@
+"""Drivers: the steering robot, a path follower and a speed controller, vectorised.
+
+A manoeuvre is described per run by a :class:`Plan`: tables on the control
+grid (100 Hz) that say, at each instant, how the steering is driven (an
+open-loop steering-wheel angle, following a path, holding the last angle, or
+hands off) and how the speed is driven (a speed target, open-loop motor and
+brake commands, or coasting). :class:`Driver` runs all plans of a batch at
+once: one :meth:`Driver.update` call computes every run's actuator inputs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sim.vehicle import IPSI, IS, ISW, IVX, IX, IY, Inputs, Vehicle
+
+# steering modes
+STEER_TABLE, STEER_PATH, STEER_HOLD, STEER_FREE = 0, 1, 2, 3
+# longitudinal modes
+SPEED_TARGET, SPEED_OPEN, SPEED_COAST = 0, 1, 2
+
+CONTROL_DT = 0.01  # s, the driver's update period
+
+
+@dataclass
+class Plan:
+    """One run's driving programme on the control grid ``k * CONTROL_DT``.
+
+    Attributes:
+        name: manoeuvre name.
+        duration_s: length of the run (s).
+        speed0_mps: initial forward speed (the run starts in straight, steady driving).
+        steer_mode: (N,) int8 of STEER_* per control step.
+        steer_sw: (N,) steering-wheel angle for STEER_TABLE steps (rad, + left).
+        speed_mode: (N,) int8 of SPEED_* per control step.
+        speed_target: (N,) target speed (m/s) for SPEED_TARGET steps.
+        motor_cmd: (N,) motor torque (Nm) for SPEED_OPEN steps.
+        brake_cmd: (N,) front-wheel brake torque (Nm per wheel) for SPEED_OPEN steps;
+            the rear gets the brake balance's share.
+        path: (M, 2) path to follow (global x, y in m, starting at the origin
+            heading +x), resampled at ``path_ds``; None when never followed.
+        path_speed: (M,) optional target speed along the path (m/s); where given it
+            replaces ``speed_target`` while following the path.
+        mu_dist: distances (m) where the road friction changes (increasing).
+        mu_values: friction before the first distance and after each one (len+1).
+        label: free-form metadata kept with the run (speed, mu, amplitude...).
+    """
+
+    name: str
+    duration_s: float
+    speed0_mps: float
+    steer_mode: np.ndarray
+    steer_sw: np.ndarray
+    speed_mode: np.ndarray
+    speed_target: np.ndarray
+    motor_cmd: np.ndarray
+    brake_cmd: np.ndarray
+    path: np.ndarray | None = None
+    path_speed: np.ndarray | None = None
+    path_ds: float = 1.0
+    mu_dist: Sequence[float] = ()
+    mu_values: Sequence[float] = (1.0,)
+    label: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return len(self.steer_mode)
+
+    @staticmethod
+    def grid(duration_s: float) -> np.ndarray:
+        """The control-grid times (s) of a run of ``duration_s``."""
+        return np.arange(int(round(duration_s / CONTROL_DT)) + 1) * CONTROL_DT
+
+    def mirrored(self) -> Plan:
+        """The same manoeuvre to the other side (steering and path y negated)."""
+        path = None if self.path is None else self.path * np.array([1.0, -1.0])
+        return Plan(
+            self.name, self.duration_s, self.speed0_mps, self.steer_mode.copy(), -self.steer_sw,
+            self.speed_mode.copy(), self.speed_target.copy(), self.motor_cmd.copy(), self.brake_cmd.copy(),
+            path, None if self.path_speed is None else self.path_speed.copy(), self.path_ds,
+            tuple(self.mu_dist), tuple(self.mu_values), {**self.label, "mirrored": True},
+        )
+
+
+def _pad(rows: Sequence[np.ndarray], n: int, fill: str = "edge") -> np.ndarray:
+    out = np.empty((len(rows), n), dtype=np.asarray(rows[0]).dtype)
+    for i, row in enumerate(rows):
+        k = min(len(row), n)
+        out[i, :k] = row[:k]
+        out[i, k:] = row[k - 1] if fill == "edge" else 0
+    return out
+
+
+class Driver:
+    """Runs a batch of plans against a :class:`Vehicle` (all runs at once)."""
+
+    WINDOW = 40  # path points searched ahead of the last nearest point
+
+    def __init__(self, vehicle: Vehicle, plans: Sequence[Plan], params: Sequence[dict]):
+        if len(plans) != vehicle.B:
+            raise ValueError("one plan per run")
+        self.v = vehicle
+        self.plans = plans
+        self.n = max(p.n for p in plans)
+        B = vehicle.B
+        self.steer_mode = _pad([p.steer_mode for p in plans], self.n)
+        self.steer_sw = _pad([p.steer_sw for p in plans], self.n)
+        self.speed_mode = _pad([p.speed_mode for p in plans], self.n)
+        self.speed_target = _pad([p.speed_target for p in plans], self.n)
+        self.motor_cmd = _pad([p.motor_cmd for p in plans], self.n)
+        self.brake_cmd = _pad([p.brake_cmd for p in plans], self.n)
+
+        def dp(key: str) -> np.ndarray:
+            return np.array([t["driver"][key] for t in params], dtype=float)
+
+        self.preview_time = dp("preview_time_s")
+        self.preview_min = dp("preview_min_m")
+        self.k_lat_i = dp("lateral_integral_gain")
+        self.k_v = dp("speed_gain_npmps")
+        self.k_vi = dp("speed_integral_gain")
+
+        # paths, padded to one length; runs without a path get a straight line
+        m = max((len(p.path) for p in plans if p.path is not None), default=2)
+        self.path = np.zeros((B, m, 2))
+        self.path_speed = np.full((B, m), np.nan)
+        self.path_len = np.zeros(B, dtype=int)
+        self.path_ds = np.array([p.path_ds for p in plans])
+        for i, p in enumerate(plans):
+            if p.path is None:
+                pts = np.stack([np.arange(m) * 1.0, np.zeros(m)], axis=1)
+            else:
+                pts = p.path
+                pts = np.concatenate([pts, np.repeat(pts[-1:], m - len(pts), axis=0)])
+                if p.path_speed is not None:
+                    self.path_speed[i, : len(p.path_speed)] = p.path_speed
+                    self.path_speed[i, len(p.path_speed):] = p.path_speed[-1]
+            self.path[i] = pts
+            self.path_len[i] = len(pts) if p.path is None else len(p.path)
+        seg = np.diff(self.path, axis=1)
+        heading = np.arctan2(seg[..., 1], seg[..., 0])
+        self.path_heading = np.concatenate([heading, heading[:, -1:]], axis=1)
+
+        k_mu = max(len(p.mu_dist) for p in plans)
+        self.mu_dist = np.full((B, max(k_mu, 1)), np.inf)
+        self.mu_step = np.zeros((B, max(k_mu, 1)))
+        self.mu0 = np.array([p.mu_values[0] for p in plans], dtype=float)
+        for i, p in enumerate(plans):
+            for j, d in enumerate(p.mu_dist):
+                self.mu_dist[i, j] = d
+                self.mu_step[i, j] = p.mu_values[j + 1] - p.mu_values[j]
+
+        self.idx = np.zeros(B, dtype=int)
+        self.lat_int = np.zeros(B)
+        self.v_int = np.zeros(B)
+        self.held_sw = np.zeros(B)
+        self.cmd_sw = np.zeros(B)
+        self.cmd_rate = np.zeros(B)
+        self.motor = np.zeros(B)
+        self.brake = np.zeros(B)
+        self.lat_err = np.zeros(B)
+        self._rows = np.arange(B)
+
+    def reset(self, x: np.ndarray) -> None:
+        """Start from state ``x``: commands equal the current steering angle."""
+        self.cmd_sw[:] = x[:, ISW]
+        self.held_sw[:] = x[:, ISW]
+
+    # ---- helpers -------------------------------------------------------------------
+    def road_mu(self, s: np.ndarray) -> np.ndarray:
+        """Road friction under each car at travelled distance ``s`` (m)."""
+        return self.mu0 + (self.mu_step * (s[:, None] >= self.mu_dist)).sum(axis=1)
+
+    def _follow(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pure-pursuit steering with integral action; returns (sw angle, target speed)."""
+        v = self.v
+        rows = self._rows
+        pos = x[:, [IX, IY]]
+        win = self.idx[:, None] + np.arange(self.WINDOW)[None, :]
+        win = np.minimum(win, (self.path_len - 1)[:, None])
+        pts = self.path[rows[:, None], win]
+        d2 = ((pts - pos[:, None, :]) ** 2).sum(axis=2)
+        self.idx = win[rows, np.argmin(d2, axis=1)]
+        near = self.path[rows, self.idx]
+        hd = self.path_heading[rows, self.idx]
+        err = -(pos[:, 0] - near[:, 0]) * np.sin(hd) + (pos[:, 1] - near[:, 1]) * np.cos(hd)
+        self.lat_err = err  # + left of the path
+        speed = np.maximum(x[:, IVX], 1.0)
+        ld = np.maximum(self.preview_min, self.preview_time * speed)
+        ahead = np.minimum(self.idx + np.round(ld / self.path_ds).astype(int), self.path_len - 1)
+        tgt = self.path[rows, ahead]
+        psi = x[:, IPSI]
+        dxg, dyg = tgt[:, 0] - pos[:, 0], tgt[:, 1] - pos[:, 1]
+        y_local = -dxg * np.sin(psi) + dyg * np.cos(psi)
+        dist2 = np.maximum(dxg * dxg + dyg * dyg, 1.0)
+        curvature = 2.0 * y_local / dist2
+        self.lat_int += err * CONTROL_DT
+        delta = np.arctan(v.L * curvature) - self.k_lat_i * self.lat_int
+        vt = self.path_speed[rows, self.idx]
+        return delta * v.ratio, vt
+
+    # ---- the control step -------------------------------------------------------------
+    def update(self, k: int, x: np.ndarray) -> Inputs:
+        """Actuator inputs for control step ``k`` (time ``k * CONTROL_DT``) at state ``x``."""
+        v = self.v
+        k = min(k, self.n - 1)
+        mode = self.steer_mode[:, k]
+        following = mode == STEER_PATH
+        sw = self.steer_sw[:, k].copy()
+        target = self.speed_target[:, k].copy()
+        if following.any():
+            sw_path, vt = self._follow(x)
+            sw = np.where(following, sw_path, sw)
+            target = np.where(following & np.isfinite(vt), vt, target)
+        hold = mode == STEER_HOLD
+        # the hold angle is the command at the moment holding starts
+        self.held_sw = np.where(hold, self.held_sw, self.cmd_sw)
+        sw = np.where(hold, self.held_sw, sw)
+        free = mode == STEER_FREE
+        sw = np.where(free, x[:, ISW], sw)
+        new_rate = (sw - self.cmd_sw) / CONTROL_DT
+        self.cmd_rate = np.where(free, 0.0, new_rate)
+        self.cmd_sw = sw
+
+        # longitudinal
+        smode = self.speed_mode[:, k]
+        vx = x[:, IVX]
+        err = target - vx
+        self.v_int = np.where(smode == SPEED_TARGET, np.clip(self.v_int + err * CONTROL_DT, -5.0, 5.0), 0.0)
+        resist = v.drag * vx * np.abs(vx) + 0.012 * v.m * v.g
+        force = resist + self.k_v * err + self.k_vi * self.v_int
+        r_wheel = v.R0 * 0.97
+        motor_dem = np.where(force > 0, force * r_wheel / (v.gear * v.eta), 0.0)
+        brake_dem = np.where(force < 0, -force * r_wheel * 0.5 * v.brake_share, 0.0)
+        motor_dem = np.where(smode == SPEED_OPEN, self.motor_cmd[:, k], motor_dem)
+        brake_dem = np.where(smode == SPEED_OPEN, self.brake_cmd[:, k], brake_dem)
+        motor_dem = np.where(smode == SPEED_COAST, 0.0, motor_dem)
+        brake_dem = np.where(smode == SPEED_COAST, 0.0, brake_dem)
+        # motor limits: torque and power at the current motor speed
+        w_motor = np.maximum(np.abs(vx) / v.R0 * v.gear, 1.0)
+        tmax = np.minimum(v.motor_tmax, v.motor_pmax / w_motor)
+        motor_dem = np.clip(motor_dem, -tmax, tmax)
+        brake_dem = np.clip(brake_dem, 0.0, v.brake_front_max)
+        self.motor += (motor_dem - self.motor) * (CONTROL_DT / np.maximum(v.motor_tau, CONTROL_DT))
+        self.brake += (brake_dem - self.brake) * (CONTROL_DT / np.maximum(v.brake_tau, CONTROL_DT))
+
+        B = v.B
+        drive = np.zeros((B, 4))
+        drive[:, :2] = (0.5 * v.gear * v.eta * self.motor)[:, None]
+        brake = np.empty((B, 4))
+        brake[:, :2] = self.brake[:, None]
+        brake[:, 2:] = (self.brake * (1.0 - v.brake_share) / v.brake_share)[:, None]
+        return Inputs(
+            steer_cmd=self.cmd_sw.copy(),
+            steer_cmd_rate=self.cmd_rate.copy(),
+            hands_off=free,
+            drive_torque=drive,
+            brake_torque=brake,
+            mu=self.road_mu(x[:, IS]),
+        )

@@ -1,0 +1,169 @@
+"""The integration loop: a batch of runs advanced together with fixed-step RK4.
+
+One Python iteration advances *every* run of the batch by one step; there is no
+loop over runs. The driver updates at 100 Hz (zero-order hold over the RK4
+stages), the truth is recorded on the 100 Hz base grid.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sim.driver import CONTROL_DT, Driver, Plan
+from sim.vehicle import (
+    IAS,
+    IOM,
+    IPHI,
+    IPSI,
+    IR,
+    ISW,
+    ITH,
+    IVX,
+    IVY,
+    IX,
+    IY,
+    WHEELS,
+    Vehicle,
+)
+
+#: truth channels recorded on the base grid (name -> per-wheel or scalar)
+TRUTH_SCALARS = (
+    "x_m", "y_m", "yaw_rad", "vx_true_mps", "vy_mps", "yaw_rate_true_radps", "roll_rad", "pitch_rad",
+    "ax_true_mps2", "ay_true_mps2", "steer_angle_true_rad", "steer_torque_true_nm",
+    "assist_torque_true_nm", "motor_torque_true_nm", "road_mu", "steer_angle_cmd_rad",
+)
+TRUTH_WHEELS = ("alpha", "kappa", "fz", "fy", "fx", "delta", "sat", "comp", "omega", "re", "pressure")
+
+
+@dataclass
+class BatchResult:
+    """Recorded truth of a batch: ``data[name]`` is (B, N) on ``time_s`` (N,)."""
+
+    time_s: np.ndarray
+    data: dict[str, np.ndarray]
+    n_valid: np.ndarray  # (B,) valid samples of each run (runs differ in length; aborted runs end early)
+    plans: Sequence[Plan]
+    params: Sequence[Mapping[str, Any]]
+
+    def run(self, i: int) -> dict[str, np.ndarray]:
+        """Run ``i``'s channels, trimmed to its own duration."""
+        n = int(self.n_valid[i])
+        out = {"time_s": self.time_s[:n]}
+        out.update({k: v[i, :n] for k, v in self.data.items()})
+        return out
+
+
+def simulate_batch(
+    plans: Sequence[Plan],
+    params: Sequence[Mapping[str, Any]],
+    progress: Callable[[int], None] | None = None,
+) -> BatchResult:
+    """Simulate ``plans[i]`` with car ``params[i]`` for every i, all at once.
+
+    Args:
+        plans: one driving programme per run.
+        params: one parameter tree per run (:func:`sim.params.car_parameters`).
+        progress: called with the number of simulated control steps done so far.
+    """
+    if len(plans) != len(params):
+        raise ValueError("one parameter tree per plan")
+    dt = float(params[0]["simulation"]["step_s"])
+    rec_rate = float(params[0]["simulation"]["record_rate_hz"])
+    if any(float(p["simulation"]["step_s"]) != dt for p in params):
+        raise ValueError("runs of one batch must share simulation.step_s")
+    sub = int(round(CONTROL_DT / dt))
+    if sub < 1 or abs(sub * dt - CONTROL_DT) > 1e-12:
+        raise ValueError(f"simulation.step_s={dt} must divide the control period {CONTROL_DT} s")
+    rec_every = int(round(1.0 / (rec_rate * CONTROL_DT)))
+    if rec_every < 1 or abs(rec_every * CONTROL_DT * rec_rate - 1.0) > 1e-9:
+        raise ValueError(f"simulation.record_rate_hz={rec_rate} must divide 100 Hz")
+
+    veh = Vehicle(params)
+    drv = Driver(veh, plans, params)
+    B = veh.B
+    speed0 = np.array([p.speed0_mps for p in plans], dtype=float)
+    x = veh.initial_state(speed0)
+    drv.reset(x)
+    n_ctl = drv.n
+    n_rec = (n_ctl - 1) // rec_every + 1
+    rec: dict[str, np.ndarray] = {k: np.empty((B, n_rec), np.float64) for k in TRUTH_SCALARS}
+    for w in TRUTH_WHEELS:
+        for name in WHEELS:
+            rec[f"{w}_{name}"] = np.empty((B, n_rec), np.float64)
+
+    half = 0.5 * dt
+    j = 0
+    for k in range(n_ctl):
+        u = drv.update(k, x)
+        for s in range(sub):
+            veh.new_step()
+            k1, aux = veh.derivatives(x, u)
+            if s == 0 and k % rec_every == 0:
+                _record(rec, j, x, aux, u, drv, veh)
+                j += 1
+            veh.commit(aux)
+            if k == n_ctl - 1:
+                break
+            k2, _ = veh.derivatives(x + half * k1, u)
+            k3, _ = veh.derivatives(x + half * k2, u)
+            k4, _ = veh.derivatives(x + dt * k3, u)
+            x = x + (dt / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+        if not np.all(np.isfinite(x)):
+            bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
+            names = ", ".join(f"{plans[i].name}{plans[i].label}" for i in bad[:3])
+            raise FloatingPointError(f"simulation diverged at t={k * CONTROL_DT:.2f} s in run(s) {names}")
+        if progress is not None and (k % 100 == 0 or k == n_ctl - 1):
+            progress(k + 1)
+    time_s = np.arange(n_rec) * (rec_every * CONTROL_DT)
+    n_valid = np.array([min(n_rec, (p.n - 1) // rec_every + 1) for p in plans])
+    n_valid = np.minimum(n_valid, _abort_index(rec, n_rec))
+    return BatchResult(time_s, rec, n_valid, plans, params)
+
+
+#: a test driver ends a run once the car has (nearly) stopped or is spinning
+ABORT_SPEED_MPS = 3.0
+ABORT_SIDESLIP_RAD = np.deg2rad(30.0)
+
+
+def _abort_index(rec: Mapping[str, np.ndarray], n_rec: int) -> np.ndarray:
+    """Per run, the first recorded sample after which the run is no longer a test (stop or spin)."""
+    vx = rec["vx_true_mps"]
+    bad = (vx < ABORT_SPEED_MPS) | (np.abs(np.arctan2(rec["vy_mps"], np.abs(vx))) > ABORT_SIDESLIP_RAD)
+    first = np.where(bad.any(axis=1), bad.argmax(axis=1), n_rec)
+    return np.maximum(first, 1)
+
+
+def _record(rec: dict[str, np.ndarray], j: int, x: np.ndarray, aux: Mapping[str, np.ndarray],
+            u: Any, drv: Driver, veh: Vehicle) -> None:
+    g = veh.g
+    phi, th = x[:, IPHI], x[:, ITH]
+    rec["x_m"][:, j] = x[:, IX]
+    rec["y_m"][:, j] = x[:, IY]
+    rec["yaw_rad"][:, j] = x[:, IPSI]
+    rec["vx_true_mps"][:, j] = x[:, IVX]
+    rec["vy_mps"][:, j] = x[:, IVY]
+    rec["yaw_rate_true_radps"][:, j] = x[:, IR]
+    rec["roll_rad"][:, j] = phi
+    rec["pitch_rad"][:, j] = th
+    # what a body-fixed accelerometer at the CG measures: specific force, gravity through roll/pitch
+    rec["ax_true_mps2"][:, j] = aux["ax_kin"] * np.cos(th) - g * np.sin(th)
+    rec["ay_true_mps2"][:, j] = aux["ay_kin"] * np.cos(phi) + g * np.sin(phi)
+    rec["steer_angle_true_rad"][:, j] = x[:, ISW]
+    rec["steer_torque_true_nm"][:, j] = aux["t_bar"]
+    rec["assist_torque_true_nm"][:, j] = x[:, IAS]
+    rec["motor_torque_true_nm"][:, j] = drv.motor
+    rec["road_mu"][:, j] = u.mu
+    rec["steer_angle_cmd_rad"][:, j] = u.steer_cmd
+    for w, src in (("alpha", "alpha"), ("kappa", "kappa"), ("fz", "fz"), ("fy", "fy"), ("fx", "fx"),
+                   ("delta", "delta"), ("sat", "mz"), ("comp", "comp"), ("re", "re")):
+        a = aux[src]
+        for i, name in enumerate(WHEELS):
+            rec[f"{w}_{name}"][:, j] = a[:, i]
+    om = x[:, IOM]
+    for i, name in enumerate(WHEELS):
+        rec[f"omega_{name}"][:, j] = om[:, i]
+        rec[f"pressure_{name}"][:, j] = veh.pressure[:, i]

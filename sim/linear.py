@@ -1,0 +1,119 @@
+"""The linear single-track (bicycle) model built from the same parameters.
+
+Used to size open-loop steering amplitudes (the steering-wheel angle that gives
+a wanted lateral acceleration) and as the reference the full model must match
+in the linear range (understeer gradient, acceptance test).
+
+Axle cornering stiffnesses come from the MF 6.1 tyre at the static wheel loads,
+static camber and inflation pressure (slope of Fy at zero slip). The model also
+carries the two linear effects the full model has at small lateral
+acceleration: the pneumatic trails (the tyres' aligning torque moves each
+axle's lateral force behind the axle) and roll camber (the body's roll leans
+the wheels, whose camber thrust adds to the slip force).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sim.tyre import MagicFormula61
+from sim.vehicle import tyre_for
+
+
+@dataclass(frozen=True)
+class LinearModel:
+    """Linear single-track model; all stiffnesses positive, SI units.
+
+    Attributes:
+        mass_kg, wheelbase_m, a_m, b_m: mass, wheelbase, CG to front/rear axle.
+        c_front, c_rear: axle cornering stiffness (N/rad), both tyres.
+        trail_front_m, trail_rear_m: pneumatic trail at zero slip (m).
+        camber_thrust_front, camber_thrust_rear: lateral force per m/s^2 of
+            lateral acceleration from roll camber, whole axle (N s^2/m), + outward.
+        roll_gradient: body roll per lateral acceleration (rad per m/s^2).
+        ratio: steering ratio (steering-wheel angle / road-wheel angle).
+    """
+
+    mass_kg: float
+    wheelbase_m: float
+    a_m: float
+    b_m: float
+    c_front: float
+    c_rear: float
+    trail_front_m: float
+    trail_rear_m: float
+    camber_thrust_front: float
+    camber_thrust_rear: float
+    roll_gradient: float
+    ratio: float
+
+    @property
+    def understeer_gradient(self) -> float:
+        """K in rad of road-wheel angle per m/s^2: delta = L/R + K * ay (steady state)."""
+        af = self.a_m - self.trail_front_m
+        br = self.b_m + self.trail_rear_m
+        lp = af + br
+        per_ay_front = (self.mass_kg * br / lp + self.camber_thrust_front) / self.c_front
+        per_ay_rear = (self.mass_kg * af / lp + self.camber_thrust_rear) / self.c_rear
+        return per_ay_front - per_ay_rear
+
+    def road_wheel_angle(self, speed_mps: np.ndarray | float, ay_mps2: np.ndarray | float) -> np.ndarray:
+        """Steady-state mean road-wheel angle (rad) for ``ay`` at ``speed``."""
+        v = np.maximum(np.asarray(speed_mps, dtype=float), 1.0)
+        ay = np.asarray(ay_mps2, dtype=float)
+        return self.wheelbase_m * ay / (v * v) + self.understeer_gradient * ay
+
+    def steering_wheel_angle(self, speed_mps: np.ndarray | float, ay_mps2: np.ndarray | float) -> np.ndarray:
+        """Steady-state steering-wheel angle (rad) for ``ay`` at ``speed``."""
+        return self.ratio * self.road_wheel_angle(speed_mps, ay_mps2)
+
+
+def _axle_properties(tyre: MagicFormula61, fz: float, camber: float, pressure: float) -> tuple[float, float, float]:
+    """(cornering stiffness N/rad, camber stiffness N/rad, pneumatic trail m) of one axle."""
+    da = 2e-3
+    a = np.array([-da, da])
+    # a right-hand tyre and its mirror image on the left: average their slopes
+    out = tyre.steady_state(np.full(2, fz), np.zeros(2), a, np.full(2, camber), np.full(2, 20.0),
+                            np.full(2, pressure), 1.0)
+    c = -(out.fy[1] - out.fy[0]) / (2 * da)  # ISO-W: Fy = -C * alpha
+    cm = (out.mz[1] - out.mz[0]) / (2 * da)
+    trail = cm / c
+    dg = 2e-3
+    g = np.array([camber - dg, camber + dg])
+    outg = tyre.steady_state(np.full(2, fz), np.zeros(2), np.zeros(2), g, np.full(2, 20.0),
+                             np.full(2, pressure), 1.0)
+    c_gamma = (outg.fy[1] - outg.fy[0]) / (2 * dg)
+    return 2.0 * c, 2.0 * c_gamma, trail
+
+
+def linear_model(params: Mapping[str, Any], tyre: MagicFormula61 | None = None) -> LinearModel:
+    """Build the linear single-track model of a parameter tree."""
+    v, s, ty, st = params["vehicle"], params["suspension"], params["tyres"], params["steering"]
+    tyre = tyre or tyre_for(params)
+    g = params["simulation"]["gravity_mps2"]
+    m, L, frac = v["mass_kg"], v["wheelbase_m"], v["front_axle_load_fraction"]
+    a, b = L * (1 - frac), L * frac
+    cf, cgf, tf = _axle_properties(tyre, m * g * frac / 2, ty["static_camber_front_rad"], ty["pressure_front_pa"])
+    cr, cgr, tr = _axle_properties(tyre, m * g * (1 - frac) / 2, ty["static_camber_rear_rad"],
+                                   ty["pressure_rear_pa"])
+    # roll gradient of the sprung mass about the roll axis
+    mu_f, mu_r = v["unsprung_mass_front_kg"], v["unsprung_mass_rear_kg"]
+    R0 = float(tyre.params["UNLOADED_RADIUS"])
+    ms = m - 2 * (mu_f + mu_r)
+    hs = (m * v["cg_height_m"] - 2 * (mu_f + mu_r) * R0) / ms
+    hra = (v["roll_centre_height_front_m"] * b + v["roll_centre_height_rear_m"] * a) / L
+    tf_w, tr_w = v["track_front_m"], v["track_rear_m"]
+    k_roll = ((s["wheel_rate_front_npm"] + 2 * s["arb_front_npm"]) * tf_w**2
+              + (s["wheel_rate_rear_npm"] + 2 * s["arb_rear_npm"]) * tr_w**2) / 2.0
+    roll_grad = ms * (hs - hra) / (k_roll - ms * g * (hs - hra))
+    # Roll leans both wheels' tops outward of the turn by f*phi. ISO-W: positive
+    # camber tilts the top to -y and the thrust follows the lean (dFy/dgamma < 0),
+    # so for both wheels the thrust points outward: it adds to the force the slip
+    # angles must make.
+    thrust_f = -cgf * s["camber_roll_factor_front"] * roll_grad
+    thrust_r = -cgr * s["camber_roll_factor_rear"] * roll_grad
+    return LinearModel(m, L, a, b, cf, cr, tf, tr, thrust_f, thrust_r, roll_grad, st["ratio"])

@@ -1,0 +1,74 @@
+"""The ``virtsensor`` command line: one entry point, one module per subcommand.
+
+Each subcommand lives in ``virtsensor/commands/<name>.py`` and exposes
+``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``.
+Modules are imported only when their subcommand runs, so ``--help`` is fast
+and an optional heavy dependency never breaks an unrelated command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Sequence
+
+from virtsensor.errors import UserError
+
+#: subcommand name -> module under virtsensor.commands, with its one-line help
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("simulate", "simulate a manoeuvre and write a 20 Hz table or a CAN log"),
+    "campaign": ("campaign", "simulate a whole data-set preset (e.g. the paper's) in parallel"),
+    "replay": ("replay", "play a CAN log (or a simulated manoeuvre) onto a python-can bus"),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's rule for mistakes: one line, exit code 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from virtsensor import __version__
+
+    parser = _Parser(prog="virtsensor", description="virtsensor: real-time virtual sensor of the front tyres' self-aligning torque from CAN signals.")
+    parser.add_argument("--version", action="version", version=f"virtsensor {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        # Arguments are registered lazily: only the chosen subcommand's module
+        # is imported (see main()).
+    return parser
+
+
+def _load(module: str):
+    return importlib.import_module(f"virtsensor.commands.{module}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    # First pass: find the subcommand, then let its module add its arguments.
+    name = next((a for a in argv if not a.startswith("-")), None)
+    if name in COMMANDS:
+        sub_action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        mod = _load(COMMANDS[name][0])
+        mod.add_arguments(sub_action.choices[name])
+    args = parser.parse_args(argv)
+    mod = _load(args._module)
+    try:
+        return int(mod.run(args) or 0)
+    except UserError as exc:
+        print(f"virtsensor {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"virtsensor {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,67 @@
+"""``virtsensor simulate``: one manoeuvre, written as a 20 Hz table or a CAN log."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
+from virtsensor.errors import UserError
+
+HELP = "simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log (.blf/.asc/.log)"
+TABLE_SUFFIXES = (".csv",)
+LOG_SUFFIXES = (".blf", ".asc", ".log")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("manoeuvre", metavar="MANOEUVRE",
+                        help="free-steer, steering-pulse, double-lane-change, steady-state-circular, "
+                             "single-sine, random-steer, braking-in-turn, fishhook, sine-with-dwell, "
+                             "brake-accel, magny-cours")
+    parser.add_argument("--speed", type=float, required=True, metavar="KMH",
+                        help="entry speed in km/h (magny-cours: top speed)")
+    parser.add_argument("--mu", type=float, required=True, help="road friction coefficient (magny-cours: dry lap)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the manoeuvre's levels and the sensor noise")
+    parser.add_argument("--out", required=True, metavar="FILE", help="output: .csv table or .blf/.asc/.log CAN log")
+    add_car_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from sim.api import simulate
+    from sim.manoeuvres import check
+
+    out = Path(args.out)
+    suffix = out.suffix.lower()
+    if suffix not in TABLE_SUFFIXES + LOG_SUFFIXES:
+        raise UserError(f"--out {out}: unknown format {suffix or '(none)'}; use .csv, .blf, .asc or .log")
+    if not out.parent.exists():
+        raise UserError(f"--out {out}: directory {out.parent} does not exist")
+    with sim_errors():
+        check(args.manoeuvre, args.speed, args.mu)
+    params = car_from_args(args)
+    with sim_errors():
+        sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params)
+    write_run(sim_run, out)
+    n = len(sim_run.table["time_s"])
+    print(f"{args.manoeuvre} at {args.speed:g} km/h, mu {args.mu:g}: {n} samples at 20 Hz "
+          f"({sim_run.table['time_s'][-1]:.2f} s) -> {out}", file=sys.stderr)
+    return 0
+
+
+def write_run(sim_run, out: Path) -> None:
+    """Write a simulated run to ``out`` (.csv table or CAN log), atomically: on any
+    failure no partial file is left behind."""
+    from virtsensor.recording import write_csv, write_log
+
+    # python-can picks the log writer by suffix: the temporary file keeps it
+    tmp = out.with_name(f".partial-{out.name}")
+    try:
+        if out.suffix.lower() in TABLE_SUFFIXES:
+            write_csv(tmp, sim_run.table)
+        else:
+            streams = sim_run.streams
+            write_log(tmp, streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"})
+        tmp.replace(out)
+    finally:
+        tmp.unlink(missing_ok=True)

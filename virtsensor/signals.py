@@ -1,0 +1,234 @@
+"""The one catalogue of signals: canonical names, SI units, signs, ranges, CAN mapping.
+
+Every part of the project (simulator, CAN codec, trainer, runtime, diagnosis)
+names a quantity by its canonical name from this module and nowhere else
+restates its unit, sign or range.
+
+Sign conventions (written once, here)
+-------------------------------------
+Vehicle axes follow ISO 8855: x forward, y to the left, z up, origin at the
+centre of gravity projected on the ground. Angles and angular rates about z
+are positive counter-clockwise seen from above, so a **left turn** has positive
+yaw rate, positive steering-wheel angle and positive lateral acceleration.
+
+* ``ax_mps2``/``ay_mps2`` are what a body-fixed accelerometer measures (specific
+  force): they include the components of gravity that body roll and pitch put
+  on the sensor axes.
+* ``steer_angle_rad`` is the steering-wheel angle (not the road-wheel angle).
+* ``steer_torque_nm`` is the torsion-bar torque (the EPAS torque sensor),
+  positive when the driver turns the wheel to the left.
+* ``assist_torque_nm`` is the EPAS motor torque referred to the steering column
+  (pinion) axis, positive in the same sense as ``steer_torque_nm``.
+* ``motor_torque_nm`` is the traction-motor shaft torque, positive propelling.
+* ``susp_defl_*_m`` is suspension compression (bump) from the static design
+  position, positive when the wheel moves up relative to the body.
+* ``wheel_speed_*_radps`` is the wheel spin rate, positive rolling forward.
+* ``sat_*_nm`` is the tyre self-aligning torque: Mz of the tyre at the contact
+  centre about the wheel's vertical axis (ISO-W, z up). It opposes the slip
+  angle, so in a left turn both front SATs are **negative**.
+* Tyre slip angles follow ISO-W: ``alpha = atan(v_y / |v_x|)`` of the wheel
+  centre in wheel axes, so in a left turn the front slip angles are negative
+  and the lateral forces positive.
+
+Roles
+-----
+``input``  the 12 estimator inputs of the paper's Table II (in that order);
+``output`` the two estimated quantities (front SATs);
+``aux``    other signals a car carries on CAN (rear wheel speeds, TPMS, ...);
+``truth``  simulator-only ground truth that explains the outputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Literal, Mapping
+
+Role = Literal["input", "output", "aux", "truth", "time"]
+
+
+@dataclass(frozen=True)
+class Signal:
+    """One canonical signal.
+
+    Attributes:
+        name: canonical name, suffixed with its unit (``_mps2``, ``_nm``, ...).
+        unit: SI unit as printed in tables and the DBC.
+        description: what it is, with its sign convention where one applies.
+        role: see module docstring.
+        minimum, maximum: valid physical range in ``unit``; values outside are
+            implausible and a receiver rejects them.
+        resolution: the smallest step the CAN encoding carries (``unit``).
+        message: DBC message that carries it (None: not on CAN).
+        dbc_signal: signal name inside that message.
+        critical: for inputs, True when the estimate cannot be trusted without
+            it (INVALID), False when a held or substituted value only degrades it.
+    """
+
+    name: str
+    unit: str
+    description: str
+    role: Role
+    minimum: float
+    maximum: float
+    resolution: float
+    message: str | None = None
+    dbc_signal: str | None = None
+    critical: bool = False
+
+
+@dataclass(frozen=True)
+class Message:
+    """One CAN message of the matrix (the DBC is generated from these facts).
+
+    Attributes:
+        name: DBC message name.
+        frame_id: 11-bit identifier.
+        sender: sending ECU node.
+        cycle_s: transmission period in seconds (``GenMsgCycleTime``).
+        data_id: AUTOSAR E2E data ID mixed into the CRC.
+    """
+
+    name: str
+    frame_id: int
+    sender: str
+    cycle_s: float
+    data_id: int
+
+
+MESSAGES: Mapping[str, Message] = MappingProxyType(
+    {
+        m.name: m
+        for m in (
+            Message("IMU_Motion", 0x080, "ACU", 0.010, 0x0801),
+            Message("EPAS_Steering", 0x0A0, "EPAS", 0.010, 0x0A01),
+            Message("PT_Torque", 0x0C0, "PCU", 0.010, 0x0C01),
+            Message("ESC_WheelSpeeds", 0x100, "ESC", 0.020, 0x1001),
+            Message("ESC_VehicleSpeed", 0x101, "ESC", 0.020, 0x1011),
+            Message("CHS_Suspension", 0x120, "CHS", 0.020, 0x1201),
+            Message("TPMS_Pressures", 0x3A0, "TPMS", 0.100, 0x3A01),
+            Message("SAT_FRONT", 0x200, "VSENS", 0.050, 0x2001),
+            Message("VS_Health", 0x201, "VSENS", 0.050, 0x2011),
+            Message("TE_WheelForceTransducer", 0x600, "TESTEQ", 0.010, 0x6001),
+        )
+    }
+)
+
+
+def _s(*args, **kwargs) -> Signal:
+    return Signal(*args, **kwargs)
+
+
+_ALL: tuple[Signal, ...] = (
+    _s("time_s", "s", "Time since the start of the run.", "time", 0.0, 1e7, 1e-6),
+    # ---- the 12 inputs of Table II, in the paper's order -------------------------
+    _s("ax_mps2", "m/s^2", "Longitudinal specific force at the IMU, body x, + forward.",
+       "input", -20.0, 20.0, 0.01, "IMU_Motion", "AccelLong", critical=False),
+    _s("ay_mps2", "m/s^2", "Lateral specific force at the IMU, body y, + left.",
+       "input", -20.0, 20.0, 0.01, "IMU_Motion", "AccelLat", critical=True),
+    _s("vx_mps", "m/s", "Longitudinal vehicle speed from the ESC, + forward.",
+       "input", -20.0, 90.0, 0.01, "ESC_VehicleSpeed", "VehSpeed", critical=True),
+    _s("yaw_rate_radps", "rad/s", "Yaw rate about body z, + counter-clockwise.",
+       "input", -2.0, 2.0, 0.0005, "IMU_Motion", "YawRate", critical=True),
+    _s("steer_angle_rad", "rad", "Steering-wheel angle, + left (counter-clockwise).",
+       "input", -13.0, 13.0, 0.001, "EPAS_Steering", "SteerWheelAngle", critical=True),
+    _s("steer_torque_nm", "Nm", "Torsion-bar (driver) torque, + turning left.",
+       "input", -20.0, 20.0, 0.01, "EPAS_Steering", "TorsionBarTorque", critical=True),
+    _s("assist_torque_nm", "Nm", "EPAS assist torque referred to the column, + left.",
+       "input", -100.0, 100.0, 0.01, "EPAS_Steering", "AssistTorque", critical=True),
+    _s("motor_torque_nm", "Nm", "Traction motor shaft torque, + propelling.",
+       "input", -400.0, 400.0, 0.1, "PT_Torque", "MotorTorque", critical=False),
+    _s("susp_defl_fl_m", "m", "Front-left suspension compression from design height.",
+       "input", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_FL", critical=False),
+    _s("susp_defl_fr_m", "m", "Front-right suspension compression from design height.",
+       "input", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_FR", critical=False),
+    _s("wheel_speed_fl_radps", "rad/s", "Front-left wheel spin rate, + forward.",
+       "input", -50.0, 300.0, 0.01, "ESC_WheelSpeeds", "WhlSpd_FL", critical=False),
+    _s("wheel_speed_fr_radps", "rad/s", "Front-right wheel spin rate, + forward.",
+       "input", -50.0, 300.0, 0.01, "ESC_WheelSpeeds", "WhlSpd_FR", critical=False),
+    # ---- outputs ---------------------------------------------------------------
+    _s("sat_fl_nm", "Nm", "Front-left self-aligning torque (tyre Mz, ISO-W); < 0 in a left turn.",
+       "output", -300.0, 300.0, 0.02, "TE_WheelForceTransducer", "Mz_FL"),
+    _s("sat_fr_nm", "Nm", "Front-right self-aligning torque (tyre Mz, ISO-W); < 0 in a left turn.",
+       "output", -300.0, 300.0, 0.02, "TE_WheelForceTransducer", "Mz_FR"),
+    # ---- other signals a car carries -------------------------------------------
+    _s("wheel_speed_rl_radps", "rad/s", "Rear-left wheel spin rate, + forward.",
+       "aux", -50.0, 300.0, 0.01, "ESC_WheelSpeeds", "WhlSpd_RL"),
+    _s("wheel_speed_rr_radps", "rad/s", "Rear-right wheel spin rate, + forward.",
+       "aux", -50.0, 300.0, 0.01, "ESC_WheelSpeeds", "WhlSpd_RR"),
+    _s("susp_defl_rl_m", "m", "Rear-left suspension compression from design height.",
+       "aux", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_RL"),
+    _s("susp_defl_rr_m", "m", "Rear-right suspension compression from design height.",
+       "aux", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_RR"),
+    _s("tyre_pressure_fl_pa", "Pa", "Front-left tyre inflation pressure (TPMS, gauge).",
+       "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_FL"),
+    _s("tyre_pressure_fr_pa", "Pa", "Front-right tyre inflation pressure (TPMS, gauge).",
+       "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_FR"),
+    _s("tyre_pressure_rl_pa", "Pa", "Rear-left tyre inflation pressure (TPMS, gauge).",
+       "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_RL"),
+    _s("tyre_pressure_rr_pa", "Pa", "Rear-right tyre inflation pressure (TPMS, gauge).",
+       "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_RR"),
+    # ---- simulator truth: the tyre states that explain the SAT --------------------
+    *(
+        _s(f"{q}_{w}_{u}", unit, f"{text} of the {wname} tyre (truth).", "truth", lo, hi, res)
+        for w, wname in (("fl", "front-left"), ("fr", "front-right"),
+                         ("rl", "rear-left"), ("rr", "rear-right"))
+        for q, u, unit, text, lo, hi, res in (
+            ("alpha", "rad", "rad", "Slip angle (ISO-W, lagged by relaxation)", -1.6, 1.6, 1e-5),
+            ("kappa", "1", "1", "Longitudinal slip ratio (lagged)", -1.0, 1.0, 1e-5),
+            ("fz", "n", "N", "Vertical load", 0.0, 30000.0, 0.1),
+            ("fy", "n", "N", "Lateral force in wheel axes, + left", -30000.0, 30000.0, 0.1),
+            ("fx", "n", "N", "Longitudinal force in wheel axes, + forward", -30000.0, 30000.0, 0.1),
+            ("delta", "rad", "rad", "Road-wheel steer angle, + left", -1.0, 1.0, 1e-6),
+        )
+    ),
+    _s("sat_rl_nm", "Nm", "Rear-left self-aligning torque (truth).", "truth", -300.0, 300.0, 0.02),
+    _s("sat_rr_nm", "Nm", "Rear-right self-aligning torque (truth).", "truth", -300.0, 300.0, 0.02),
+    _s("vy_mps", "m/s", "Lateral velocity at the CG, body y (truth).", "truth", -30.0, 30.0, 1e-4),
+    _s("x_m", "m", "Global x position of the CG (truth).", "truth", -1e6, 1e6, 1e-3),
+    _s("y_m", "m", "Global y position of the CG (truth).", "truth", -1e6, 1e6, 1e-3),
+    _s("yaw_rad", "rad", "Heading angle, + counter-clockwise (truth).", "truth", -1e4, 1e4, 1e-6),
+    _s("roll_rad", "rad", "Body roll angle about x; + right side down (truth).", "truth", -0.3, 0.3, 1e-6),
+    _s("pitch_rad", "rad", "Body pitch angle about y; + nose down (truth).", "truth", -0.3, 0.3, 1e-6),
+    _s("road_mu", "1", "Road friction coefficient under the car (truth).", "truth", 0.0, 1.5, 1e-3),
+    _s("steer_angle_cmd_rad", "rad", "Steering-wheel angle the driver/robot commands (truth).",
+       "truth", -13.0, 13.0, 1e-4),
+)
+
+SIGNALS: Mapping[str, Signal] = MappingProxyType({s.name: s for s in _ALL})
+
+#: The 12 estimator inputs, in the paper's Table II order.
+INPUTS: tuple[str, ...] = tuple(s.name for s in _ALL if s.role == "input")
+#: The two estimated outputs (front-left, front-right SAT).
+OUTPUTS: tuple[str, ...] = tuple(s.name for s in _ALL if s.role == "output")
+#: Columns of the canonical 20 Hz table: time, inputs, outputs.
+TABLE_COLUMNS: tuple[str, ...] = ("time_s", *INPUTS, *OUTPUTS)
+#: Signals that travel on CAN (inputs, reference outputs, aux).
+CAN_SIGNALS: tuple[str, ...] = tuple(s.name for s in _ALL if s.message is not None)
+#: The canonical table rate of the paper (Hz).
+TABLE_RATE_HZ = 20.0
+
+
+def signal(name: str) -> Signal:
+    """Return the catalogue entry for ``name``.
+
+    Raises:
+        KeyError: with the list of close names when ``name`` is not catalogued.
+    """
+    try:
+        return SIGNALS[name]
+    except KeyError:
+        import difflib
+
+        close = difflib.get_close_matches(name, SIGNALS.keys(), n=3)
+        hint = f" (did you mean {', '.join(close)}?)" if close else ""
+        raise KeyError(f"unknown signal {name!r}{hint}") from None
+
+
+def by_message(message: str) -> tuple[Signal, ...]:
+    """The catalogued signals carried by DBC message ``message``."""
+    return tuple(s for s in _ALL if s.message == message)
+
+
+assert len(INPUTS) == 12, INPUTS
+assert OUTPUTS == ("sat_fl_nm", "sat_fr_nm"), OUTPUTS
