@@ -67,7 +67,8 @@ def _batches(requests: Sequence[Request], params: Mapping[str, Any], n_batches: 
     from sim.manoeuvres import build_plan
 
     durations = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, params).duration_s for r in requests]
-    order = np.argsort(durations, kind="stable")
+    # longest batches first, so the short ones fill the workers at the end
+    order = np.argsort(durations, kind="stable")[::-1]
     return [list(map(int, chunk)) for chunk in np.array_split(order, n_batches) if len(chunk)]
 
 
@@ -83,7 +84,7 @@ def run_campaign(
     params: Mapping[str, Any],
     *,
     n_jobs: int = -1,
-    batch_size: int = 40,
+    batch_size: int = 25,
     writer: Callable[[SimRun], Any] | None = None,
     progress: bool = True,
     backend: str | None = None,

@@ -197,21 +197,31 @@ def _circle_entry(radius: float, direction: int, lead: float = 20.0, laps: float
     return np.stack([p.x, p.y], axis=1)
 
 
-def steady_state_circular(v: float, mu: float, rng: np.random.Generator, params: Mapping[str, Any]) -> Plan:
-    """ISO 4138 constant radius: speed raised slowly from half to the given speed."""
-    level = _level(rng, 0.5, 0.95)
-    radius = max(v * v / (level * mu * G), 15.0)
-    direction = _direction(rng)
-    duration = 30.0
-    v_start = 0.5 * v
-    path = _circle_entry(radius, direction, laps=(duration * v) / (2 * np.pi * radius) + 0.5)
-    t, plan = _base("steady-state-circular", duration, v_start, mu,
-                    {"radius_m": radius, "level": level, "direction": direction})
+def constant_radius(radius: float, v_start: float, v_end: float, duration: float, mu: float,
+                    direction: int = 1, name: str = "steady-state-circular", label: dict | None = None) -> Plan:
+    """ISO 4138 constant-radius test: follow a circle while the speed rises slowly.
+
+    The speed is held at ``v_start`` for 5 s on entry, then ramps linearly to
+    ``v_end`` over the rest of the run but the last 2 s.
+    """
+    path = _circle_entry(radius, direction, laps=(duration * max(v_start, v_end)) / (2 * np.pi * radius) + 0.5)
+    t, plan = _base(name, duration, v_start, mu, {"radius_m": radius, "direction": direction, **(label or {})})
     plan.steer_mode[:] = STEER_PATH
     plan.path, plan.path_ds = path, 0.5
     ramp = np.clip((t - 5.0) / (duration - 7.0), 0.0, 1.0)
-    plan.speed_target[:] = v_start + (v - v_start) * ramp
+    plan.speed_target[:] = v_start + (v_end - v_start) * ramp
     return plan
+
+
+def steady_state_circular(v: float, mu: float, rng: np.random.Generator, params: Mapping[str, Any]) -> Plan:
+    """ISO 4138 constant radius: speed raised slowly from half to the given speed.
+
+    The radius is chosen so that the final speed asks for a share (drawn from the
+    seed) of the friction limit.
+    """
+    level = _level(rng, 0.5, 0.95)
+    radius = max(v * v / (level * mu * G), 15.0)
+    return constant_radius(radius, 0.5 * v, v, 30.0, mu, _direction(rng), label={"level": level})
 
 
 def free_steer(v: float, mu: float, rng: np.random.Generator, params: Mapping[str, Any]) -> Plan:
@@ -261,15 +271,11 @@ def magny_cours(v: float, mu: float, rng: np.random.Generator, params: Mapping[s
     from sim import track as trk
 
     tr = trk.load_magny_cours()
-    laps = tr.laps(2)
+    laps = tr.laps(2).aligned_to_start()  # the car starts at the start line heading +x
     s = laps.s
     mu_s = np.where(s < tr.length, mu, wet_mu)
     vprof = trk.speed_profile(laps.curvature, s, mu_s, v_max_mps=v)
-    # the car starts at the first point, heading along the track: move the path there
-    x0, y0, h0 = laps.x[0], laps.y[0], laps.heading[0]
-    c, sn = np.cos(-h0), np.sin(-h0)
-    px = (laps.x - x0) * c - (laps.y - y0) * sn
-    py = (laps.x - x0) * sn + (laps.y - y0) * c
+    px, py = laps.x, laps.y
     ds = float(s[1] - s[0])
     lap_time = float(np.sum(ds / np.maximum(vprof, 1.0)))
     duration = lap_time + 1.0

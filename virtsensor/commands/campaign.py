@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", choices=FORMATS, default="csv", help="file format of each run (default csv)")
     parser.add_argument("--seed", type=int, default=0, help="campaign seed (every run's seed derives from it)")
     parser.add_argument("--jobs", type=int, default=-1, help="parallel workers (default: all cores)")
-    parser.add_argument("--batch-size", type=int, default=40, help="runs per vectorised batch")
+    parser.add_argument("--batch-size", type=int, default=25, help="runs per vectorised batch")
     parser.add_argument("--backend", default=None, help="joblib backend (loky, threading, ray, dask...)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_car_arguments(parser)

@@ -1,0 +1,266 @@
+"""Race-track centrelines and the quasi-steady lap speed profile.
+
+Frames and signs (ISO 8855): x, y in an earth-fixed horizontal frame (z up);
+``heading`` is the angle of the path tangent from +x towards +y (rad, yaw
+sense, unwrapped so it is continuous along the path); ``curvature`` is
+d(heading)/ds (1/m), positive when the path turns left. All lengths in m,
+speeds in m/s, accelerations in m/s^2.
+
+The bundled Magny-Cours centreline (``sim/data/magny_cours_centreline.csv``)
+is derived by ``tools/derive_track.py`` from bacinger/f1-circuits
+``circuits/fr-1960.geojson`` (MIT licence); the lap runs clockwise, as raced,
+so its heading falls by 2 pi per lap and its long-run curvature is negative.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = ["Track", "TrackSample", "load_magny_cours", "speed_profile", "lap_time"]
+
+COLUMNS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm")
+MAGNY_COURS_CSV = "magny_cours_centreline.csv"
+
+
+class TrackSample(NamedTuple):
+    """Centreline quantities at queried arc lengths (arrays shaped like the query)."""
+
+    x: np.ndarray  #: position x (m)
+    y: np.ndarray  #: position y (m)
+    heading: np.ndarray  #: tangent angle from +x towards +y (rad), continuous across laps
+    curvature: np.ndarray  #: curvature (1/m), > 0 turning left
+
+
+def _readonly(a: ArrayLike) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Track:
+    """A closed centreline sampled along its arc length.
+
+    The arrays include a closing sample: ``s[0] == 0``, ``s[-1] == length`` and the
+    last position equals the first; ``heading[-1] - heading[0]`` is the net turn of
+    one lap (-2 pi for a clockwise circuit).
+
+    Attributes:
+        s: arc length (m), strictly increasing, from 0 to ``length``.
+        x, y: position (m).
+        heading: tangent angle (rad), unwrapped.
+        curvature: curvature (1/m), > 0 turning left.
+        length: lap length (m).
+    """
+
+    s: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    heading: np.ndarray
+    curvature: np.ndarray
+    length: float
+
+    def __post_init__(self) -> None:
+        for name in ("s", "x", "y", "heading", "curvature"):
+            object.__setattr__(self, name, _readonly(getattr(self, name)))
+        object.__setattr__(self, "length", float(self.length))
+        n = self.s.shape
+        if len(n) != 1 or n[0] < 3:
+            raise ValueError("Track arrays must be 1-D with at least 3 samples")
+        if any(getattr(self, k).shape != n for k in ("x", "y", "heading", "curvature")):
+            raise ValueError("Track arrays must all have the same shape")
+        if self.s[0] != 0.0 or np.any(np.diff(self.s) <= 0.0):
+            raise ValueError("Track.s must start at 0 and increase strictly")
+        if not np.isclose(self.s[-1], self.length, rtol=0.0, atol=1e-6):
+            raise ValueError("Track.s must end at Track.length (closing sample)")
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def turn_per_lap(self) -> float:
+        """Net heading change over one lap (rad); -2 pi for a clockwise circuit."""
+        return float(self.heading[-1] - self.heading[0])
+
+    def at(self, s: ArrayLike) -> TrackSample:
+        """Interpolate the centreline at arc lengths ``s`` (m, any shape, any real value).
+
+        ``s`` wraps periodically with ``length``. Position uses cubic Hermite
+        interpolation with the unit tangents (error ~ ds^4 |dkappa/ds|, well under
+        1 mm at 2 m spacing); heading and curvature interpolate linearly. The heading
+        gains ``turn_per_lap`` per lap, so it is continuous for s beyond one lap.
+        """
+        s_arr = np.asarray(s, dtype=float)
+        lap = np.floor(s_arr / self.length)
+        sm = s_arr - lap * self.length
+        i = np.clip(np.searchsorted(self.s, sm, side="right") - 1, 0, len(self.s) - 2)
+        h = self.s[i + 1] - self.s[i]
+        t = (sm - self.s[i]) / h
+        t2, t3 = t * t, t * t * t
+        h00, h10, h01, h11 = 2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + t, -2 * t3 + 3 * t2, t3 - t2
+        c0, s0 = np.cos(self.heading[i]), np.sin(self.heading[i])
+        c1, s1 = np.cos(self.heading[i + 1]), np.sin(self.heading[i + 1])
+        x = h00 * self.x[i] + h10 * h * c0 + h01 * self.x[i + 1] + h11 * h * c1
+        y = h00 * self.y[i] + h10 * h * s0 + h01 * self.y[i + 1] + h11 * h * s1
+        heading = (1 - t) * self.heading[i] + t * self.heading[i + 1] + lap * self.turn_per_lap
+        curvature = (1 - t) * self.curvature[i] + t * self.curvature[i + 1]
+        return TrackSample(x, y, heading, curvature)
+
+    def laps(self, n: int) -> Track:
+        """The centreline driven ``n`` times as one path (``n >= 1``).
+
+        s runs continuously from 0 to ``n * length``; the heading stays continuous
+        (it gains ``turn_per_lap`` each lap); the result is again a closed Track.
+        """
+        if int(n) != n or n < 1:
+            raise ValueError("n must be a positive integer")
+        n = int(n)
+        body = slice(0, -1)
+        k = np.repeat(np.arange(n), len(self.s) - 1)
+
+        def tile(a: np.ndarray) -> np.ndarray:
+            return np.concatenate([np.tile(a[body], n), a[-1:]])
+
+        s = np.concatenate([np.tile(self.s[body], n) + k * self.length, [n * self.length]])
+        heading = np.concatenate(
+            [
+                np.tile(self.heading[body], n) + k * self.turn_per_lap,
+                [self.heading[-1] + (n - 1) * self.turn_per_lap],
+            ]
+        )
+        return Track(s, tile(self.x), tile(self.y), heading, tile(self.curvature), n * self.length)
+
+    def aligned_to_start(self) -> Track:
+        """The same track moved and rotated so s = 0 is at the origin heading +x."""
+        c, sn = np.cos(-self.heading[0]), np.sin(-self.heading[0])
+        dx, dy = self.x - self.x[0], self.y - self.y[0]
+        return Track(
+            self.s,
+            c * dx - sn * dy,
+            sn * dx + c * dy,
+            self.heading - self.heading[0],
+            self.curvature,
+            self.length,
+        )
+
+    # ------------------------------------------------------------------ I/O
+    @classmethod
+    def from_csv(cls, path: str | Path) -> Track:
+        """Read a centreline CSV (``#`` comments, header ``s_m,x_m,y_m,heading_rad,curvature_1pm``)."""
+        return cls._from_text(Path(path).read_text(encoding="utf-8"), str(path))
+
+    @classmethod
+    def _from_text(cls, text: str, origin: str) -> Track:
+        lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+        if not lines or tuple(c.strip() for c in lines[0].split(",")) != COLUMNS:
+            raise ValueError(f"{origin}: expected header {','.join(COLUMNS)}")
+        data = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], dtype=float)
+        if data.ndim != 2 or data.shape[1] != len(COLUMNS):
+            raise ValueError(f"{origin}: expected {len(COLUMNS)} columns")
+        s, x, y, heading, curvature = data.T
+        return cls(s, x, y, heading, curvature, float(s[-1]))
+
+
+def load_magny_cours() -> Track:
+    """Load the bundled Magny-Cours centreline (4445 m, clockwise, start/finish straight at s = 0)."""
+    text = resources.files("sim").joinpath("data", MAGNY_COURS_CSV).read_text(encoding="utf-8")
+    return Track._from_text(text, f"sim/data/{MAGNY_COURS_CSV}")
+
+
+# ---------------------------------------------------------------------- speed profile
+def speed_profile(
+    track_or_path_curvature: Track | ArrayLike,
+    s: ArrayLike,
+    mu: float | ArrayLike,
+    *,
+    v_max_mps: float,
+    ay_frac: float = 0.85,
+    ax_accel_mps2: float = 3.0,
+    ax_brake_frac: float = 0.8,
+    g: float = 9.81,
+    v_start_mps: float | None = None,
+    v_end_mps: float | None = None,
+) -> np.ndarray:
+    """Quasi-steady speed profile v(s) (m/s) of a car driven briskly along a path.
+
+    The classic three-step construction:
+
+    1. cornering limit ``v_lim = min(v_max, sqrt(ay_lim / |kappa|))`` with the lateral
+       budget ``ay_lim = ay_frac * mu * g`` (0.85 of the friction limit by default);
+    2. forward pass (acceleration): ``v[i+1]^2 <= v[i]^2 + 2 * ax * ds`` with
+       ``ax = ax_accel_mps2 * sqrt(1 - (ay / ay_lim)^2)``, ``ay = v[i]^2 |kappa[i]|``;
+    3. backward pass (braking): ``v[i]^2 <= v[i+1]^2 + 2 * ab * ds`` with
+       ``ab = ax_brake_frac * mu * g * sqrt(1 - (ay / ay_lim)^2)``, ``ay = v[i+1]^2 |kappa[i+1]|``,
+
+    so the longitudinal and lateral accelerations share a friction ellipse
+    (semi-axes ``ax_accel_mps2`` or ``ax_brake_frac * mu * g`` and ``ay_lim``). On each
+    step the friction is the lower of its two ends, so a step onto a wetter surface
+    is braked for in advance. The two passes are plain loops over the samples
+    (they run once per run, not per simulation step).
+
+    Args:
+        track_or_path_curvature: a :class:`Track` (curvature taken at ``s``, wrapping per
+            lap) or the path curvature (1/m) already sampled at ``s`` (same shape).
+        s: arc length (m), 1-D, strictly increasing.
+        mu: road friction coefficient (-), scalar or array over ``s`` (e.g. 1.0 on lap 1
+            and 0.7 on lap 2 of ``track.laps(2)``).
+        v_max_mps: speed cap (m/s), e.g. the car's top speed or a target.
+        ay_frac: fraction of the friction used laterally at the cornering limit (-).
+        ax_accel_mps2: acceleration available from the powertrain (m/s^2).
+        ax_brake_frac: braking deceleration as a fraction of ``mu * g`` (-).
+        g: gravity (m/s^2).
+        v_start_mps: speed at ``s[0]`` (None: as fast as the limits allow, a flying start).
+        v_end_mps: speed required at ``s[-1]`` (None: unconstrained).
+
+    Returns:
+        v (m/s), same shape as ``s``.
+    """
+    s_arr = np.asarray(s, dtype=float)
+    if s_arr.ndim != 1 or s_arr.size < 2 or np.any(np.diff(s_arr) <= 0.0):
+        raise ValueError("s must be 1-D, with at least 2 samples, strictly increasing")
+    if isinstance(track_or_path_curvature, Track):
+        kappa = track_or_path_curvature.at(s_arr).curvature
+    else:
+        kappa = np.asarray(track_or_path_curvature, dtype=float)
+        if kappa.shape != s_arr.shape:
+            raise ValueError("path curvature must have the shape of s")
+    mu_arr = np.broadcast_to(np.asarray(mu, dtype=float), s_arr.shape)
+    if np.any(mu_arr <= 0.0) or v_max_mps <= 0.0 or not 0.0 < ay_frac <= 1.0:
+        raise ValueError("mu, v_max_mps and ay_frac must be positive (ay_frac <= 1)")
+
+    abs_k = np.abs(kappa)
+    ay_lim = ay_frac * mu_arr * g
+    with np.errstate(divide="ignore"):
+        v_lim = np.minimum(v_max_mps, np.sqrt(ay_lim / abs_k))
+    ds = np.diff(s_arr)
+    mu_seg = np.minimum(mu_arr[:-1], mu_arr[1:])
+    ay_lim_seg = ay_frac * mu_seg * g
+    brake_seg = ax_brake_frac * mu_seg * g
+
+    def ellipse(v: float, k: float, ay_max: float) -> float:
+        r = (v * v * k) / ay_max
+        return np.sqrt(max(0.0, 1.0 - r * r))
+
+    v = v_lim.copy()
+    if v_start_mps is not None:
+        v[0] = min(v[0], float(v_start_mps))
+    if v_end_mps is not None:
+        v[-1] = min(v[-1], float(v_end_mps))
+    n = len(v)
+    for i in range(n - 1):  # forward: acceleration limit
+        ax = ax_accel_mps2 * ellipse(v[i], abs_k[i], ay_lim_seg[i])
+        v[i + 1] = min(v[i + 1], np.sqrt(v[i] * v[i] + 2.0 * ax * ds[i]))
+    for i in range(n - 2, -1, -1):  # backward: braking limit
+        ab = brake_seg[i] * ellipse(v[i + 1], abs_k[i + 1], ay_lim_seg[i])
+        v[i] = min(v[i], np.sqrt(v[i + 1] * v[i + 1] + 2.0 * ab * ds[i]))
+    return v
+
+
+def lap_time(s: ArrayLike, v: ArrayLike) -> float:
+    """Time (s) to cover the samples ``s`` (m) at speeds ``v`` (m/s), trapezoidal in 1/v."""
+    s_arr, v_arr = np.asarray(s, dtype=float), np.asarray(v, dtype=float)
+    return float(np.sum(np.diff(s_arr) * 0.5 * (1.0 / v_arr[1:] + 1.0 / v_arr[:-1])))
