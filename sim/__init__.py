@@ -1,0 +1,1 @@
+"""Vehicle simulator bundled with virtsensor (tyre model, vehicle model, CAN signal synthesis)."""
