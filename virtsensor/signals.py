@@ -40,9 +40,10 @@ Roles
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Literal, Mapping
+from typing import Literal
 
 Role = Literal["input", "output", "aux", "truth", "time"]
 
@@ -103,7 +104,8 @@ MESSAGES: Mapping[str, Message] = MappingProxyType(
             Message("IMU_Motion", 0x080, "ACU", 0.010, 0x0801),
             Message("EPAS_Steering", 0x0A0, "EPAS", 0.010, 0x0A01),
             Message("PT_Torque", 0x0C0, "PCU", 0.010, 0x0C01),
-            Message("ESC_WheelSpeeds", 0x100, "ESC", 0.020, 0x1001),
+            Message("ESC_WheelSpeeds_F", 0x100, "ESC", 0.020, 0x1001),
+            Message("ESC_WheelSpeeds_R", 0x102, "ESC", 0.020, 0x1021),
             Message("ESC_VehicleSpeed", 0x101, "ESC", 0.020, 0x1011),
             Message("CHS_Suspension", 0x120, "CHS", 0.020, 0x1201),
             Message("TPMS_Pressures", 0x3A0, "TPMS", 0.100, 0x3A01),
@@ -133,7 +135,7 @@ _ALL: tuple[Signal, ...] = (
     _s("steer_angle_rad", "rad", "Steering-wheel angle, + left (counter-clockwise).",
        "input", -13.0, 13.0, 0.001, "EPAS_Steering", "SteerWheelAngle", critical=True),
     _s("steer_torque_nm", "Nm", "Torsion-bar (driver) torque, + turning left.",
-       "input", -20.0, 20.0, 0.01, "EPAS_Steering", "TorsionBarTorque", critical=True),
+       "input", -40.0, 40.0, 0.01, "EPAS_Steering", "TorsionBarTorque", critical=True),
     _s("assist_torque_nm", "Nm", "EPAS assist torque referred to the column, + left.",
        "input", -100.0, 100.0, 0.01, "EPAS_Steering", "AssistTorque", critical=True),
     _s("motor_torque_nm", "Nm", "Traction motor shaft torque, + propelling.",
@@ -143,9 +145,9 @@ _ALL: tuple[Signal, ...] = (
     _s("susp_defl_fr_m", "m", "Front-right suspension compression from design height.",
        "input", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_FR", critical=False),
     _s("wheel_speed_fl_radps", "rad/s", "Front-left wheel spin rate, + forward.",
-       "input", -50.0, 300.0, 0.01, "ESC_WheelSpeeds", "WhlSpd_FL", critical=False),
+       "input", -50.0, 300.0, 0.01, "ESC_WheelSpeeds_F", "WhlSpd_FL", critical=False),
     _s("wheel_speed_fr_radps", "rad/s", "Front-right wheel spin rate, + forward.",
-       "input", -50.0, 300.0, 0.01, "ESC_WheelSpeeds", "WhlSpd_FR", critical=False),
+       "input", -50.0, 300.0, 0.01, "ESC_WheelSpeeds_F", "WhlSpd_FR", critical=False),
     # ---- outputs ---------------------------------------------------------------
     _s("sat_fl_nm", "Nm", "Front-left self-aligning torque (tyre Mz, ISO-W); < 0 in a left turn.",
        "output", -300.0, 300.0, 0.02, "TE_WheelForceTransducer", "Mz_FL"),
@@ -153,9 +155,9 @@ _ALL: tuple[Signal, ...] = (
        "output", -300.0, 300.0, 0.02, "TE_WheelForceTransducer", "Mz_FR"),
     # ---- other signals a car carries -------------------------------------------
     _s("wheel_speed_rl_radps", "rad/s", "Rear-left wheel spin rate, + forward.",
-       "aux", -50.0, 300.0, 0.01, "ESC_WheelSpeeds", "WhlSpd_RL"),
+       "aux", -50.0, 300.0, 0.01, "ESC_WheelSpeeds_R", "WhlSpd_RL"),
     _s("wheel_speed_rr_radps", "rad/s", "Rear-right wheel spin rate, + forward.",
-       "aux", -50.0, 300.0, 0.01, "ESC_WheelSpeeds", "WhlSpd_RR"),
+       "aux", -50.0, 300.0, 0.01, "ESC_WheelSpeeds_R", "WhlSpd_RR"),
     _s("susp_defl_rl_m", "m", "Rear-left suspension compression from design height.",
        "aux", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_RL"),
     _s("susp_defl_rr_m", "m", "Rear-right suspension compression from design height.",

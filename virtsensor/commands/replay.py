@@ -1,0 +1,70 @@
+"""``virtsensor replay``: play a CAN log (or a simulated manoeuvre) onto a python-can bus.
+
+Examples::
+
+    virtsensor replay run.blf --interface socketcan --channel vcan0
+    virtsensor replay run.asc --interface virtual --channel test --rate max --quiet
+    virtsensor replay --manoeuvre double-lane-change --speed 80 --mu 1.0 --interface socketcan --channel vcan0
+
+Timing follows the log's timestamps (s) scaled by ``--rate``; see
+:mod:`virtsensor.replay`. The closing summary goes to stdout, the progress bar
+to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "play a CAN log (or a simulated manoeuvre) onto a python-can bus"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", nargs="?", help="CAN log to play (.blf, .asc, .log, .csv, .trc)")
+    parser.add_argument(
+        "--interface", "-i", required=True, help="python-can interface, e.g. socketcan, virtual, pcan, vector"
+    )
+    parser.add_argument("--channel", "-c", required=True, help="bus channel, e.g. vcan0")
+    parser.add_argument(
+        "--rate", default="1.0", help="playback speed factor (1.0 = real time) or 'max' (as fast as possible)"
+    )
+    parser.add_argument("--loop", action="store_true", help="start over at the end (Ctrl-C stops)")
+    parser.add_argument(
+        "--bitrate", type=int, default=None, help="bit rate in bit/s, for interfaces that set it"
+    )
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress display")
+    sim = parser.add_argument_group("simulated manoeuvre instead of FILE (needs the simulator)")
+    sim.add_argument("--manoeuvre", metavar="NAME", help="manoeuvre to simulate and play")
+    sim.add_argument("--speed", metavar="KMH", type=float, default=80.0, help="initial speed in km/h (80)")
+    sim.add_argument("--mu", metavar="MU", type=float, default=1.0, help="road friction coefficient (1.0)")
+    sim.add_argument("--seed", type=int, default=0, help="simulation seed (0)")
+    sim.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.NAME=VALUE",
+                     help="override one car parameter (repeatable)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from virtsensor.errors import UserError
+    from virtsensor.replay import open_bus, parse_rate, replay, simulated_frames
+
+    rate = parse_rate(args.rate)
+    if (args.file is None) == (args.manoeuvre is None):
+        raise UserError("give either a log FILE or --manoeuvre NAME (not both, not neither)")
+    # Validate the interface name before doing any work.
+    import can
+
+    if args.interface not in can.interfaces.VALID_INTERFACES:
+        raise UserError(
+            f"--interface: unknown interface {args.interface!r}; "
+            f"valid: {', '.join(sorted(can.interfaces.VALID_INTERFACES))}"
+        )
+    if args.manoeuvre is not None:
+        source = simulated_frames(args.manoeuvre, speed_kmh=args.speed, mu=args.mu, seed=args.seed,
+                                  overrides=args.overrides)
+    else:
+        source = args.file
+    bus = open_bus(args.interface, args.channel, args.bitrate)
+    try:
+        summary = replay(source, bus, rate=rate, loop=args.loop, progress=not args.quiet)
+    finally:
+        bus.shutdown()
+    print(summary.format())
+    return 130 if summary.interrupted else 0

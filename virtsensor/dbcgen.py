@@ -1,0 +1,486 @@
+"""Generate ``dbc/virtsensor.dbc`` from the signal catalogue (the one source of truth).
+
+Usage::
+
+    python -m virtsensor.dbcgen > dbc/virtsensor.dbc
+
+The generated text is deterministic (a test checks the committed file equals
+it). Layout rules, applied to every message (8-byte classic CAN frames,
+Intel/little-endian, bit 0 = LSB of byte 0):
+
+* byte 0: ``<Msg>_CRC`` (8 bits), byte 1 bits 0..3: ``<Msg>_Counter`` (4 bits);
+  see :mod:`virtsensor.e2e` for the exact CRC definition (CRC-8/SAE-J1850
+  over the 16-bit data ID, low byte first, then payload bytes 1..7);
+* the signals follow from bit 12 in catalogue order, each with the fewest
+  bits whose raw range covers the catalogue ``minimum..maximum`` at
+  ``scale = resolution`` plus one spare code for "signal not available"
+  (SNA, listed in the signal's VAL_ table): the most negative raw value for
+  signed signals, all ones for unsigned ones. A signal is stored signed with
+  offset 0 when that is as short as unsigned with ``offset = minimum``.
+* physical DBC units equal the catalogue SI units except those in
+  :data:`UNIT_CONVERSIONS` (pressure in kPa); :mod:`virtsensor.can_codec`
+  does that scaling, once.
+* every signal is packed at its catalogue resolution; a message whose signals
+  do not fit in the 52 free bits is refused (split it in the catalogue, as the
+  ESC's front and rear wheel speeds are).
+
+The module also exposes the layout as data (:func:`layout`) for tests and docs.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+
+from virtsensor import signals as cat
+
+#: catalogue SI unit -> (DBC unit, factor): DBC value = SI value * factor.
+UNIT_CONVERSIONS: dict[str, tuple[str, float]] = {"Pa": ("kPa", 1e-3)}
+
+#: ECU nodes, in catalogue order, with their comments.
+NODES: dict[str, str] = {
+    "ESC": "Electronic stability control: wheel speeds and vehicle speed.",
+    "ACU": "Airbag control unit with the inertial measurement unit: accelerations and yaw rate.",
+    "EPAS": "Electric power-assisted steering: steering-wheel angle, torsion-bar and assist torque.",
+    "PCU": "Powertrain control unit: traction-motor torque.",
+    "CHS": "Chassis control: suspension deflections.",
+    "TPMS": "Tyre-pressure monitoring system: four tyre pressures.",
+    "VSENS": "The virtual sensor (virtsensor runtime): estimated front SATs and its health.",
+    "TESTEQ": "Test equipment: wheel-force transducers giving the reference front SATs.",
+}
+
+#: Messages whose frames are produced by the virtual sensor (outputs).
+_OUTPUT_SENDERS = ("VSENS",)
+FREE_BIT = 12
+FRAME_BYTES = 8
+
+STATUS_CHOICES: dict[int, str] = {0: "VALID", 1: "DEGRADED", 2: "INVALID", 3: "INIT"}
+
+_SIGN_CONVENTION = (
+    "Axes ISO 8855 (x forward, y left, z up); angles and rates about z positive "
+    "counter-clockwise seen from above: a left turn has positive yaw rate, steering angle "
+    "and lateral acceleration, and negative front SATs (tyre Mz, ISO-W)."
+)
+
+
+@dataclass(frozen=True)
+class SignalLayout:
+    """One DBC signal.
+
+    Attributes:
+        name: DBC signal name.
+        catalogue: catalogue signal name it carries (None: protocol or VSENS-only signal).
+        start: Intel start bit (LSB position); length: bits.
+        signed: two's complement raw value.
+        scale, offset: physical = raw * scale + offset, in ``unit``.
+        minimum, maximum: physical range in ``unit`` (the catalogue range, converted).
+        unit: DBC unit; si_factor: DBC value = catalogue SI value * si_factor.
+        sna: raw value meaning "signal not available" (None: none).
+        receivers: receiving nodes.
+        comment: CM_ text.
+        choices: VAL_ table (raw -> name).
+    """
+
+    name: str
+    catalogue: str | None
+    start: int
+    length: int
+    signed: bool
+    scale: float
+    offset: float
+    minimum: float
+    maximum: float
+    unit: str
+    si_factor: float
+    sna: int | None
+    receivers: tuple[str, ...]
+    comment: str
+    choices: dict[int, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class MessageLayout:
+    """One DBC message: identity from the catalogue plus its signals (CRC and counter first)."""
+
+    name: str
+    frame_id: int
+    sender: str
+    cycle_ms: int
+    data_id: int
+    comment: str
+    signals: tuple[SignalLayout, ...]
+    length: int = FRAME_BYTES
+
+
+def _raw_format(lo: float, hi: float, scale: float) -> tuple[int, bool, float, int, int]:
+    """Fewest bits for ``lo..hi`` at ``scale`` with one spare SNA code.
+
+    Returns (length, signed, offset, raw_lo, raw_hi).
+    """
+    rlo_f, rhi_f = lo / scale, hi / scale
+    rlo = round(rlo_f) if abs(rlo_f - round(rlo_f)) < 1e-6 else math.ceil(rlo_f)
+    rhi = round(rhi_f) if abs(rhi_f - round(rhi_f)) < 1e-6 else math.floor(rhi_f)
+    candidates: list[tuple[int, int, bool, float, int, int]] = []  # (bits, pref, ...)
+    if rlo < 0:
+        n = 2
+        while not (-(2 ** (n - 1)) < rlo and rhi <= 2 ** (n - 1) - 1):
+            n += 1
+        candidates.append((n, 0, True, 0.0, rlo, rhi))
+    else:
+        n = 1
+        while not rhi < 2**n - 1:
+            n += 1
+        candidates.append((n, 0, False, 0.0, rlo, rhi))
+    span = rhi - rlo
+    n = 1
+    while not span < 2**n - 1:
+        n += 1
+    candidates.append((n, 1, False, rlo * scale, 0, span))
+    bits, _, signed, offset, a, b = min(candidates, key=lambda c: (c[0], c[1]))
+    return bits, signed, offset, a, b
+
+
+def _sna(length: int, signed: bool) -> int:
+    return -(2 ** (length - 1)) if signed else 2**length - 1
+
+
+def _clean(x: float) -> float:
+    """Round away binary noise (e.g. 500 * 1e-3) to 12 significant digits."""
+    return float(f"{x:.12g}")
+
+
+def _physical(
+    name: str, catalogue: str | None, spec: cat.Signal, start: int, receivers: tuple[str, ...], comment: str
+) -> SignalLayout:
+    unit, factor = UNIT_CONVERSIONS.get(spec.unit, (spec.unit, 1.0))
+    res = spec.resolution
+    scale = _clean(res * factor)
+    lo, hi = _clean(spec.minimum * factor), _clean(spec.maximum * factor)
+    length, signed, offset, _, _ = _raw_format(lo, hi, scale)
+    offset = _clean(offset)
+    sna = _sna(length, signed)
+    sna_raw_txt = f"{sna}" if signed else f"0x{sna:X}"
+    extra = (
+        f" Catalogue: {spec.name} [{spec.unit}], range {_num(spec.minimum)}..{_num(spec.maximum)}, "
+        f"catalogue resolution {_num(spec.resolution)}"
+    )
+    if unit != spec.unit:
+        extra += f"; on CAN in {unit} (1 {spec.unit} = {_num(factor)} {unit})"
+    if scale != _clean(spec.resolution * factor):
+        extra += f"; packed at the coarser resolution {_num(scale)} {unit} to fit the frame"
+    extra += f". Raw {sna_raw_txt} = SNA (signal not available)."
+    return SignalLayout(
+        name=name,
+        catalogue=catalogue,
+        start=start,
+        length=length,
+        signed=signed,
+        scale=scale,
+        offset=offset,
+        minimum=lo,
+        maximum=hi,
+        unit=unit,
+        si_factor=factor,
+        sna=sna,
+        receivers=receivers,
+        comment=comment + extra,
+        choices={sna: "SNA"},
+    )
+
+
+def _integer(
+    name: str,
+    start: int,
+    length: int,
+    unit: str,
+    receivers: tuple[str, ...],
+    comment: str,
+    choices: dict[int, str] | None = None,
+) -> SignalLayout:
+    return SignalLayout(
+        name=name,
+        catalogue=None,
+        start=start,
+        length=length,
+        signed=False,
+        scale=1.0,
+        offset=0.0,
+        minimum=0.0,
+        maximum=float(2**length - 1),
+        unit=unit,
+        si_factor=1.0,
+        sna=None,
+        receivers=receivers,
+        comment=comment,
+        choices=dict(choices or {}),
+    )
+
+
+def _input_messages() -> tuple[str, ...]:
+    """Messages carrying at least one estimator input, in frame-id order (VS_Health bitmap order)."""
+    names = {cat.SIGNALS[n].message for n in cat.INPUTS}
+    return tuple(m.name for m in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id) if m.name in names)
+
+
+def _payload_vsens(msg: cat.Message, rx: tuple[str, ...]) -> list[SignalLayout]:
+    sigs: list[SignalLayout] = []
+    bit = FREE_BIT
+    if msg.name == "SAT_FRONT":
+        for corner, cname in (("FL", "sat_fl_nm"), ("FR", "sat_fr_nm")):
+            spec = cat.SIGNALS[cname]
+            s = _physical(
+                f"SAT_{corner}",
+                None,
+                spec,
+                bit,
+                rx,
+                f"Estimated {'front-left' if corner == 'FL' else 'front-right'} self-aligning torque "
+                f"(tyre Mz at the contact centre, ISO-W, z up); negative in a left turn. Estimate of "
+                f"{cname}; SNA while the estimator is initialising.",
+            )
+            sigs.append(s)
+            bit += s.length
+        for corner in ("FL", "FR"):
+            sigs.append(
+                _integer(
+                    f"SAT_{corner}_Status",
+                    bit,
+                    2,
+                    "",
+                    rx,
+                    f"Validity of SAT_{corner}: 0 VALID, 1 DEGRADED (a non-critical input held or "
+                    f"substituted), 2 INVALID (a critical input missing or implausible), 3 INIT.",
+                    STATUS_CHOICES,
+                )
+            )
+            bit += 2
+    elif msg.name == "VS_Health":
+        inputs = _input_messages()
+        bitmap = ", ".join(f"bit {i} {m}" for i, m in enumerate(inputs))
+        sigs.append(
+            _integer(
+                "VS_TickOverruns",
+                bit,
+                16,
+                "",
+                rx,
+                "Number of estimator ticks that missed their deadline since start (saturates at 65535).",
+            )
+        )
+        bit += 16
+        sigs.append(
+            _integer(
+                "VS_TickLatency",
+                bit,
+                16,
+                "us",
+                rx,
+                "Latency of the last estimator tick, from tick start to SAT_FRONT "
+                "transmission, in microseconds (saturates at 65535).",
+            )
+        )
+        bit += 16
+        sigs.append(
+            _integer(
+                "VS_InputStatus",
+                bit,
+                8,
+                "",
+                rx,
+                "Input status bitmap, one bit per input message, 1 = received intact "
+                f"(E2E OK) within its timeout: {bitmap}; unused bits 0.",
+            )
+        )
+        bit += 8
+        sigs.append(
+            _integer(
+                "VS_ModelId",
+                bit,
+                8,
+                "",
+                rx,
+                "Identifier/version byte of the estimator model in use "
+                "(high nibble model id, low nibble version).",
+            )
+        )
+        bit += 8
+    else:  # pragma: no cover - catalogue grew a VSENS message this generator does not know
+        raise ValueError(f"dbcgen does not know the layout of VSENS message {msg.name}")
+    return sigs
+
+
+def layout() -> tuple[MessageLayout, ...]:
+    """The full message layout derived from :mod:`virtsensor.signals`, in frame-id order.
+
+    Raises:
+        ValueError: when a message's signals do not fit its 8 bytes.
+    """
+    out: list[MessageLayout] = []
+    for msg in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id):
+        if msg.sender in _OUTPUT_SENDERS or msg.sender == "TESTEQ":
+            rx: tuple[str, ...] = ("Vector__XXX",)
+        else:
+            rx = ("VSENS",)
+        cycle_ms = round(msg.cycle_s * 1000)
+        sigs = [
+            _integer(
+                f"{msg.name}_CRC",
+                0,
+                8,
+                "",
+                rx,
+                f"E2E CRC-8/SAE-J1850 (poly 0x1D, init 0xFF, xorout 0xFF) over the data ID "
+                f"0x{msg.data_id:04X} (low byte first: 0x{msg.data_id & 0xFF:02X} "
+                f"0x{msg.data_id >> 8:02X}) "
+                f"followed by payload bytes 1..7.",
+            ),
+            _integer(
+                f"{msg.name}_Counter",
+                8,
+                4,
+                "",
+                rx,
+                "E2E alive counter, +1 modulo 16 per transmitted frame (15 wraps to 0).",
+            ),
+        ]
+        if msg.sender in _OUTPUT_SENDERS:
+            sigs += _payload_vsens(msg, rx)
+        else:
+            bit = FREE_BIT
+            for spec in cat.by_message(msg.name):
+                assert spec.dbc_signal is not None
+                s = _physical(spec.dbc_signal, spec.name, spec, bit, rx, spec.description)
+                sigs.append(s)
+                bit += s.length
+        used = sigs[-1].start + sigs[-1].length
+        if used > 8 * FRAME_BYTES:
+            detail = ", ".join(f"{s.name}={s.length}" for s in sigs)
+            raise ValueError(
+                f"message {msg.name} needs {used} bits > {8 * FRAME_BYTES} ({detail}); "
+                f"split the message in the catalogue"
+            )
+        comment = (
+            f"Sent by {msg.sender} every {cycle_ms} ms. E2E data ID 0x{msg.data_id:04X}: byte 0 CRC, "
+            f"byte 1 bits 0-3 alive counter, signals from bit 12 (Intel). Bits used: {used} of 64."
+        )
+        out.append(
+            MessageLayout(msg.name, msg.frame_id, msg.sender, cycle_ms, msg.data_id, comment, tuple(sigs))
+        )
+    return tuple(out)
+
+
+def _num(x: float) -> str:
+    """Shortest text of a number as DBC writes it (``10`` not ``10.0``)."""
+    if float(x).is_integer() and abs(x) < 1e15:
+        return str(int(x))
+    return repr(float(x))
+
+
+def _q(text: str) -> str:
+    return '"' + text.replace("\\", "/").replace('"', "'") + '"'
+
+
+def generate() -> str:
+    """The DBC file text (deterministic)."""
+    msgs = layout()
+    lines: list[str] = [
+        'VERSION ""',
+        "",
+        "",
+        "NS_ :",
+        *(
+            f"\t{k}"
+            for k in (
+                "NS_DESC_",
+                "CM_",
+                "BA_DEF_",
+                "BA_",
+                "VAL_",
+                "CAT_DEF_",
+                "CAT_",
+                "FILTER",
+                "BA_DEF_DEF_",
+                "EV_DATA_",
+                "ENVVAR_DATA_",
+                "SGTYPE_",
+                "SGTYPE_VAL_",
+                "BA_DEF_SGTYPE_",
+                "BA_SGTYPE_",
+                "SIG_TYPE_REF_",
+                "VAL_TABLE_",
+                "SIG_GROUP_",
+                "SIG_VALTYPE_",
+                "SIGTYPE_VALTYPE_",
+                "BO_TX_BU_",
+                "BA_DEF_REL_",
+                "BA_REL_",
+                "BA_DEF_DEF_REL_",
+                "BU_SG_REL_",
+                "BU_EV_REL_",
+                "BU_BO_REL_",
+                "SG_MUL_VAL_",
+            )
+        ),
+        "",
+        "BS_:",
+        "",
+        "BU_: " + " ".join(NODES),
+        "",
+    ]
+    for m in msgs:
+        lines.append(f"BO_ {m.frame_id} {m.name}: {m.length} {m.sender}")
+        for s in m.signals:
+            sign = "-" if s.signed else "+"
+            lines.append(
+                f" SG_ {s.name} : {s.start}|{s.length}@1{sign} ({_num(s.scale)},{_num(s.offset)}) "
+                f"[{_num(s.minimum)}|{_num(s.maximum)}] {_q(s.unit)} {','.join(s.receivers)}"
+            )
+        lines.append("")
+    lines.append("")
+    lines.append(
+        "CM_ "
+        + _q(
+            "virtsensor CAN matrix, generated by python -m virtsensor.dbcgen from virtsensor/signals.py; "
+            "do not edit. " + _SIGN_CONVENTION + " E2E (AUTOSAR Profile 1/11 style): CRC-8/SAE-J1850 "
+            "(poly 0x1D, init 0xFF, xorout 0xFF) over the 16-bit data ID (attribute E2E_DataID, low byte "
+            "first) followed by payload bytes 1..7, stored in byte 0; 4-bit alive counter in byte 1 "
+            "bits 0-3, counting 0..15."
+        )
+        + ";"
+    )
+    for node, text in NODES.items():
+        lines.append(f"CM_ BU_ {node} {_q(text)};")
+    for m in msgs:
+        lines.append(f"CM_ BO_ {m.frame_id} {_q(m.comment)};")
+        for s in m.signals:
+            lines.append(f"CM_ SG_ {m.frame_id} {s.name} {_q(s.comment)};")
+    lines += [
+        'BA_DEF_  "BusType" STRING ;',
+        'BA_DEF_ BO_  "GenMsgCycleTime" INT 0 65535;',
+        'BA_DEF_ BO_  "E2E_DataID" INT 0 65535;',
+        'BA_DEF_DEF_  "BusType" "CAN";',
+        'BA_DEF_DEF_  "GenMsgCycleTime" 0;',
+        'BA_DEF_DEF_  "E2E_DataID" 0;',
+        'BA_ "BusType" "CAN";',
+    ]
+    for m in msgs:
+        lines.append(f'BA_ "GenMsgCycleTime" BO_ {m.frame_id} {m.cycle_ms};')
+        lines.append(f'BA_ "E2E_DataID" BO_ {m.frame_id} {m.data_id};')
+    for m in msgs:
+        for s in m.signals:
+            if s.choices:
+                body = " ".join(f"{k} {_q(v)}" for k, v in sorted(s.choices.items(), reverse=True))
+                lines.append(f"VAL_ {m.frame_id} {s.name} {body} ;")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Write the DBC to stdout (``python -m virtsensor.dbcgen > dbc/virtsensor.dbc``)."""
+    sys.stdout.write(generate())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,274 @@
+"""The feature front-end shared by the trainer (offline) and the runtime (online).
+
+Semantics, identical in both paths: the value of a signal at tick time ``t``
+is the latest *usable* value received at or before ``t`` (sample and hold),
+where
+
+* usable = the frame's E2E status is OK, OKSOMELOST or INITIAL and the value
+  is neither SNA nor outside the catalogue range (see
+  :class:`virtsensor.can_codec.DecodedFrame`);
+* "at or before" compares the frame timestamp with ``t + TIME_TOLERANCE_S``
+  (1 us: the resolution of text log formats), with ties in timestamp resolved
+  in favour of the frame that comes later in the input (stable time order).
+
+Times are seconds in the clock of the frame timestamps. Values are SI in the
+catalogue's units.
+
+Two implementations:
+
+* :class:`SampleHoldStore` — the online store the daemon updates per frame
+  and samples per tick (:meth:`SampleHoldStore.sample`);
+* :func:`to_table` — replays a whole log; the default vectorised path uses one
+  ``np.searchsorted`` per signal, ``online=True`` drives the store frame by
+  frame (the tests check both agree exactly).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from virtsensor.e2e import USABLE
+
+__all__ = [
+    "TIME_TOLERANCE_S",
+    "Collected",
+    "SampleHoldStore",
+    "TableBuild",
+    "collect",
+    "table_from_collected",
+    "tick_times",
+    "to_table",
+]
+
+#: Frames up to this much after a tick still count as "at" the tick (s).
+TIME_TOLERANCE_S = 1e-6
+
+
+class SampleHoldStore:
+    """Latest usable value per catalogue signal with its receive time.
+
+    Args:
+        signals: the catalogue names to hold, in the order :meth:`sample` returns them.
+    """
+
+    __slots__ = ("signals", "_index", "_values", "_times", "updates")
+
+    def __init__(self, signals: Sequence[str]) -> None:
+        self.signals = tuple(signals)
+        if len(set(self.signals)) != len(self.signals):
+            raise ValueError("duplicate signal names in the front-end order")
+        self._index = {n: i for i, n in enumerate(self.signals)}
+        self._values = np.full(len(self.signals), np.nan)
+        self._times = np.full(len(self.signals), -np.inf)
+        #: number of values stored so far
+        self.updates = 0
+
+    def reset(self) -> None:
+        """Forget everything (values nan, times -inf)."""
+        self._values.fill(np.nan)
+        self._times.fill(-np.inf)
+        self.updates = 0
+
+    def update(self, frame) -> int:
+        """Store the values of a decoded frame if it is usable; returns how many were stored."""
+        if frame is None or frame.status not in USABLE:
+            return 0
+        idx = self._index
+        vals, times, t = self._values, self._times, frame.timestamp
+        n = 0
+        for name, v in frame.values.items():
+            i = idx.get(name)
+            if i is not None:
+                vals[i] = v
+                times[i] = t
+                n += 1
+        self.updates += n
+        return n
+
+    def put(self, name: str, value: float, t: float) -> None:
+        """Store one value of signal ``name`` received at ``t`` (s)."""
+        i = self._index[name]
+        self._values[i] = value
+        self._times[i] = t
+        self.updates += 1
+
+    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(values, ages) at time ``t`` in the store's signal order.
+
+        ``ages[i] = t - receive time`` in seconds (inf if never received;
+        negative if a value newer than ``t`` was already stored). Both are new
+        arrays.
+        """
+        return self._values.copy(), t - self._times
+
+    @property
+    def complete(self) -> bool:
+        """Every signal has been received at least once."""
+        return bool(np.isfinite(self._times).all())
+
+
+class TableBuild(NamedTuple):
+    """Result of :func:`to_table`.
+
+    Attributes:
+        table: ``time_s`` (tick times, s) then one SI array per requested signal.
+        dropped_ticks: ticks at the start removed because some signal had not been seen yet.
+        ticks: total ticks on the grid (kept + dropped).
+    """
+
+    table: dict[str, np.ndarray]
+    dropped_ticks: int
+    ticks: int
+
+
+def tick_times(t_first: float, t_last: float, rate_hz: float, t0: float | None = None) -> np.ndarray:
+    """Tick grid ``t0 + k / rate_hz`` for ``k = 0..`` while ``<= t_last`` (s).
+
+    Default ``t0``: the last multiple of ``1/rate_hz`` at or before ``t_first``.
+    """
+    if not rate_hz > 0:
+        raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+    if t0 is None:
+        t0 = np.floor(t_first * rate_hz + 1e-9) / rate_hz
+    n = int(np.floor((t_last - t0) * rate_hz + 1e-9)) + 1
+    return t0 + np.arange(max(n, 0)) / rate_hz
+
+
+class Collected(NamedTuple):
+    """Usable values per signal from a pass over the frames (see :func:`collect`).
+
+    Attributes:
+        times, values: signal -> lists of receive times (s) and SI values, in input order.
+        t_first, t_last: first and last frame timestamps over *all* frames (inf/-inf if none).
+        frames: number of frames seen.
+    """
+
+    times: dict[str, list[float]]
+    values: dict[str, list[float]]
+    t_first: float
+    t_last: float
+    frames: int
+
+
+def collect(frames: Iterable, signals: Sequence[str]) -> Collected:
+    """One streaming pass over decoded frames keeping the usable values of ``signals``."""
+    wanted = set(signals)
+    times: dict[str, list[float]] = {s: [] for s in signals}
+    values: dict[str, list[float]] = {s: [] for s in signals}
+    t_first, t_last = float("inf"), float("-inf")
+    n = 0
+    for f in frames:
+        if f is None:
+            continue
+        n += 1
+        t = f.timestamp
+        if t < t_first:
+            t_first = t
+        if t > t_last:
+            t_last = t
+        if f.status not in USABLE:
+            continue
+        for name, v in f.values.items():
+            if name in wanted:
+                times[name].append(t)
+                values[name].append(v)
+    return Collected(times, values, t_first, t_last, n)
+
+
+def table_from_collected(
+    col: Collected, signals: Sequence[str], rate_hz: float = 20.0, t0: float | None = None
+) -> TableBuild:
+    """The vectorised half of :func:`to_table`: one ``np.searchsorted`` per signal."""
+    signals = tuple(signals)
+    if not np.isfinite(col.t_first):
+        return _empty(signals, 0)
+    ticks = tick_times(col.t_first, col.t_last, rate_hz, t0)
+    probe = ticks + TIME_TOLERANCE_S
+    cols: dict[str, np.ndarray] = {}
+    first_ok = 0
+    for s in signals:
+        t = np.asarray(col.times[s], dtype=np.float64)
+        v = np.asarray(col.values[s], dtype=np.float64)
+        if t.size == 0:
+            return _empty(signals, len(ticks))
+        order = np.argsort(t, kind="stable")
+        t, v = t[order], v[order]
+        idx = np.searchsorted(t, probe, side="right") - 1
+        first_ok = max(first_ok, int(np.searchsorted(idx, 0, side="left")))
+        cols[s] = v[np.maximum(idx, 0)]
+    table = {"time_s": ticks[first_ok:]}
+    for s in signals:
+        table[s] = cols[s][first_ok:]
+    return TableBuild(table, first_ok, len(ticks))
+
+
+def to_table(
+    frames: Iterable,
+    signals: Sequence[str],
+    rate_hz: float = 20.0,
+    t0: float | None = None,
+    *,
+    online: bool = False,
+) -> TableBuild:
+    """Sample-and-hold table of decoded frames on the tick grid ``t0 + k / rate_hz``.
+
+    Args:
+        frames: :class:`~virtsensor.can_codec.DecodedFrame` objects (None entries ignored),
+            in any order (they are replayed in stable time order).
+        signals: catalogue names of the columns.
+        rate_hz: tick rate (Hz); the canonical table is 20 Hz.
+        t0: first tick (s, the frames' clock); default: see :func:`tick_times`.
+            Ticks run up to the last frame's timestamp.
+        online: build through :class:`SampleHoldStore` frame by frame (the
+            daemon's path) instead of the vectorised ``searchsorted`` path.
+
+    Returns:
+        :class:`TableBuild`; leading ticks where some signal has not been seen
+        are dropped and counted.
+    """
+    signals = tuple(signals)
+    if online:
+        return _to_table_online(list(frames), signals, rate_hz, t0)
+    return table_from_collected(collect(frames, signals), signals, rate_hz, t0)
+
+
+def _empty(signals: Sequence[str], n_ticks: int) -> TableBuild:
+    table = {"time_s": np.empty(0)}
+    for s in signals:
+        table[s] = np.empty(0)
+    return TableBuild(table, n_ticks, n_ticks)
+
+
+def _to_table_online(frames: list, signals: tuple[str, ...], rate_hz: float, t0: float | None) -> TableBuild:
+    frames = [f for f in frames if f is not None]
+    if not frames:
+        return _empty(signals, 0)
+    order = np.argsort(np.array([f.timestamp for f in frames], dtype=np.float64), kind="stable")
+    t_first, t_last = frames[order[0]].timestamp, frames[order[-1]].timestamp
+    ticks = tick_times(t_first, t_last, rate_hz, t0)
+    store = SampleHoldStore(signals)
+    rows: list[np.ndarray] = []
+    kept_ticks: list[float] = []
+    dropped = 0
+    j, n = 0, len(order)
+    for tk in ticks:
+        limit = tk + TIME_TOLERANCE_S
+        while j < n and frames[order[j]].timestamp <= limit:
+            store.update(frames[order[j]])
+            j += 1
+        if not rows and not store.complete:
+            dropped += 1
+            continue
+        vals, _ = store.sample(tk)
+        rows.append(vals)
+        kept_ticks.append(tk)
+    if not rows:
+        return _empty(signals, len(ticks))
+    mat = np.vstack(rows)
+    table = {"time_s": np.asarray(kept_ticks, dtype=np.float64)}
+    for i, s in enumerate(signals):
+        table[s] = mat[:, i].copy()
+    return TableBuild(table, dropped, len(ticks))

@@ -1,0 +1,589 @@
+"""CAN log files (write and read through python-can) and the canonical 20 Hz CSV table.
+
+Writing (:func:`write_log`): the simulator's signals, sampled on a uniform
+base grid ``time_s`` (e.g. 100 Hz, already held at each sensor's own rate),
+become one frame per message per cycle (``GenMsgCycleTime``). Frame ``k`` of a
+message is stamped ``start_time + k * cycle + phase`` seconds (run time
+``time_s[0]`` maps to ``start_time``) where ``phase`` is a fixed per-message
+offset (:func:`phase_offset`: 0.25 ms times the message's rank by frame id)
+so that messages do not share timestamps. It carries the latest sample at or
+before its own time, an alive counter (+1 mod 16 per message, starting from a
+value drawn from ``seed``) and its E2E CRC. Messages none of whose catalogue
+signals are given are not sent.
+
+Reading (:func:`read_log`): any log python-can reads (``.blf``, ``.asc``,
+``.log`` candump, ``.csv``, ``.trc``) is decoded through the DBC with the E2E
+checks and turned into the canonical table by the front-end
+(:mod:`virtsensor.frontend`). Table time ``time_s`` is seconds since the
+log's first frame (log formats differ in how they keep absolute time: ASC
+stores it relative to its first frame, BLF only to the millisecond).
+
+Failures to read a file raise :class:`~virtsensor.errors.UserError` naming the
+file and the position (frame index, line number or byte offset).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from virtsensor import signals as cat
+from virtsensor.can_codec import CanMatrix
+from virtsensor.e2e import E2EStatus
+from virtsensor.errors import UserError
+from virtsensor.frontend import TableBuild, collect, table_from_collected
+
+__all__ = [
+    "LOG_SUFFIXES",
+    "PHASE_STEP_S",
+    "LogSummary",
+    "Recording",
+    "phase_offset",
+    "frame_arrays",
+    "iter_frames",
+    "write_log",
+    "iter_log",
+    "read_log",
+    "simulated_recording",
+    "decode_recording",
+    "write_csv",
+    "read_csv",
+]
+
+#: Log formats python-can both writes and reads (by file suffix; ``.gz`` text variants too).
+LOG_SUFFIXES: tuple[str, ...] = (".blf", ".asc", ".log", ".csv", ".trc")
+_TEXT_SUFFIXES = (".asc", ".log", ".csv", ".trc")
+#: Phase step between messages (s): message of rank r (by frame id) is sent at k*cycle + r*PHASE_STEP_S.
+PHASE_STEP_S = 0.00025
+#: Tolerance (s) when looking up "the latest sample at or before" a frame time on the base grid.
+_GRID_TOL_S = 1e-9
+
+
+def _suffix(path: Path) -> tuple[str, bool]:
+    sfx = [s.lower() for s in path.suffixes]
+    if sfx and sfx[-1] == ".gz":
+        return (sfx[-2] if len(sfx) >= 2 else ""), True
+    return (sfx[-1] if sfx else ""), False
+
+
+def _check_suffix(path: Path) -> None:
+    real, gz = _suffix(path)
+    if real not in LOG_SUFFIXES or (gz and real == ".blf"):
+        raise UserError(
+            f"{path}: unsupported CAN log format {''.join(path.suffixes) or '(no suffix)'!r}; "
+            f"use one of {', '.join(LOG_SUFFIXES)} (text formats may end in .gz)"
+        )
+
+
+def phase_offset(matrix: CanMatrix, message: str) -> float:
+    """Fixed transmit phase (s) of ``message``: ``PHASE_STEP_S`` x its rank by frame id."""
+    ids = sorted(m.frame_id for m in matrix.messages.values())
+    return ids.index(matrix.message(message).frame_id) * PHASE_STEP_S
+
+
+def frame_arrays(
+    time_s: np.ndarray,
+    signals: Mapping[str, np.ndarray],
+    *,
+    matrix: CanMatrix | None = None,
+    start_time: float = 0.0,
+    seed: int = 0,
+    phases: Mapping[str, float] | None = None,
+):
+    """All frames of a run as arrays, in time order (the vectorised core of :func:`write_log`).
+
+    Args:
+        time_s: uniform, increasing base grid of the run (s).
+        signals: catalogue name -> array on ``time_s`` (SI). Other names are ignored.
+        matrix: CAN matrix (default: bundled).
+        start_time: timestamp (s) of run time ``time_s[0]``.
+        seed: seeds each message's first alive counter.
+        phases: message name -> transmit phase (s, ``0 <= phase < cycle``) overriding
+            :func:`phase_offset`, e.g. to send right after a sensor's own update instants.
+
+    Returns:
+        ``(timestamps (n,), frame_ids (n,), data (n, 8) uint8, per_message_counts)``.
+    """
+    matrix = matrix or CanMatrix.load()
+    time_s = np.asarray(time_s, dtype=np.float64)
+    if time_s.ndim != 1 or time_s.size == 0:
+        raise ValueError("time_s must be a non-empty 1-D array")
+    if time_s.size > 1 and not np.all(np.diff(time_s) > 0):
+        raise ValueError("time_s must be strictly increasing")
+    for name, arr in signals.items():
+        if np.shape(arr) != time_s.shape:
+            raise ValueError(f"signal {name!r} has shape {np.shape(arr)}, time_s has {time_s.shape}")
+    rng = np.random.default_rng(seed)
+    start_counters = rng.integers(0, 16, size=len(matrix.messages))
+    span = float(time_s[-1] - time_s[0])
+    ts_parts, id_parts, data_parts = [], [], []
+    counts: dict[str, int] = {}
+    for (name, m), c0 in zip(
+        sorted(matrix.messages.items(), key=lambda kv: kv[1].frame_id), start_counters, strict=True
+    ):
+        present = [c for c in m.catalogue_names if c in signals]
+        if not present or m.cycle_s <= 0:
+            continue
+        phase = phase_offset(matrix, name) if phases is None or name not in phases else float(phases[name])
+        if not 0.0 <= phase < m.cycle_s:
+            raise ValueError(f"phase of {name} must be in [0, {m.cycle_s}) s, got {phase}")
+        k = np.arange(int(np.floor((span - phase) / m.cycle_s + 1e-9)) + 1)
+        rel = k * m.cycle_s + phase
+        if rel.size == 0:
+            continue
+        idx = np.searchsorted(time_s, time_s[0] + rel + _GRID_TOL_S, side="right") - 1
+        cols = {c: np.asarray(signals[c], dtype=np.float64)[idx] for c in present}
+        data = matrix.encode_many(name, cols, (int(c0) + k) % 16)
+        ts_parts.append(start_time + rel)
+        id_parts.append(np.full(k.size, m.frame_id, dtype=np.int64))
+        data_parts.append(data)
+        counts[name] = int(k.size)
+    if not ts_parts:
+        return np.empty(0), np.empty(0, dtype=np.int64), np.empty((0, 8), dtype=np.uint8), counts
+    ts = np.concatenate(ts_parts)
+    order = np.argsort(ts, kind="stable")
+    return ts[order], np.concatenate(id_parts)[order], np.concatenate(data_parts)[order], counts
+
+
+def iter_frames(
+    time_s: np.ndarray,
+    signals: Mapping[str, np.ndarray],
+    *,
+    matrix: CanMatrix | None = None,
+    start_time: float = 0.0,
+    seed: int = 0,
+    phases: Mapping[str, float] | None = None,
+    channel=None,
+) -> Iterator:
+    """The frames of :func:`frame_arrays` as python-can ``Message`` objects, in time order."""
+    import can
+
+    ts, ids, data, _ = frame_arrays(
+        time_s, signals, matrix=matrix, start_time=start_time, seed=seed, phases=phases
+    )
+    Message = can.Message
+    for t, i, d in zip(ts.tolist(), ids.tolist(), data, strict=True):
+        yield Message(
+            timestamp=t,
+            arbitration_id=i,
+            is_extended_id=False,
+            dlc=len(d),
+            data=d.tobytes(),
+            channel=channel,
+            check=False,
+        )
+
+
+@dataclass
+class LogSummary:
+    """What :func:`write_log` wrote: path, total frames, frames per message, file size (bytes)."""
+
+    path: Path
+    frames: int
+    per_message: dict[str, int]
+    size_bytes: int
+
+
+def write_log(
+    path: str | os.PathLike,
+    time_s: np.ndarray,
+    signals: Mapping[str, np.ndarray],
+    *,
+    matrix: CanMatrix | None = None,
+    start_time: float = 0.0,
+    seed: int = 0,
+    phases: Mapping[str, float] | None = None,
+) -> LogSummary:
+    """Write a run as a CAN log; the format follows the suffix (see :data:`LOG_SUFFIXES`).
+
+    Args:
+        path: output file (``.blf``, ``.asc``, ``.log``, ``.csv``, ``.trc``).
+        time_s, signals, matrix, start_time, seed, phases: see :func:`frame_arrays`
+            (SI values under catalogue names on the base grid ``time_s`` in s).
+
+    Note:
+        BLF keeps absolute time only for ``start_time`` 0 or after 1990
+        (python-can writes no start date before that); either way
+        :func:`read_log` measures time from the first frame.
+    """
+    import can
+
+    path = Path(path)
+    _check_suffix(path)
+    matrix = matrix or CanMatrix.load()
+    ts, ids, data, counts = frame_arrays(
+        time_s, signals, matrix=matrix, start_time=start_time, seed=seed, phases=phases
+    )
+    try:
+        writer = can.Logger(path)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: cannot write the log: {exc}") from None
+    Message = can.Message
+    try:
+        on_msg = writer.on_message_received
+        for t, i, d in zip(ts.tolist(), ids.tolist(), data, strict=True):
+            on_msg(
+                Message(
+                    timestamp=t, arbitration_id=i, is_extended_id=False, dlc=8, data=d.tobytes(), check=False
+                )
+            )
+    finally:
+        writer.stop()
+    return LogSummary(path, int(ts.size), counts, path.stat().st_size)
+
+
+# ------------------------------------------------------------------------------------------- reading
+class _GarbageLine(Exception):
+    pass
+
+
+_ASC_HEADER = re.compile(
+    r"^(date\s|base\s|(no\s+)?internal\s+events|begin\s+triggerblock|end\s+triggerblock)", re.IGNORECASE
+)
+_ASC_EVENT = re.compile(r"^\d+\.\d+\s")
+_CANDUMP = re.compile(r"^\(\d+(\.\d+)?\)\s+\S+\s+[0-9A-Fa-f]{1,8}#")
+
+
+def _asc_ok(line: str) -> bool:
+    s = line.strip()
+    return not s or s.startswith("//") or bool(_ASC_HEADER.match(s)) or bool(_ASC_EVENT.match(s))
+
+
+def _candump_ok(line: str) -> bool:
+    s = line.strip()
+    return not s or bool(_CANDUMP.match(s))
+
+
+class _Lines:
+    """Text file iterator that counts lines and rejects garbage ones (for error positions)."""
+
+    def __init__(self, f, check) -> None:
+        self._f = f
+        self._check = check
+        self.lineno = 0
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> str:
+        line = next(self._f)
+        self.lineno += 1
+        if self._check is not None and not self._check(line):
+            raise _GarbageLine(f"unparsable line {line.strip()[:60]!r}")
+        return line
+
+    def readline(self) -> str:
+        try:
+            return self.__next__()
+        except StopIteration:
+            return ""
+
+    def read(self, *args):  # pragma: no cover - readers iterate lines
+        return self._f.read(*args)
+
+    def close(self) -> None:
+        self._f.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._f.closed
+
+
+def _blf_truncation(path: Path, reader) -> str | None:
+    expected = int(getattr(reader, "file_size", 0) or 0)
+    actual = path.stat().st_size
+    if expected > actual:
+        return (
+            f"truncated: the BLF header says {expected} bytes, the file has {actual} "
+            f"(data ends at byte offset {actual})"
+        )
+    return None
+
+
+def iter_log(path: str | os.PathLike) -> Iterator:
+    """Yield the python-can ``Message`` objects of a log file, in file order.
+
+    Raises:
+        UserError: missing file, unknown format, or a read failure, naming the
+            file, the frame index and the line number (text) or byte offset (BLF).
+    """
+    import can
+    from can.io.player import MESSAGE_READERS
+
+    path = Path(path)
+    _check_suffix(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such log file")
+    real, gz = _suffix(path)
+    lines: _Lines | None = None
+    try:
+        if real in _TEXT_SUFFIXES:
+            if gz:
+                import gzip
+
+                raw = gzip.open(path, "rt", encoding="utf-8", newline=None)
+            else:
+                raw = open(path, encoding="utf-8", newline=None)  # noqa: SIM115 - closed by the reader
+            check = {".asc": _asc_ok, ".log": _candump_ok}.get(real)
+            lines = _Lines(raw, check)
+            reader = MESSAGE_READERS[real](file=lines)
+        else:
+            reader = can.LogReader(path)
+    except Exception as exc:  # python-can raises BLFParseError, ValueError, struct.error ...
+        raise UserError(f"{path}: not a readable {real} CAN log: {type(exc).__name__}: {exc}") from None
+    if real == ".blf":
+        problem = _blf_truncation(path, reader)
+        if problem:
+            n = 0
+            try:
+                for _ in reader:
+                    n += 1
+            except Exception:  # noqa: BLE001 - only counting what is readable
+                pass
+            raise UserError(f"{path}: {problem}; frames 0..{n - 1} are readable, frame {n} is cut")
+    index = 0
+    try:
+        for msg in reader:
+            yield msg
+            index += 1
+    except Exception as exc:  # noqa: BLE001 - translated into one line naming the position
+        if lines is not None:
+            where = f"line {lines.lineno}"
+        else:
+            try:
+                where = f"byte offset {reader.file.tell()}"
+            except Exception:  # noqa: BLE001
+                where = "unknown byte offset"
+        detail = str(exc) if isinstance(exc, _GarbageLine) else f"{type(exc).__name__}: {exc}"
+        raise UserError(f"{path}: cannot read frame {index} at {where}: {detail}") from None
+    finally:
+        try:
+            reader.stop()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+@dataclass
+class Recording:
+    """A CAN log read back (see :func:`read_log`).
+
+    Attributes:
+        path: the file.
+        table: canonical table: ``time_s`` (s since the first frame) then SI columns.
+        signals: the table's signal columns (catalogue names).
+        frames: frames decoded (in the DBC); unknown_frames: frames not in the DBC;
+        skipped_frames: error/remote frames.
+        e2e: message -> E2E status name -> count.
+        dropped_ticks: leading ticks dropped before every signal was seen.
+        missing_signals: requested (or default) signals never received.
+        start_time: timestamp (s) of the first frame in the log's clock; duration_s: last - first.
+        rate_hz: table rate.
+    """
+
+    path: Path
+    table: dict[str, np.ndarray]
+    signals: tuple[str, ...]
+    frames: int
+    unknown_frames: int
+    skipped_frames: int
+    e2e: dict[str, dict[str, int]]
+    dropped_ticks: int
+    missing_signals: tuple[str, ...]
+    start_time: float
+    duration_s: float
+    rate_hz: float
+    counts_by_status: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def e2e_errors(self) -> int:
+        """Frames whose E2E status is not OK/INITIAL (ERROR, REPEATED, OKSOMELOST, WRONGSEQUENCE)."""
+        return sum(n for st, n in self.counts_by_status.items() if st not in ("OK", "INITIAL"))
+
+    def count(self, status: str | E2EStatus, message: str | None = None) -> int:
+        """Frames with E2E ``status`` (name or enum), over all messages or one."""
+        name = status.name if isinstance(status, E2EStatus) else str(status)
+        if message is None:
+            return self.counts_by_status.get(name, 0)
+        return self.e2e.get(message, {}).get(name, 0)
+
+
+def read_log(
+    path: str | os.PathLike,
+    *,
+    matrix: CanMatrix | None = None,
+    rate_hz: float = 20.0,
+    signals: Sequence[str] | None = None,
+    t0: float = 0.0,
+) -> Recording:
+    """Read a CAN log and build the canonical table with the front-end.
+
+    Args:
+        path: log file (any :data:`LOG_SUFFIXES`).
+        matrix: CAN matrix (default bundled); a fresh E2E state is used either way.
+        rate_hz: table rate (Hz).
+        signals: catalogue names of the columns; all must occur in the log
+            (UserError otherwise). Default: those of ``TABLE_COLUMNS`` (inputs,
+            then reference outputs) that occur in the log.
+        t0: first tick, in seconds after the first frame.
+
+    Returns:
+        :class:`Recording`.
+    """
+    path = Path(path)
+    return decode_recording(iter_log(path), path, matrix=matrix, rate_hz=rate_hz, signals=signals, t0=t0)
+
+
+def simulated_recording(
+    time_s: np.ndarray,
+    signals: Mapping[str, np.ndarray],
+    *,
+    matrix: CanMatrix | None = None,
+    rate_hz: float = 20.0,
+    seed: int = 0,
+) -> Recording:
+    """What a receiver on the bus makes of a simulated run: its sensor streams are
+    encoded into frames exactly as :func:`write_log` writes them, decoded with the
+    E2E checks and sampled by the front-end. The simulator's canonical table is
+    built this way, so a table and the log of the same run agree frame for frame,
+    and training sees the signals as the runtime will."""
+    frames = iter_frames(time_s, signals, matrix=matrix, seed=seed)
+    return decode_recording(frames, Path("<simulated>"), matrix=matrix, rate_hz=rate_hz)
+
+
+def decode_recording(
+    frames: Iterable,
+    path: Path,
+    *,
+    matrix: CanMatrix | None = None,
+    rate_hz: float = 20.0,
+    signals: Sequence[str] | None = None,
+    t0: float = 0.0,
+) -> Recording:
+    """Decode raw CAN frames (python-can messages) through the DBC and the front-end.
+
+    ``path`` names the source in messages and in the result. See :func:`read_log`.
+    """
+    matrix = (matrix or CanMatrix.load()).fresh()
+    counts: dict[str, int] = {}
+    e2e: dict[str, dict[str, int]] = {}
+
+    def decoded():
+        for d in matrix.decode_all(frames, counts):
+            per = e2e.get(d.message)
+            if per is None:
+                per = e2e[d.message] = {}
+            name = d.status.name
+            per[name] = per.get(name, 0) + 1
+            yield d
+
+    wanted = tuple(signals) if signals is not None else tuple(cat.TABLE_COLUMNS[1:])
+    for s in wanted:
+        if s not in cat.SIGNALS:
+            raise UserError(f"{path}: unknown signal {s!r} requested")
+    col = collect(decoded(), wanted)
+    missing = tuple(s for s in wanted if not col.times[s])
+    if signals is not None and missing:
+        raise UserError(
+            f"{path}: signal(s) never received intact: {', '.join(missing)} "
+            f"(messages {', '.join(sorted({str(matrix.message_of(s)) for s in missing}))})"
+        )
+    used = tuple(s for s in wanted if s not in missing)
+    n_frames = sum(sum(v.values()) for v in e2e.values())
+    if not np.isfinite(col.t_first):
+        raise UserError(
+            f"{path}: no frame of the CAN matrix in this log ({counts.get('unknown', 0)} unknown frames)"
+        )
+    build: TableBuild = table_from_collected(col, used, rate_hz, col.t_first + t0)
+    table = dict(build.table)
+    k = np.arange(build.dropped_ticks, build.ticks)
+    table["time_s"] = t0 + k / rate_hz
+    by_status: dict[str, int] = {}
+    for per in e2e.values():
+        for st, n in per.items():
+            by_status[st] = by_status.get(st, 0) + n
+    return Recording(
+        path=path,
+        table=table,
+        signals=used,
+        frames=n_frames,
+        unknown_frames=counts.get("unknown", 0),
+        skipped_frames=counts.get("skipped", 0),
+        e2e=e2e,
+        dropped_ticks=build.dropped_ticks,
+        missing_signals=missing,
+        start_time=float(col.t_first),
+        duration_s=float(col.t_last - col.t_first),
+        rate_hz=rate_hz,
+        counts_by_status=by_status,
+    )
+
+
+# ---------------------------------------------------------------------------------------------- CSV
+def write_csv(path: str | os.PathLike, table: Mapping[str, np.ndarray]) -> None:
+    """Write a canonical table as CSV: header = column names, rows of shortest round-trip floats."""
+    path = Path(path)
+    names = list(table)
+    if not names:
+        raise ValueError("empty table")
+    n = len(np.asarray(table[names[0]]))
+    for k in names:
+        if len(np.asarray(table[k])) != n:
+            raise ValueError(f"column {k!r} has {len(np.asarray(table[k]))} rows, expected {n}")
+    mat = np.column_stack([np.asarray(table[k], dtype=np.float64) for k in names]) if n else np.empty((0, 0))
+    with open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(",".join(names) + "\n")
+        rep = float.__repr__
+        for row in mat.tolist():
+            f.write(",".join(map(rep, row)) + "\n")
+
+
+def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read a canonical table written by :func:`write_csv` (dict of float arrays, file column order).
+
+    Raises:
+        UserError: naming the file and line of a malformed header or row.
+    """
+    path = Path(path)
+    try:
+        f = open(path, encoding="utf-8")  # noqa: SIM115
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    with f:
+        header = f.readline().strip()
+        if not header:
+            raise UserError(f"{path}:1: empty file, expected a header of signal names")
+        names = [h.strip() for h in header.split(",")]
+        for h in names:
+            if h not in cat.SIGNALS:
+                raise UserError(f"{path}:1: unknown column {h!r} (not a catalogue signal name)")
+        if len(set(names)) != len(names):
+            raise UserError(f"{path}:1: duplicate column names in the header")
+        rows: list[list[float]] = []
+        width = len(names)
+        for lineno, line in enumerate(f, start=2):
+            s = line.strip()
+            if not s:
+                continue
+            parts = s.split(",")
+            if len(parts) != width:
+                raise UserError(f"{path}:{lineno}: expected {width} fields, got {len(parts)}")
+            try:
+                rows.append([float(p) for p in parts])
+            except ValueError:
+                bad = next(p for p in parts if not _is_float(p))
+                raise UserError(f"{path}:{lineno}: {bad.strip()!r} is not a number") from None
+    mat = np.array(rows, dtype=np.float64).reshape(len(rows), width)
+    return {n: mat[:, i].copy() for i, n in enumerate(names)}
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True

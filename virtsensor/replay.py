@@ -1,0 +1,304 @@
+"""Play CAN frames (a log file or in-memory frames) onto any python-can bus with their original timing.
+
+Timing (``rate`` > 0): frame ``k`` is due at the absolute deadline
+``t_send_k = t_start + (ts_k - ts_0) / rate`` on the monotonic
+``time.perf_counter`` clock; the player sleeps until ``SPIN_S`` before the
+deadline, then busy-spins on the clock (for less than the interpreter's
+GIL switch interval, so other threads are not starved) until it. Deadlines
+never depend on when earlier frames actually went out, so errors never
+accumulate; a late frame is sent at once. With ``loop`` the next pass starts
+one mean frame interval after the last frame of the previous pass, again on
+the same absolute time line. ``rate=None``/``"max"`` sends as fast as the bus
+accepts.
+
+Frames are sent unchanged (including those not in the DBC, which are only
+counted). The timing error of a frame is ``perf_counter()`` just before
+``bus.send`` minus its deadline.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from array import array
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from virtsensor.can_codec import CanMatrix
+from virtsensor.errors import UserError
+
+__all__ = ["SPIN_S", "ReplaySummary", "replay", "parse_rate", "open_bus", "simulated_frames"]
+
+#: Sleep until this long before a deadline, then spin (s).
+SPIN_S = 0.0015
+#: Keep at most this many timing errors for the statistics.
+_MAX_ERRORS = 5_000_000
+
+
+@dataclass
+class ReplaySummary:
+    """Outcome of :func:`replay`.
+
+    Attributes:
+        frames_sent: frames put on the bus (all passes).
+        unknown_frames: of those, frames whose id is not in the DBC (passed through).
+        duration_s: wall time from the start to the last send (s).
+        loops: passes over the frames completed or started.
+        rate: playback rate (None: as fast as possible).
+        timing_error_p50_ms, timing_error_p99_ms, timing_error_max_ms: send time
+            minus deadline (ms; None in max mode or without frames).
+        interrupted: stopped by Ctrl-C or ``stop``.
+    """
+
+    frames_sent: int
+    unknown_frames: int
+    duration_s: float
+    loops: int
+    rate: float | None
+    timing_error_p50_ms: float | None
+    timing_error_p99_ms: float | None
+    timing_error_max_ms: float | None
+    interrupted: bool = False
+
+    @property
+    def frames_per_s(self) -> float:
+        """Average frames per second of wall time."""
+        return self.frames_sent / self.duration_s if self.duration_s > 0 else 0.0
+
+    def format(self) -> str:
+        """Human-readable one-paragraph summary."""
+        rate = "max" if self.rate is None else f"{self.rate:g}x"
+        timing = (
+            "n/a (max rate)"
+            if self.timing_error_p50_ms is None
+            else f"p50 {self.timing_error_p50_ms:.3f} ms, p99 {self.timing_error_p99_ms:.3f} ms, "
+            f"max {self.timing_error_max_ms:.3f} ms"
+        )
+        return (
+            f"frames sent: {self.frames_sent} ({self.unknown_frames} unknown, passed through)\n"
+            f"duration: {self.duration_s:.3f} s at rate {rate}, {self.loops} pass(es)"
+            f"{' (interrupted)' if self.interrupted else ''}\n"
+            f"frames per second: {self.frames_per_s:.0f}\n"
+            f"timing error: {timing}"
+        )
+
+
+def parse_rate(text: str | float | None) -> float | None:
+    """``"max"`` -> None (as fast as possible), else a positive float; UserError otherwise."""
+    if text is None:
+        return None
+    if isinstance(text, str) and text.strip().lower() == "max":
+        return None
+    try:
+        r = float(text)
+    except (TypeError, ValueError):
+        raise UserError(f"--rate: {text!r} is neither a positive number nor 'max'") from None
+    if not (r > 0 and math.isfinite(r)):
+        if r == math.inf:
+            return None
+        raise UserError(f"--rate: {text!r} must be > 0 (or 'max')")
+    return r
+
+
+def open_bus(interface: str, channel: str, bitrate: int | None = None, **kwargs):
+    """Open a python-can bus, validating ``interface`` against ``can.interfaces.VALID_INTERFACES``.
+
+    Raises:
+        UserError: unknown interface (listing the valid ones) or a bus that cannot be opened.
+    """
+    import can
+
+    valid = sorted(can.interfaces.VALID_INTERFACES)
+    if interface not in can.interfaces.VALID_INTERFACES:
+        raise UserError(f"--interface: unknown interface {interface!r}; valid: {', '.join(valid)}")
+    if bitrate is not None:
+        kwargs["bitrate"] = bitrate
+    try:
+        return can.Bus(interface=interface, channel=channel, **kwargs)
+    except Exception as exc:  # noqa: BLE001 - interfaces raise CanError, OSError, ImportError, ...
+        detail = " ".join(str(exc).split()) or type(exc).__name__
+        raise UserError(f"cannot open {interface} channel {channel!r}: {detail}") from None
+
+
+def simulated_frames(
+    manoeuvre: str, *, speed_kmh: float, mu: float, seed: int = 0, overrides: Sequence[str] = (),
+    matrix: CanMatrix | None = None,
+) -> list:
+    """Frames of a simulated manoeuvre (``replay --manoeuvre``): the simulator's sensor
+    streams (:func:`sim.api.simulate_streams`) encoded as a car sends them.
+
+    Raises:
+        UserError: the simulator package cannot be imported, or the request is invalid.
+    """
+    try:
+        from sim.api import simulate_streams  # lazy: the runtime never needs the simulator
+        from sim.manoeuvres import ManoeuvreError
+        from sim.params import ParamError
+    except ImportError as exc:
+        raise UserError(f"the simulator is not available ({exc})") from None
+    from virtsensor.recording import iter_frames
+
+    try:
+        time_s, signals = simulate_streams(manoeuvre, speed_kmh=speed_kmh, mu=mu, seed=seed, overrides=overrides)
+    except (ManoeuvreError, ParamError) as exc:
+        raise UserError(str(exc)) from None
+    return list(iter_frames(time_s, signals, matrix=matrix, seed=seed))
+
+
+def _sources(frames_or_path, loop: bool):
+    """(factory returning a fresh iterator per pass, total frames per pass or None, label)."""
+    if isinstance(frames_or_path, (str, os.PathLike)):
+        from virtsensor.recording import iter_log
+
+        path = Path(frames_or_path)
+        # validate now (missing file, bad format, truncation) rather than after the first pass
+        it = iter_log(path)
+        first = next(it, None)
+        it.close()
+        if first is None:
+            return (lambda: iter(())), 0, str(path)
+        return (lambda: iter_log(path)), None, str(path)
+    if isinstance(frames_or_path, Sequence):
+        seq = frames_or_path
+    elif loop:
+        seq = list(frames_or_path)
+    else:
+        it = iter(frames_or_path)
+        return (lambda: it), None, "frames"
+    return (lambda: iter(seq)), len(seq), "frames"
+
+
+def replay(
+    frames_or_path: str | os.PathLike | Iterable,
+    bus,
+    rate: float | str | None = 1.0,
+    loop: bool = False,
+    *,
+    matrix: CanMatrix | None = None,
+    progress: bool = False,
+    max_loops: int | None = None,
+    stop=None,
+    spin_s: float = SPIN_S,
+) -> ReplaySummary:
+    """Send frames onto ``bus`` with their original timing (or as fast as possible).
+
+    Args:
+        frames_or_path: a log file (any format :func:`virtsensor.recording.iter_log`
+            reads) or python-can ``Message`` objects in time order.
+        bus: an open python-can bus (not shut down here).
+        rate: time scale (2.0 = twice as fast); ``None``/``"max"``: no timing.
+        loop: start over at the end (until Ctrl-C, ``stop`` or ``max_loops``).
+        matrix: CAN matrix used to recognise known ids (default: bundled).
+        progress: tqdm progress bar on stderr.
+        max_loops: stop after this many passes (with ``loop``).
+        stop: optional ``threading.Event``; set it to end the replay.
+        spin_s: sleep/spin split before each deadline (s).
+
+    Returns:
+        :class:`ReplaySummary`.
+
+    Raises:
+        UserError: unreadable log, or the bus refusing frames.
+    """
+    import can
+    from tqdm import tqdm
+
+    rate_f = parse_rate(rate) if isinstance(rate, str) else (None if rate is None else float(rate))
+    if rate_f is not None and not (rate_f > 0 and math.isfinite(rate_f)):
+        raise UserError(f"rate must be > 0, got {rate!r}")
+    matrix = matrix or CanMatrix.load()
+    known = frozenset(matrix.by_id)
+    factory, total, label = _sources(frames_or_path, loop)
+    clock = time.perf_counter
+    sleep = time.sleep
+    errors = array("d")
+    sent = unknown = passes = 0
+    interrupted = False
+    bar = tqdm(
+        total=total if not loop else None,
+        unit="frame",
+        file=sys.stderr,
+        disable=not progress,
+        mininterval=0.5,
+        desc=label[-40:],
+        leave=False,
+    )
+    pending = 0
+    t_start = clock()
+    t_pass = t_start
+    t_last_send = t_start
+    try:
+        while True:
+            passes += 1
+            ts0 = ts_last = None
+            n_pass = 0
+            for msg in factory():
+                ts = msg.timestamp
+                if ts0 is None:
+                    ts0 = ts
+                ts_last = ts
+                if rate_f is not None:
+                    deadline = t_pass + (ts - ts0) / rate_f
+                    rem = deadline - clock()
+                    if rem > spin_s:
+                        sleep(rem - spin_s)
+                    now = clock()
+                    while now < deadline:  # spin (holds the GIL for < spin_s, below the switch interval)
+                        now = clock()
+                    if len(errors) < _MAX_ERRORS:
+                        errors.append(now - deadline)
+                _send(bus, msg, can, sent)
+                sent += 1
+                n_pass += 1
+                if msg.arbitration_id not in known or msg.is_extended_id:
+                    unknown += 1
+                pending += 1
+                if pending >= 200:
+                    bar.update(pending)
+                    pending = 0
+                    if stop is not None and stop.is_set():
+                        interrupted = True
+                        break
+            t_last_send = clock()
+            if interrupted or not loop or n_pass == 0:
+                break
+            if max_loops is not None and passes >= max_loops:
+                break
+            if stop is not None and stop.is_set():
+                interrupted = True
+                break
+            if rate_f is not None and ts0 is not None and ts_last is not None:
+                gap = (ts_last - ts0) / (n_pass - 1) if n_pass > 1 else 0.01
+                t_pass = t_pass + (ts_last - ts0 + gap) / rate_f
+            else:
+                t_pass = clock()
+    except KeyboardInterrupt:
+        interrupted = True
+        t_last_send = clock()
+    finally:
+        bar.update(pending)
+        bar.close()
+    if errors:
+        e = np.frombuffer(errors, dtype=np.float64) * 1e3
+        p50, p99, mx = (float(np.percentile(e, 50)), float(np.percentile(e, 99)), float(e.max()))
+    else:
+        p50 = p99 = mx = None
+    return ReplaySummary(sent, unknown, t_last_send - t_start, passes, rate_f, p50, p99, mx, interrupted)
+
+
+def _send(bus, msg, can, index: int) -> None:
+    """bus.send with a short retry on a full transmit queue (e.g. SocketCAN ENOBUFS at max rate)."""
+    for attempt in range(200):
+        try:
+            bus.send(msg)
+            return
+        except can.CanOperationError as exc:
+            if attempt == 199:
+                what = f"the bus refused frame {index} (id 0x{msg.arbitration_id:X})"
+                raise UserError(f"{what}: {exc}") from None
+            time.sleep(0.0005)
