@@ -2,8 +2,9 @@
 
 ``simulate_many`` builds the plans of several requests, advances them together
 in one batch (vectorised across runs) and returns, per run, the truth on the
-100 Hz base grid, the sensor streams (what the CAN writer encodes) and the
-canonical 20 Hz table.
+100 Hz base grid and the sensor streams (what the CAN writer encodes). The
+canonical 20 Hz table is what a CAN receiver samples from those streams
+(:func:`virtsensor.recording.simulated_recording`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from sim.driver import Plan
 from sim.engine import simulate_batch
 from sim.manoeuvres import build_plan, check
 from sim.params import apply_overrides, car_parameters
-from sim.sensors import check_specs, make_streams, table_from_streams
+from sim.sensors import check_specs, make_streams
 
 
 @dataclass(frozen=True)
@@ -41,7 +42,6 @@ class SimRun:
         params: the full parameter tree of the car.
         truth: truth channels on the 100 Hz base grid (``time_s`` first).
         streams: the car's signals as its sensors deliver them, on the same grid.
-        table: the canonical 20 Hz table (inputs, outputs, truth columns).
     """
 
     request: Request
@@ -49,7 +49,6 @@ class SimRun:
     params: Mapping[str, Any]
     truth: dict[str, np.ndarray]
     streams: dict[str, np.ndarray]
-    table: dict[str, np.ndarray]
 
 
 def with_pressure(params: Mapping[str, Any], pressure_bar: float | None) -> dict[str, Any]:
@@ -85,15 +84,14 @@ def simulate_many(
         check_specs(tree)
     for r in requests:
         check(r.manoeuvre, r.speed_kmh, r.mu)
-    plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, tree) for r, tree in zip(requests, trees)]
+    plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, tree) for r, tree in zip(requests, trees, strict=True)]
     result = simulate_batch(plans, trees, progress=progress)
     runs = []
-    for i, (req, tree) in enumerate(zip(requests, trees)):
+    for i, (req, tree) in enumerate(zip(requests, trees, strict=True)):
         truth = result.run(i)
         # sensor noise is seeded apart from the manoeuvre's own randomness
         streams = make_streams(truth, tree, seed=int(np.random.SeedSequence([req.seed, 1]).generate_state(1)[0]))
-        table = table_from_streams(streams, truth)
-        runs.append(SimRun(req, plans[i], tree, truth, streams, table))
+        runs.append(SimRun(req, plans[i], tree, truth, streams))
     return runs
 
 

@@ -17,8 +17,8 @@ each at four speeds spread over its Table I range, on roads of friction
 from __future__ import annotations
 
 import json
-from contextlib import nullcontext
 from collections.abc import Callable, Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -59,7 +59,17 @@ def smoke_preset(seed: int = 0) -> list[Request]:
     return out
 
 
-PRESETS: dict[str, Callable[[int], list[Request]]] = {"paper": paper_preset, "smoke": smoke_preset}
+def tiny_preset(seed: int = 0) -> list[Request]:
+    """Four short runs (tests, quick looks)."""
+    seeds = np.random.SeedSequence(seed).generate_state(4)
+    picks = (("steering-pulse", 50.0, 1.0), ("single-sine", 60.0, 0.5), ("brake-accel", 60.0, 0.3),
+             ("double-lane-change", 60.0, 0.7))
+    return [Request(n, v, mu, int(s)) for (n, v, mu), s in zip(picks, seeds, strict=True)]
+
+
+PRESETS: dict[str, Callable[[int], list[Request]]] = {
+    "paper": paper_preset, "smoke": smoke_preset, "tiny": tiny_preset,
+}
 
 
 def _batches(requests: Sequence[Request], params: Mapping[str, Any], n_batches: int) -> list[list[int]]:
@@ -114,20 +124,19 @@ def run_campaign(
         par = Parallel(n_jobs=n_jobs, return_as="generator")
         jobs = (delayed(_run_batch)([requests[i] for i in g], params, writer) for g in groups)
         with tqdm(total=len(requests), unit="run", disable=not progress, desc="simulating") as bar:
-            for g, out in zip(groups, par(jobs)):
-                for i, item in zip(g, out):
+            for g, out in zip(groups, par(jobs), strict=True):
+                for i, item in zip(g, out, strict=True):
                     results[i] = item
                 bar.update(len(g))
     return results
 
 
-def manifest_entry(run: SimRun, path: Path) -> dict[str, Any]:
+def manifest_entry(run: SimRun, path: Path, samples: int, duration_s: float) -> dict[str, Any]:
     """What a campaign's manifest says about one written run."""
-    n = len(run.table["time_s"])
     return {
         "file": path.name,
         **asdict(run.request),
-        "samples": n,
-        "duration_s": float(run.table["time_s"][-1]) if n else 0.0,
+        "samples": samples,
+        "duration_s": duration_s,
         "label": json.loads(json.dumps(run.plan.label, default=float)),
     }

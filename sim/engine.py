@@ -15,7 +15,6 @@ import numpy as np
 
 from sim.driver import CONTROL_DT, Driver, Plan
 from sim.vehicle import (
-    IAS,
     IOM,
     IPHI,
     IPSI,
@@ -154,7 +153,7 @@ def _record(rec: dict[str, np.ndarray], j: int, x: np.ndarray, aux: Mapping[str,
     rec["ay_true_mps2"][:, j] = aux["ay_kin"] * np.cos(phi) + g * np.sin(phi)
     rec["steer_angle_true_rad"][:, j] = x[:, ISW]
     rec["steer_torque_true_nm"][:, j] = aux["t_bar"]
-    rec["assist_torque_true_nm"][:, j] = x[:, IAS]
+    rec["assist_torque_true_nm"][:, j] = aux["t_assist"]
     rec["motor_torque_true_nm"][:, j] = drv.motor
     rec["road_mu"][:, j] = u.mu
     rec["steer_angle_cmd_rad"][:, j] = u.steer_cmd

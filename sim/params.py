@@ -91,7 +91,7 @@ def _set(tree: dict[str, Any], key: str, value: Any, where: str = "") -> None:
     node: Any = tree
     for i, part in enumerate(parts):
         if not isinstance(node, dict) or part not in node:
-            close = difflib.get_close_matches(key, leaf_keys(tree), n=3)
+            close = difflib.get_close_matches(key, leaf_keys(tree), n=3, cutoff=0.85)
             hint = f" (did you mean {', '.join(close)}?)" if close else ""
             raise ParamError(f"{where}unknown parameter {key!r}{hint}")
         if i == len(parts) - 1:

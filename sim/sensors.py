@@ -3,9 +3,11 @@
 Each sensor samples the true quantity at its own update rate (with a random
 phase per run), after a pure latency, applies a gain error, a bias and white
 noise, quantises to its resolution and holds the value until its next update.
-The result is a set of *streams* on the 100 Hz base grid (what the CAN writer
-encodes at each message's cycle time) and the canonical 20 Hz table (what a
-receiver sees when it samples the latest values at 20 Hz ticks).
+The result is a set of *streams* on the 100 Hz base grid: what the CAN writer
+encodes at each message's cycle time. The canonical 20 Hz table is not made
+here: it is what a receiver on the bus samples from those frames
+(:func:`virtsensor.recording.simulated_recording`), so the simulator's tables
+and its CAN logs carry the same values, and the trainer sees what the runtime sees.
 
 What each catalogue input is made of (ISO 8855 signs, see virtsensor.signals):
 
@@ -27,8 +29,6 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-
-from virtsensor.signals import INPUTS, OUTPUTS, TABLE_RATE_HZ
 
 #: catalogue signal -> (sensor spec key in [sensors], truth channel)
 SOURCES: dict[str, tuple[str, str]] = {
@@ -114,21 +114,8 @@ def make_streams(run: Mapping[str, np.ndarray], params: Mapping[str, Any], seed:
     return streams
 
 
-def table_from_streams(streams: Mapping[str, np.ndarray], run: Mapping[str, np.ndarray] | None = None,
-                       rate_hz: float = TABLE_RATE_HZ) -> dict[str, np.ndarray]:
-    """Sample-and-hold the streams at ``rate_hz`` ticks: the canonical table.
-
-    Columns: ``time_s``, the 12 inputs, the 2 outputs, then (if ``run`` is given)
-    the truth columns of :data:`TRUTH_COLUMNS` at the same instants.
-    """
-    t = streams["time_s"]
-    dt = t[1] - t[0]
-    step = int(round(1.0 / (rate_hz * dt)))
-    idx = np.arange(0, len(t), step)
-    table = {"time_s": np.round(t[idx], 9)}
-    for name in (*INPUTS, *OUTPUTS):
-        table[name] = streams[name][idx]
-    if run is not None:
-        for name, src in TRUTH_COLUMNS.items():
-            table[name] = run[src][idx]
-    return table
+def truth_at(run: Mapping[str, np.ndarray], times: np.ndarray) -> dict[str, np.ndarray]:
+    """The truth columns of :data:`TRUTH_COLUMNS` at ``times`` (s, run clock), linearly
+    interpolated on the base grid (exact at grid instants such as 20 Hz ticks)."""
+    t = run["time_s"]
+    return {name: np.interp(times, t, run[src]) for name, src in TRUTH_COLUMNS.items()}

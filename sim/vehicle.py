@@ -10,7 +10,7 @@ roll ``phi`` positive right side down (a left turn rolls the body to the
 right, phi > 0); pitch ``theta`` positive nose down (braking, theta > 0).
 Wheels are indexed FL, FR, RL, RR. Suspension compression is positive in bump.
 
-Degrees of freedom (30 states per run, see the ``I*`` indices):
+Degrees of freedom (29 states per run, see the ``I*`` indices):
 
 * planar body: global x, y, heading psi, body-frame vx, vy and yaw rate r;
 * sprung mass: heave z (up), roll phi and pitch theta with their rates, moving
@@ -22,7 +22,9 @@ Degrees of freedom (30 states per run, see the ``I*`` indices):
 * four lagged slip angles and four lagged slip ratios: MF 6.1 first-order
   transient slip with relaxation lengths sigma = K / C from the tyre model;
 * the EPAS column (paper eq. 1 in spirit): steering-wheel angle and rate,
-  pinion angle and rate, and the lagged assist-motor torque. The torsion bar
+  pinion angle and rate. The assist motor's current loop (about 1 kHz) is
+  far faster than anything here, so the assist torque is the boost curve's
+  output on the present torsion-bar torque (no lag state). The torsion bar
   between them is the torque sensor; the rack force comes from both front
   tyres' Mz plus their Fy (caster trail) and Fx (scrub radius for brake forces,
   kingpin offset at the wheel centre for drive forces) moment arms about the
@@ -55,8 +57,8 @@ IZ, IZD, IPHI, IP, ITH, IQ = range(6, 12)
 IOM = slice(12, 16)
 IAL = slice(16, 20)
 IKA = slice(20, 24)
-ISW, ISWD, IPN, IPND, IAS, IS = range(24, 30)
-NSTATE = 30
+ISW, ISWD, IPN, IPND, IS = range(24, 29)
+NSTATE = 29
 
 WHEELS = ("fl", "fr", "rl", "rr")
 #: +1 for left wheels (y > 0), -1 for right wheels
@@ -231,7 +233,6 @@ class Vehicle:
             raise ValueError("steering.assist_speeds_mps must increase strictly")
         self.assist_knee = p(st, "assist_knee_nm")
         self.assist_max = p(st, "assist_max_nm")
-        self.assist_tau = p(st, "assist_time_constant_s")
 
         dr = "driver"
         self.k_robot = p(dr, "robot_stiffness_nmprad")
@@ -263,16 +264,18 @@ class Vehicle:
         """Road-wheel steer angles (B, 4) and d(delta)/d(pinion) of the fronts (B, 2).
 
         The rack moves both knuckles; a share of perfect Ackermann makes the inner
-        wheel steer more: delta_in - delta_out ~ ackermann * track/L * delta^2.
+        wheel steer more: |delta_in| - |delta_out| ~ ackermann * track/L * delta^2.
         """
         d = pinion / self.ratio
-        extra = self.ack * d * np.abs(d)
+        # even in d: in a left turn (d > 0) the left wheel is inside and steers more,
+        # in a right turn (d < 0) the right wheel does
+        extra = self.ack * d * d
         delta = np.empty((self.B, 4))
         delta[:, 0] = d + extra
         delta[:, 1] = d - extra
         delta[:, 2:] = 0.0
         delta += self.toe
-        dd = 2.0 * self.ack * np.abs(d)
+        dd = 2.0 * self.ack * d
         ddelta = np.stack([(1.0 + dd) / self.ratio, (1.0 - dd) / self.ratio], axis=1)
         return delta, ddelta
 
@@ -410,12 +413,11 @@ class Vehicle:
                 - fz[:, :2] * self.kpi_lift[:, None] * np.sin(delta[:, :2] - self.toe[:, :2]))
         t_road = (m_kp * ddelta).sum(axis=1)
         t_fric = self.f_c * np.tanh(pnd / self.f_v)
-        t_assist = x[:, IAS]
+        t_assist = self.boost(t_bar, vx)
         dx[:, ISW] = swd
         dx[:, ISWD] = (t_drv - t_bar - self.c_sw * swd) / self.J_sw
         dx[:, IPN] = pnd
         dx[:, IPND] = (t_bar + t_assist + t_road - self.c_p * pnd - t_fric) / self.J_p
-        dx[:, IAS] = (self.boost(t_bar, vx) - t_assist) / self.assist_tau
         dx[:, IS] = vx
 
         aux = {

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 from virtsensor.errors import UserError
 
@@ -33,7 +33,10 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     from virtsensor import __version__
 
-    parser = _Parser(prog="virtsensor", description="virtsensor: real-time virtual sensor of the front tyres' self-aligning torque from CAN signals.")
+    parser = _Parser(
+        prog="virtsensor",
+        description="virtsensor: real-time virtual sensor of the front tyres' self-aligning torque from CAN signals.",
+    )
     parser.add_argument("--version", action="version", version=f"virtsensor {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True

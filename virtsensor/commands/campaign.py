@@ -17,7 +17,8 @@ FORMATS = ("csv", "blf", "asc", "log")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("preset", metavar="PRESET", help="paper (Table I, ~45,000 samples) or smoke (20 short runs)")
+    parser.add_argument("preset", metavar="PRESET",
+                        help="paper (Table I, ~45,000 samples), smoke (20 runs) or tiny (4 runs)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory (created; must be empty)")
     parser.add_argument("--format", choices=FORMATS, default="csv", help="file format of each run (default csv)")
     parser.add_argument("--seed", type=int, default=0, help="campaign seed (every run's seed derives from it)")
@@ -35,8 +36,9 @@ def _write(run, out_dir: Path, fmt: str) -> dict:
     r = run.request
     name = f"{r.manoeuvre}_{r.speed_kmh:g}kmh_mu{r.mu:g}_{r.seed}.{fmt}"
     path = out_dir / name
-    write_run(run, path)
-    return manifest_entry(run, path)
+    table = write_run(run, path)
+    t = table["time_s"]
+    return manifest_entry(run, path, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -42,26 +42,44 @@ def run(args: argparse.Namespace) -> int:
     params = car_from_args(args)
     with sim_errors():
         sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params)
-    write_run(sim_run, out)
-    n = len(sim_run.table["time_s"])
+    table = write_run(sim_run, out)
+    n = len(table["time_s"])
     print(f"{args.manoeuvre} at {args.speed:g} km/h, mu {args.mu:g}: {n} samples at 20 Hz "
-          f"({sim_run.table['time_s'][-1]:.2f} s) -> {out}", file=sys.stderr)
+          f"({table['time_s'][-1]:.2f} s) -> {out}", file=sys.stderr)
     return 0
 
 
-def write_run(sim_run, out: Path) -> None:
+def run_table(sim_run) -> dict:
+    """The canonical 20 Hz table of a simulated run: what a receiver on the bus samples
+    from its frames (inputs and reference SATs), with the simulator's truth columns
+    (slip angles, loads, forces...) at the same ticks."""
+    from sim.sensors import truth_at
+    from virtsensor.recording import simulated_recording
+
+    streams = sim_run.streams
+    rec = simulated_recording(streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
+                              seed=sim_run.request.seed)
+    table = dict(rec.table)
+    table.update(truth_at(sim_run.truth, table["time_s"]))
+    return table
+
+
+def write_run(sim_run, out: Path) -> dict:
     """Write a simulated run to ``out`` (.csv table or CAN log), atomically: on any
-    failure no partial file is left behind."""
+    failure no partial file is left behind. Returns the run's canonical table."""
     from virtsensor.recording import write_csv, write_log
 
+    table = run_table(sim_run)
     # python-can picks the log writer by suffix: the temporary file keeps it
     tmp = out.with_name(f".partial-{out.name}")
     try:
         if out.suffix.lower() in TABLE_SUFFIXES:
-            write_csv(tmp, sim_run.table)
+            write_csv(tmp, table)
         else:
             streams = sim_run.streams
-            write_log(tmp, streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"})
+            write_log(tmp, streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
+                      seed=sim_run.request.seed)
         tmp.replace(out)
     finally:
         tmp.unlink(missing_ok=True)
+    return table

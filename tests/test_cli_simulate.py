@@ -1,0 +1,98 @@
+"""`virtsensor simulate` and `campaign` from the command line: outputs and bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from virtsensor.cli import main
+from virtsensor.recording import read_csv
+from virtsensor.signals import INPUTS, OUTPUTS, TABLE_COLUMNS
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "virtsensor.cli", *args], capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_simulate_writes_the_canonical_20hz_table(tmp_path):
+    out = tmp_path / "pulse.csv"
+    assert main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.7", "--seed", "3",
+                 "--out", str(out)]) == 0
+    table = read_csv(out)
+    assert list(table)[: len(TABLE_COLUMNS)] == list(TABLE_COLUMNS)
+    t = table["time_s"]
+    assert np.allclose(np.diff(t), 0.05)
+    for name in (*INPUTS, *OUTPUTS):
+        assert np.all(np.isfinite(table[name])), name
+    # the truth that explains the SAT travels with it
+    for name in ("alpha_fl_rad", "kappa_fl_1", "fz_fl_n", "fy_fl_n", "fx_fl_n", "fz_fr_n"):
+        assert name in table
+    assert np.abs(table["sat_fl_nm"]).max() > 5.0
+    # same seed, same file; another seed, another run
+    again = tmp_path / "again.csv"
+    main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.7", "--seed", "3", "--out", str(again)])
+    assert out.read_bytes() == again.read_bytes()
+
+
+def test_parameter_overrides_change_the_car(tmp_path):
+    light, heavy = tmp_path / "light.csv", tmp_path / "heavy.csv"
+    common = ["simulate", "steady-state-circular", "--speed", "60", "--mu", "1", "--seed", "1"]
+    assert main([*common, "--out", str(light)]) == 0
+    assert main([*common, "--set", "vehicle.mass_kg=1750", "--out", str(heavy)]) == 0
+    a, b = read_csv(light), read_csv(heavy)
+    # a heavier car loads its front suspension more at the same path and speed
+    assert np.abs(b["fz_fl_n"]).mean() > 1.1 * np.abs(a["fz_fl_n"]).mean()
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["simulate", "moonwalk", "--speed", "50", "--mu", "1"], "unknown manoeuvre 'moonwalk'"),
+        (["simulate", "fishhook", "--speed", "150", "--mu", "1"], "outside fishhook's range 40-80 km/h"),
+        (["simulate", "fishhook", "--speed", "60", "--mu", "3"], "mu 3 is outside"),
+        (["simulate", "fishhook", "--speed", "60", "--mu", "1", "--set", "vehicle.mas_kg=3"],
+         "unknown parameter 'vehicle.mas_kg' (did you mean vehicle.mass_kg?)"),
+        (["simulate", "fishhook", "--speed", "60", "--mu", "1", "--set", "vehicle.mass_kg=heavy"],
+         "vehicle.mass_kg: expected float"),
+        (["simulate", "fishhook", "--speed", "fast", "--mu", "1"], "invalid float value: 'fast'"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, args, needle):
+    out = tmp_path / "x.csv"
+    res = run_cli(*args, "--out", str(out))
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 or lines[-1].startswith("virtsensor"), res.stderr
+    assert needle in res.stderr
+    assert "Traceback" not in res.stderr
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_malformed_tir_is_named(tmp_path):
+    bad = tmp_path / "bad.tir"
+    bad.write_text("[MODEL]\nFITTYP = 61\n[VERTICAL]\nFNOMIN = four thousand\n")
+    out = tmp_path / "x.csv"
+    res = run_cli("simulate", "fishhook", "--speed", "60", "--mu", "1", "--set", f"tyres.file={bad}", "--out", str(out))
+    assert res.returncode == 2
+    assert "bad.tir" in res.stderr and "Traceback" not in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_campaign_is_deterministic_whatever_the_number_of_workers(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["campaign", "tiny", "--out", str(a), "--seed", "4", "--quiet", "--jobs", "1"]) == 0
+    assert main(["campaign", "tiny", "--out", str(b), "--seed", "4", "--quiet", "--jobs", "2",
+                 "--batch-size", "2"]) == 0
+    files = sorted(p.name for p in a.iterdir())
+    assert "manifest.json" in files and len(files) == 5
+    for name in files:
+        if name != "manifest.json":
+            assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    # refuses to write into a directory that already holds a campaign
+    res = run_cli("campaign", "tiny", "--out", str(a), "--quiet")
+    assert res.returncode == 2 and "not empty" in res.stderr
