@@ -37,6 +37,8 @@ class LinearModel:
         alignment_front, alignment_rear: lateral force per m/s^2 from the static
             toe and camber forces of the two tyres, which no longer cancel once
             lateral load transfer loads the outer tyre (N s^2/m), + inward.
+        rolling_moment: yaw moment per m/s^2 from rolling resistance under lateral
+            load transfer (the loaded outer wheels roll harder), + out of the turn (N m s^2/m).
         roll_gradient: body roll per lateral acceleration (rad per m/s^2).
         ratio: steering ratio (steering-wheel angle / road-wheel angle).
     """
@@ -53,6 +55,7 @@ class LinearModel:
     camber_thrust_rear: float
     alignment_front: float
     alignment_rear: float
+    rolling_moment: float
     roll_gradient: float
     ratio: float
 
@@ -62,8 +65,11 @@ class LinearModel:
         af = self.a_m - self.trail_front_m
         br = self.b_m + self.trail_rear_m
         lp = af + br
-        per_ay_front = (self.mass_kg * br / lp + self.camber_thrust_front - self.alignment_front) / self.c_front
-        per_ay_rear = (self.mass_kg * af / lp + self.camber_thrust_rear - self.alignment_rear) / self.c_rear
+        # yaw balance af * Fyf - br * Fyr = rolling_moment, lateral balance Fyf + Fyr = m ay
+        fyf = (self.mass_kg * br + self.rolling_moment) / lp
+        fyr = (self.mass_kg * af - self.rolling_moment) / lp
+        per_ay_front = (fyf + self.camber_thrust_front - self.alignment_front) / self.c_front
+        per_ay_rear = (fyr + self.camber_thrust_rear - self.alignment_rear) / self.c_rear
         return per_ay_front - per_ay_rear
 
     def road_wheel_angle(self, speed_mps: np.ndarray | float, ay_mps2: np.ndarray | float) -> np.ndarray:
@@ -163,4 +169,6 @@ def linear_model(params: Mapping[str, Any], tyre: MagicFormula61 | None = None, 
                                        ty["pressure_front_pa"], kappa_f) * lt_f / 2.0
     al_r = _alignment_load_sensitivity(tyre, m * g * (1 - frac) / 2, ty["toe_in_rear_rad"],
                                        ty["static_camber_rear_rad"], ty["pressure_rear_pa"]) * lt_r / 2.0
-    return LinearModel(m, L, a, b, cf, cr, tf, tr, thrust_f, thrust_r, al_f, al_r, roll_grad, st["ratio"])
+    f_rr = float(tyre.params.get("QSY1", 0.0))  # rolling resistance force / load
+    rolling = f_rr * (tf_w * lt_f + tr_w * lt_r)
+    return LinearModel(m, L, a, b, cf, cr, tf, tr, thrust_f, thrust_r, al_f, al_r, rolling, roll_grad, st["ratio"])

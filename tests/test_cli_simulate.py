@@ -40,7 +40,7 @@ def test_simulate_writes_the_canonical_20hz_table(tmp_path):
 
 def test_parameter_overrides_change_the_car(tmp_path):
     light, heavy = tmp_path / "light.csv", tmp_path / "heavy.csv"
-    common = ["simulate", "steady-state-circular", "--speed", "60", "--mu", "1", "--seed", "1"]
+    common = ["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--seed", "1"]
     assert main([*common, "--out", str(light)]) == 0
     assert main([*common, "--set", "vehicle.mass_kg=1750", "--out", str(heavy)]) == 0
     a, b = read_csv(light), read_csv(heavy)
