@@ -121,6 +121,10 @@ class Driver:
         self.k_lat_i = dp("lateral_integral_gain")
         self.k_v = dp("speed_gain_npmps")
         self.k_vi = dp("speed_integral_gain")
+        self.sw_lock = np.array([t["steering"]["ratio"] * t["steering"]["max_road_wheel_angle_rad"] for t in params])
+        self.max_rate = dp("robot_max_rate_radps")
+        self.cmd_tau = dp("command_time_constant_s")
+        self.follow_sw = np.zeros(B)
 
         # paths, padded to one length; runs without a path get a straight line
         m = max((len(p.path) for p in plans if p.path is not None), default=2)
@@ -212,7 +216,10 @@ class Driver:
         target = self.speed_target[:, k].copy()
         if following.any():
             sw_path, vt = self._follow(x)
-            sw = np.where(following, sw_path, sw)
+            # a driver's (or robot's path loop's) bandwidth: first-order low-pass
+            a = CONTROL_DT / np.maximum(self.cmd_tau, CONTROL_DT)
+            self.follow_sw = np.where(following, self.follow_sw + a * (sw_path - self.follow_sw), self.cmd_sw)
+            sw = np.where(following, self.follow_sw, sw)
             target = np.where(following & np.isfinite(vt), vt, target)
         hold = mode == STEER_HOLD
         # the hold angle is the command at the moment holding starts
@@ -220,6 +227,10 @@ class Driver:
         sw = np.where(hold, self.held_sw, sw)
         free = mode == STEER_FREE
         sw = np.where(free, x[:, ISW], sw)
+        # no driver or robot turns the wheel past the rack's end stops or faster than it can
+        sw = np.clip(sw, -self.sw_lock, self.sw_lock)
+        step = self.max_rate * CONTROL_DT
+        sw = np.where(free, sw, np.clip(sw, self.cmd_sw - step, self.cmd_sw + step))
         new_rate = (sw - self.cmd_sw) / CONTROL_DT
         self.cmd_rate = np.where(free, 0.0, new_rate)
         self.cmd_sw = sw

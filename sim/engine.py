@@ -117,9 +117,11 @@ def simulate_batch(
             raise FloatingPointError(f"simulation diverged at t={k * CONTROL_DT:.2f} s in run(s) {names}")
         if progress is not None and (k % 100 == 0 or k == n_ctl - 1):
             progress(k + 1)
+        if k % 100 == 99 and _all_aborted(rec, j):
+            break  # every run has ended (stopped or spun): nothing left to simulate
     time_s = np.arange(n_rec) * (rec_every * CONTROL_DT)
     n_valid = np.array([min(n_rec, (p.n - 1) // rec_every + 1) for p in plans])
-    n_valid = np.minimum(n_valid, _abort_index(rec, n_rec))
+    n_valid = np.minimum(np.minimum(n_valid, j), _abort_index(_head(rec, j), j))
     return BatchResult(time_s, rec, n_valid, plans, params)
 
 
@@ -134,6 +136,14 @@ def _abort_index(rec: Mapping[str, np.ndarray], n_rec: int) -> np.ndarray:
     bad = (vx < ABORT_SPEED_MPS) | (np.abs(np.arctan2(rec["vy_mps"], np.abs(vx))) > ABORT_SIDESLIP_RAD)
     first = np.where(bad.any(axis=1), bad.argmax(axis=1), n_rec)
     return np.maximum(first, 1)
+
+
+def _all_aborted(rec: Mapping[str, np.ndarray], j: int) -> bool:
+    return bool(np.all(_abort_index(_head(rec, j), j) < j))
+
+
+def _head(rec: Mapping[str, np.ndarray], j: int) -> dict[str, np.ndarray]:
+    return {"vx_true_mps": rec["vx_true_mps"][:, :j], "vy_mps": rec["vy_mps"][:, :j]}
 
 
 def _record(rec: dict[str, np.ndarray], j: int, x: np.ndarray, aux: Mapping[str, np.ndarray],

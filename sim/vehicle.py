@@ -233,6 +233,8 @@ class Vehicle:
             raise ValueError("steering.assist_speeds_mps must increase strictly")
         self.assist_knee = p(st, "assist_knee_nm")
         self.assist_max = p(st, "assist_max_nm")
+        self.assist_w0 = p(st, "assist_noload_speed_radps")
+        self.assist_damping = p(st, "assist_damping_nmsprad")
 
         dr = "driver"
         self.k_robot = p(dr, "robot_stiffness_nmprad")
@@ -249,16 +251,18 @@ class Vehicle:
         g0, g1 = self.assist_g[r, idx], self.assist_g[r, idx + 1]
         return g0 + (g1 - g0) * (v - v0) / (v1 - v0)
 
-    def boost(self, t_bar: np.ndarray, vx: np.ndarray) -> np.ndarray:
-        """Assist-torque demand of the boost curve (column-referred Nm).
+    def boost(self, t_bar: np.ndarray, vx: np.ndarray, pinion_rate: np.ndarray | float = 0.0) -> np.ndarray:
+        """Assist torque of the EPAS (column-referred Nm).
 
-        ``G(v) * T * |T| / (|T| + knee)``: quadratic for small torsion-bar torque,
-        tending to the speed-dependent gain G(v) for large torque, limited by the
-        motor. The sign follows the torsion-bar torque.
+        Boost curve ``G(v) * T * |T| / (|T| + knee)`` (quadratic for small
+        torsion-bar torque, tending to the speed-dependent gain G(v)), minus the
+        active damping on the column speed, limited by the motor's torque-speed
+        curve (full torque at rest, none at the no-load speed).
         """
         a = np.abs(t_bar)
-        demand = self.assist_gain(vx) * t_bar * a / (a + self.assist_knee)
-        return np.clip(demand, -self.assist_max, self.assist_max)
+        demand = self.assist_gain(vx) * t_bar * a / (a + self.assist_knee) - self.assist_damping * pinion_rate
+        limit = self.assist_max * np.clip(1.0 - np.abs(pinion_rate) / self.assist_w0, 0.0, 1.0)
+        return np.clip(demand, -limit, limit)
 
     def road_wheel_angles(self, pinion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Road-wheel steer angles (B, 4) and d(delta)/d(pinion) of the fronts (B, 2).
@@ -413,7 +417,7 @@ class Vehicle:
                 - fz[:, :2] * self.kpi_lift[:, None] * np.sin(delta[:, :2] - self.toe[:, :2]))
         t_road = (m_kp * ddelta).sum(axis=1)
         t_fric = self.f_c * np.tanh(pnd / self.f_v)
-        t_assist = self.boost(t_bar, vx)
+        t_assist = self.boost(t_bar, vx, pnd)
         dx[:, ISW] = swd
         dx[:, ISWD] = (t_drv - t_bar - self.c_sw * swd) / self.J_sw
         dx[:, IPN] = pnd
