@@ -20,6 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("simulate", "simulate a manoeuvre and write a 20 Hz table or a CAN log"),
     "campaign": ("campaign", "simulate a whole data-set preset (e.g. the paper's) in parallel"),
     "replay": ("replay", "play a CAN log (or a simulated manoeuvre) onto a python-can bus"),
+    "train": ("train", "train the paper's MLP (or the improved one) on recordings, export ONNX + model card"),
+    "evaluate": ("evaluate", "Table IV: the paper's protocols and honest ones, baselines, JSON and Markdown"),
 }
 
 

@@ -1,0 +1,162 @@
+"""Feature front-end (offline == online), data set building, and evaluation on a known function."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from virtsensor import signals as cat
+from virtsensor.dataset import Run, build_dataset, load_runs, split_track_laps
+from virtsensor.errors import UserError
+from virtsensor.evaluation import evaluate, grouped_split, markdown_table, random_split
+from virtsensor.features import HISTORY, PAPER, Feature, FeatureBuilder, FeatureSpec
+from virtsensor.recording import write_csv
+from virtsensor.training import RECIPES
+
+
+def synthetic_table(n: int, seed: int, mu: float = 1.0) -> dict[str, np.ndarray]:
+    """A run whose SATs are a known smooth function of its inputs (``mu`` only labels it)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.05
+    table = {"time_s": t}
+    for k, name in enumerate(cat.INPUTS):
+        f = 0.1 + 0.07 * k
+        table[name] = np.sin(2 * np.pi * f * t + rng.uniform(0, 6)) * (1 + k % 3) + rng.normal(0, 0.01, n)
+    ay, assist = table["ay_mps2"], table["assist_torque_nm"]
+    table["sat_fl_nm"] = -12.0 * np.tanh(ay / 2) + 3.0 * assist
+    table["sat_fr_nm"] = -10.0 * np.tanh(ay / 2) + 2.0 * assist - 0.5 * table["steer_torque_nm"]
+    table["road_mu"] = np.full(n, mu)
+    return table
+
+
+def test_offline_and_online_feature_vectors_are_identical():
+    table = synthetic_table(200, 1)
+    X = HISTORY.transform(table)
+    builder = FeatureBuilder(HISTORY)
+    rows = []
+    for i in range(200):
+        v = builder.push(np.array([table[s][i] for s in HISTORY.signals]))
+        rows.append(np.full(len(HISTORY.features), np.nan) if v is None else v.copy())
+    online = np.array(rows)
+    assert np.isnan(X[: HISTORY.history]).any(axis=1).all()
+    ok = np.isfinite(X).all(axis=1)
+    assert ok.sum() == 200 - HISTORY.history
+    np.testing.assert_array_equal(online[ok], X[ok])
+
+
+def test_rate_and_accel_features_are_derivatives():
+    t = np.arange(100) * 0.05
+    table = {s: np.zeros(100) for s in cat.INPUTS}
+    table["steer_angle_rad"] = 0.5 * t**2  # rate t, accel 1
+    spec = FeatureSpec("d", (Feature("steer_angle_rad", "rate"), Feature("steer_angle_rad", "accel"),
+                             Feature("steer_angle_rad", "lag", 2)))
+    X = spec.transform(table)
+    assert np.allclose(X[2:, 1], 1.0)
+    assert np.allclose(X[1:, 0], t[1:] - 0.025)  # backward difference: rate half a tick earlier
+    assert np.allclose(X[2:, 2], table["steer_angle_rad"][:-2])
+
+
+def test_spec_round_trips_through_json_and_rejects_nonsense():
+    assert FeatureSpec.from_json(HISTORY.to_json()) == HISTORY
+    with pytest.raises(ValueError):
+        FeatureSpec("bad", (Feature("sat_fl_nm"),))  # an output is not an input
+    with pytest.raises(ValueError):
+        FeatureSpec("bad", (Feature("ay_mps2", "lag", 0),))
+
+
+def test_nonfinite_rows_are_dropped_and_counted():
+    table = synthetic_table(100, 2)
+    table["ay_mps2"][10] = np.nan
+    table["sat_fr_nm"][20] = np.inf
+    ds = build_dataset([Run("r", table)], PAPER)
+    assert ds.dropped_nonfinite == 2 and len(ds.X) == 98
+    assert np.isfinite(ds.X).all() and np.isfinite(ds.Y).all()
+    ds_h = build_dataset([Run("a", synthetic_table(100, 3)), Run("b", synthetic_table(100, 4))], HISTORY)
+    # history does not cross the run boundary: each run loses its own first ticks
+    assert ds_h.dropped_nonfinite == 2 * HISTORY.history
+
+
+def test_a_recording_lacking_a_needed_signal_is_refused(tmp_path):
+    table = synthetic_table(50, 5)
+    del table["wheel_speed_fr_radps"]
+    path = tmp_path / "run.csv"
+    write_csv(path, table)
+    with pytest.raises(UserError, match=r"run\.csv.*wheel_speed_fr_radps"):
+        load_runs([tmp_path], needed=PAPER.signals)
+    runs = load_runs([path])
+    with pytest.raises(UserError, match="wheel_speed_fr_radps"):
+        build_dataset(runs, PAPER)
+
+
+def test_splits():
+    tr, te = random_split(1000, 0)
+    assert len(te) == 300 and not set(tr) & set(te)
+    groups = np.repeat(np.arange(10), 50)
+    tr, te = grouped_split(groups, 0)
+    assert not set(groups[tr]) & set(groups[te]) and len(set(groups[te])) == 3
+
+
+def test_evaluation_recovers_a_known_function():
+    runs = [Run(f"r{i}", synthetic_table(300, 10 + i, mu=(1.0, 0.6)[i % 2]), {"mu": (1.0, 0.6)[i % 2]})
+            for i in range(10)]
+    track = Run("track", {k: np.concatenate([a, b]) for (k, a), b in
+                          zip(synthetic_table(200, 99).items(), synthetic_table(200, 98, mu=0.6).values(),
+                              strict=True)})
+    track.table["time_s"] = np.arange(400) * 0.05
+    assert set(split_track_laps(track)) == {"dry", "wet"}
+    recipe = {"paper": {"features": "paper", "params": {**RECIPES["paper"]["params"], "max_iter": 300}}}
+    res = evaluate(runs, track, recipe, seed=0)
+    assert res["paper"]["test"]["r2"] > 0.99
+    assert res["paper"]["grouped"]["r2"] > 0.98
+    assert res["baselines"]["linear"]["grouped"]["r2"] > 0.5
+    assert res["paper"]["track_dry"]["mae_nm"] < res["baselines"]["linear"]["track_dry"]["mae_nm"]
+    for key in ("train", "test", "grouped", "track_dry", "track_wet"):
+        m = res["paper"][key]
+        assert {"r2", "mae_nm", "fl", "fr", "axle"} <= set(m)
+        assert m["r2"] == pytest.approx((m["fl"]["r2"] + m["fr"]["r2"]) / 2)
+    assert "| Magny-Cours wet asphalt | 0.931 / 8.10 |" in markdown_table(res)
+
+
+def _write_runs(d, n_runs=8, n=240):
+    d.mkdir()
+    for i in range(n_runs):
+        write_csv(d / f"run{i}.csv", synthetic_table(n, 40 + i))
+    return d
+
+
+def test_train_and_evaluate_from_the_command_line(tmp_path, capsys):
+    import json
+
+    from virtsensor.cli import main
+    from virtsensor.onnx_model import OnnxModel
+
+    data = _write_runs(tmp_path / "data")
+    track = tmp_path / "track.csv"
+    both = {k: np.concatenate([a, b]) for (k, a), b in
+            zip(synthetic_table(200, 1).items(), synthetic_table(200, 2, mu=0.7).values(), strict=True)}
+    both["time_s"] = np.arange(400) * 0.05
+    write_csv(track, both)
+    model = tmp_path / "m.onnx"
+    assert main(["train", "--data", str(data), "--recipe", "improved", "--out", str(model), "--quiet"]) == 0
+    loaded = OnnxModel.load(model)
+    card = loaded.card
+    assert card["recipe"]["features"] == "history" and card["training_data"]["runs"] == 8
+    assert [i["name"] for i in card["inputs"]] == list(loaded.input_names)
+    assert card["metrics"]["grouped_holdout"]["r2"] > 0.9
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", "--model", str(model), "--data", str(data), "--track", str(track),
+                 "--json", str(out), "--quiet"]) == 0
+    res = json.loads(out.read_text())
+    for key in ("paper", "improved"):
+        assert set(res[key]) == {"train", "test", "grouped", "track_dry", "track_wet"}
+    assert set(res["baselines"]) == {"linear", "eq1_observer"}
+    assert {"track_dry", "track_wet"} <= set(res["shipped_model"])
+    assert "Magny-Cours dry asphalt" in capsys.readouterr().out
+    # a recording without a needed signal is refused, naming it (one line, exit 2)
+    bad = _write_runs(tmp_path / "bad", n_runs=1)
+    table = synthetic_table(100, 3)
+    del table["motor_torque_nm"]
+    write_csv(bad / "run0.csv", table)
+    assert main(["train", "--data", str(bad), "--out", str(tmp_path / "x.onnx"), "--quiet"]) == 2
+    assert "motor_torque_nm" in capsys.readouterr().err
+    assert not (tmp_path / "x.onnx").exists()

@@ -1,0 +1,241 @@
+"""ONNX export of the estimator pipeline, its model card, the onnxruntime runtime and the numpy back-end."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import warnings
+
+import numpy as np
+import onnx
+import pytest
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.linear_model import LinearRegression
+from sklearn.neural_network import MLPRegressor
+from sklearn.pipeline import Pipeline
+from sklearn.preprocessing import RobustScaler
+from threadpoolctl import threadpool_limits
+
+from virtsensor import onnx_model as om
+from virtsensor import signals as cat
+from virtsensor.errors import UserError
+
+N_FEATURES = len(cat.INPUTS)
+
+
+def _features(n: int, seed: int) -> np.ndarray:
+    """Random rows spread over the catalogue inputs' physical ranges (their units)."""
+    rng = np.random.default_rng(seed)
+    lo = np.array([cat.SIGNALS[s].minimum for s in cat.INPUTS])
+    hi = np.array([cat.SIGNALS[s].maximum for s in cat.INPUTS])
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    return mid + half * rng.uniform(-0.6, 0.6, size=(n, N_FEATURES))
+
+
+def _sat(X: np.ndarray) -> np.ndarray:
+    """SAT-like targets (Nm, about +-150)."""
+    z = (X - X.mean(0)) / X.std(0)
+    return np.c_[120 * np.sin(z[:, 1] + 0.5 * z[:, 4]) + 30 * z[:, 5], 100 * np.sin(z[:, 2] - z[:, 4]) + 20 * z[:, 6]]
+
+
+def _mlp(n_out: int = 2, activation: str = "tanh") -> Pipeline:
+    """A 12-32-12-n_out MLP, briefly trained (lbfgs reaches SAT-sized outputs in a few iterations)."""
+    X = _features(200, 0)
+    Y = _sat(X)
+    # alpha=1 keeps the weights modest: float32 error grows with them (~6e-4 Nm at alpha=1e-4, ~2.6e-4 here)
+    mlp = MLPRegressor(hidden_layer_sizes=(32, 12), activation=activation, solver="lbfgs", max_iter=30,
+                       alpha=1.0, random_state=0)
+    # one BLAS thread: on small matrices a thread pool is 5x slower than one thread
+    with warnings.catch_warnings(), threadpool_limits(1):
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return Pipeline([("scaler", RobustScaler()), ("mlp", mlp)]).fit(X, Y if n_out == 2 else Y[:, 0])
+
+
+def _card_extra() -> dict:
+    return {
+        "inputs": [{"name": s, "unit": cat.SIGNALS[s].unit, "dbc_message": cat.SIGNALS[s].message,
+                    "dbc_signal": cat.SIGNALS[s].dbc_signal, "minimum": cat.SIGNALS[s].minimum,
+                    "maximum": cat.SIGNALS[s].maximum} for s in cat.INPUTS],
+        "training_data": {"sha256": "0" * 64, "rows": np.int64(200)},
+        "metrics": {"rmse_nm": np.float64(3.5)},
+    }
+
+
+@pytest.fixture(scope="module")
+def mlp2() -> Pipeline:
+    return _mlp(2)
+
+
+@pytest.fixture(scope="module")
+def exported(mlp2, tmp_path_factory):
+    path = tmp_path_factory.mktemp("model") / "sat.onnx"
+    card = om.export_pipeline(mlp2, N_FEATURES, path, card_extra=_card_extra(), parity_X=_features(500, 1))
+    return path, card
+
+
+def test_parity_with_sklearn_on_sat_magnitudes(mlp2, exported):
+    path, card = exported
+    X = _features(500, 1)
+    ref = mlp2.predict(X)
+    assert np.abs(ref).max() > 100.0  # the check is about SAT-sized numbers, not ~1 Nm ones
+    model = om.OnnxModel.load(path)
+    assert np.abs(model.predict(X) - ref).max() <= om.PARITY_TOL_NM
+    assert 0.0 <= card["parity_max_abs_nm"] <= om.PARITY_TOL_NM
+    assert card["parity_rows"] == 500
+
+
+@pytest.mark.parametrize("n", [1, 7])
+def test_output_shape_is_n_by_outputs(exported, mlp2, n):
+    path, _ = exported
+    model = om.OnnxModel.load(path)
+    X = _features(n, 2)
+    raw = model.session.run(["sat"], {"features": X.astype(np.float32)})[0]
+    assert raw.shape == (n, 2)
+    np.testing.assert_allclose(raw, mlp2.predict(X), atol=1e-3)
+    assert model.predict(X).shape == (n, 2) and model.predict(X).dtype == np.float64
+    # the declared graph output agrees: [N, 2], batch named like the input's
+    g = onnx.load(path).graph
+    (out,) = g.output
+    dims = out.type.tensor_type.shape.dim
+    assert out.name == "sat" and dims[0].dim_param == "N" and dims[1].dim_value == 2
+    assert g.input[0].name == "features" and g.input[0].type.tensor_type.elem_type == onnx.TensorProto.FLOAT
+    # skl2onnx's final Reshape([-1, 1]) was retargeted, not followed by a second one
+    assert [n.op_type for n in g.node].count("Reshape") == 1 and g.node[-1].op_type == "Reshape"
+
+
+def test_one_output_model(tmp_path):
+    pipe = _mlp(1)
+    X = _features(7, 3)
+    card = om.export_pipeline(pipe, N_FEATURES, tmp_path / "fl.onnx", card_extra=_card_extra(),
+                              parity_X=X, output_names=("sat_fl_nm",))
+    model = om.OnnxModel.load(tmp_path / "fl.onnx")
+    assert model.predict(X).shape == (7, 1)
+    assert model.predict_one(X[0]).shape == (1,)
+    np.testing.assert_allclose(model.predict(X)[:, 0], pipe.predict(X), atol=1e-3)
+    assert model.outputs == ("sat_fl_nm",) and card["n_outputs"] == 1
+    with pytest.raises(ValueError, match="output_names"):
+        om.export_pipeline(pipe, N_FEATURES, tmp_path / "x.onnx", card_extra=_card_extra())
+
+
+def test_card_contents_and_sha256(exported):
+    path, card = exported
+    on_disk = json.loads(om.card_path_for(path).read_text())
+    assert on_disk == card and om.card_path_for(path).name == "sat.card.json"
+    assert card["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert card["onnx_file"] == "sat.onnx" and card["n_features"] == N_FEATURES
+    assert [o["name"] for o in card["outputs"]] == list(cat.OUTPUTS)
+    assert {o["unit"] for o in card["outputs"]} == {"Nm"}
+    assert card["feature_names"] == list(cat.INPUTS)
+    assert card["inputs"][0]["dbc_signal"] == "AccelLong"  # card_extra kept
+    assert card["training_data"]["rows"] == 200
+    assert card["opset"]["ai.onnx"] <= om.TARGET_OPSET[""] and card["target_opset"]["ai.onnx"] == 17
+    opset = {d.domain or "ai.onnx": d.version for d in onnx.load(path).opset_import}
+    assert card["opset"] == opset
+    assert set(card["tool_versions"]) == {"python", "numpy", "scikit-learn", "skl2onnx", "onnx", "onnxruntime",
+                                          "virtsensor"}
+    assert card["created_utc"].endswith("Z")
+    assert not [p for p in path.parent.iterdir() if p.name.endswith(".tmp")]  # atomic writes left nothing behind
+
+
+def test_tampered_onnx_is_refused(exported, tmp_path):
+    path, _ = exported
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    bad = tmp_path / "sat.onnx"
+    bad.write_bytes(bytes(data))
+    card = om.card_path_for(path)
+    with pytest.raises(UserError, match="sha256") as e:
+        om.OnnxModel.load(bad, card)
+    msg = str(e.value)
+    assert "\n" not in msg and str(bad) in msg and str(card) in msg
+    assert hashlib.sha256(bytes(data)).hexdigest() in msg and json.loads(card.read_text())["sha256"] in msg
+
+
+def test_missing_card_or_onnx_is_a_user_error(exported, tmp_path):
+    path, _ = exported
+    (tmp_path / "sat.onnx").write_bytes(path.read_bytes())
+    with pytest.raises(UserError, match="sat.card.json"):
+        om.OnnxModel.load(tmp_path / "sat.onnx")
+    with pytest.raises(UserError, match="nothere.onnx"):
+        om.OnnxModel.load(tmp_path / "nothere.onnx", om.card_path_for(path))
+    (tmp_path / "sat.card.json").write_text("{not json")
+    with pytest.raises(UserError, match="not valid JSON"):
+        om.OnnxModel.load(tmp_path / "sat.onnx")
+
+
+@pytest.mark.parametrize("use_iobinding", [True, False])
+def test_predict_one_equals_predict(exported, use_iobinding):
+    path, _ = exported
+    model = om.OnnxModel.load(path, use_iobinding=use_iobinding)
+    X = _features(5, 4)
+    batch = model.predict(X)
+    out = model.predict_one(X[2])
+    assert out.shape == (2,) and out.dtype == np.float64
+    np.testing.assert_array_equal(out, batch[2])
+    again = model.predict_one(X[3])
+    assert again is out  # the preallocated result, overwritten in place
+    np.testing.assert_array_equal(again, batch[3])
+    with pytest.raises(ValueError, match="12 features"):
+        model.predict_one(X[2, :5])
+
+
+def test_session_is_single_threaded_without_spinning(exported):
+    path, _ = exported
+    model = om.OnnxModel.load(path)
+    import onnxruntime as ort
+
+    for so in (model.session_options, model.session.get_session_options()):
+        assert so.intra_op_num_threads == 1 and so.inter_op_num_threads == 1
+        assert so.execution_mode == ort.ExecutionMode.ORT_SEQUENTIAL
+        assert so.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+        assert so.get_session_config_entry("session.inter_op.allow_spinning") == "0"
+    assert model.session.get_providers() == ["CPUExecutionProvider"]
+    assert model.input_names == cat.INPUTS and model.outputs == cat.OUTPUTS and model.n_features == 12
+
+
+def test_linear_regression_pipeline_exports(tmp_path):
+    X = _features(200, 5)
+    pipe = Pipeline([("scaler", RobustScaler()), ("lin", LinearRegression())]).fit(X, _sat(X))
+    card = om.export_pipeline(pipe, N_FEATURES, tmp_path / "lin.onnx", card_extra=_card_extra(), parity_X=X)
+    model = om.OnnxModel.load(tmp_path / "lin.onnx")
+    assert onnx.load(tmp_path / "lin.onnx").graph.node[-1].name == "sat_reshape"  # appended: no Reshape to retarget
+    for n in (1, 7):
+        assert model.predict(X[:n]).shape == (n, 2)
+    assert card["parity_max_abs_nm"] <= om.PARITY_TOL_NM
+    np.testing.assert_allclose(om.numpy_forward(pipe)(X), pipe.predict(X), rtol=0, atol=1e-9)
+
+
+def test_double_precision_export(mlp2, tmp_path):
+    X = _features(50, 6)
+    card = om.export_pipeline(mlp2, N_FEATURES, tmp_path / "d.onnx", card_extra=_card_extra(), parity_X=X,
+                              precision="float64")
+    assert card["input_dtype"] == "float64" and card["parity_max_abs_nm"] < 1e-9
+    model = om.OnnxModel.load(tmp_path / "d.onnx")
+    np.testing.assert_allclose(model.predict_one(X[0]), mlp2.predict(X[:1])[0], rtol=0, atol=1e-9)
+
+
+def test_parity_failure_writes_nothing(mlp2, tmp_path, monkeypatch):
+    monkeypatch.setattr(om, "PARITY_TOL_NM", 0.0)
+    with pytest.raises(ValueError, match="parity"):
+        om.export_pipeline(mlp2, N_FEATURES, tmp_path / "p.onnx", card_extra=_card_extra(),
+                           parity_X=_features(50, 7))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_card_extra(mlp2, tmp_path):
+    with pytest.raises(ValueError, match="sha256"):
+        om.export_pipeline(mlp2, N_FEATURES, tmp_path / "a.onnx", card_extra={**_card_extra(), "sha256": "x"})
+    with pytest.raises(ValueError, match="features"):
+        om.export_pipeline(mlp2, N_FEATURES, tmp_path / "a.onnx", card_extra={"inputs": ["ax_mps2"]})
+
+
+@pytest.mark.parametrize("activation", ["tanh", "relu", "identity"])
+def test_numpy_forward_matches_sklearn(mlp2, activation):
+    pipe = mlp2 if activation == "tanh" else _mlp(2, activation)
+    X = _features(300, 8)
+    fwd = om.numpy_forward(pipe)
+    np.testing.assert_allclose(fwd(X), pipe.predict(X), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fwd.predict_one(X[0]), pipe.predict(X[:1])[0], rtol=0, atol=1e-9)
+    # the same from the JSON-able weights
+    weights = json.loads(json.dumps(om.pipeline_weights(pipe)))
+    np.testing.assert_allclose(om.numpy_forward(weights)(X), pipe.predict(X), rtol=0, atol=1e-9)

@@ -1,0 +1,79 @@
+"""``virtsensor evaluate``: Table IV, the paper's protocols beside honest ones.
+
+Example::
+
+    virtsensor simulate magny-cours --speed 180 --mu 1.0 --out data/track.csv
+    virtsensor evaluate --model models/improved.onnx --data data/paper --track data/track.csv \\
+        --json evaluation.json --markdown evaluation.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from pathlib import Path
+
+HELP = "Table IV: the paper's protocols and honest ones, baselines, JSON and Markdown"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, metavar="FILE.onnx",
+                        help="the model under test; its card's recipe is evaluated as 'improved' "
+                             "(unless it is the paper's) and the ONNX file itself on the track laps")
+    parser.add_argument("--data", nargs="+", required=True, metavar="PATH",
+                        help="Table I recordings (files or directories), as for train")
+    parser.add_argument("--track", metavar="FILE", help="Magny-Cours recording (dry lap then wet lap)")
+    parser.add_argument("--json", required=True, metavar="FILE", help="write the results here")
+    parser.add_argument("--markdown", metavar="FILE", help="also write the Table IV comparison as Markdown")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the splits and initialisations")
+    parser.add_argument("--quiet", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    from virtsensor import signals as cat
+    from virtsensor.dataset import build_dataset, load_runs, split_track_laps
+    from virtsensor.errors import UserError
+    from virtsensor.evaluation import evaluate, markdown_table
+    from virtsensor.features import SPECS, FeatureSpec
+    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.training import RECIPES, metrics
+
+    for opt in ("json", "markdown"):
+        p = getattr(args, opt)
+        if p and not Path(p).parent.exists():
+            raise UserError(f"--{opt} {p}: directory {Path(p).parent} does not exist")
+    model = OnnxModel.load(args.model)
+    card = model.card
+    recipe = card.get("recipe")
+    if not recipe or recipe.get("features") not in SPECS:
+        raise UserError(f"{args.model}: its card has no recipe this version can retrain")
+    recipes = {"paper": RECIPES["paper"]}
+    recipes["improved"] = recipe if recipe != RECIPES["paper"] else RECIPES["improved"]
+    needed = {s for r in recipes.values() for s in SPECS[r["features"]].signals} | set(cat.OUTPUTS)
+    runs = load_runs(args.data, needed=sorted(needed))
+    track = load_runs([args.track], needed=sorted(needed))[0] if args.track else None
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(msg, file=sys.stderr)
+
+    from threadpoolctl import threadpool_limits
+
+    with warnings.catch_warnings(), threadpool_limits(1):
+        warnings.simplefilter("ignore")
+        result = evaluate(runs, track, recipes, seed=args.seed, log=log)
+    if track is not None:
+        spec = FeatureSpec.from_json(card["feature_spec"])
+        shipped = {}
+        for lap, r in split_track_laps(track).items():
+            ds = build_dataset([r], spec)
+            shipped[f"track_{lap}"] = metrics(ds.Y, model.predict(ds.X))
+        result["shipped_model"] = {"file": str(args.model), "sha256": card["sha256"], **shipped}
+    Path(args.json).write_text(json.dumps(result, indent=1))
+    table = markdown_table(result)
+    if args.markdown:
+        Path(args.markdown).write_text(table)
+    print(table)
+    return 0
