@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.vehicle import IPSI, IS, ISW, IVX, IX, IY, Inputs, Vehicle
+from sim.vehicle import IOM, IPSI, IS, ISW, IVX, IX, IY, Inputs, Vehicle
 
 # steering modes
 STEER_TABLE, STEER_PATH, STEER_HOLD, STEER_FREE = 0, 1, 2, 3
@@ -98,6 +98,7 @@ class Driver:
     """Runs a batch of plans against a :class:`Vehicle` (all runs at once)."""
 
     WINDOW = 40  # path points searched ahead of the last nearest point
+    REACQUIRE_M = 8.0  # lateral distance beyond which the nearest point is searched along the whole path
 
     def __init__(self, vehicle: Vehicle, plans: Sequence[Plan], params: Sequence[dict]):
         if len(plans) != vehicle.B:
@@ -124,6 +125,7 @@ class Driver:
         self.sw_lock = np.array([t["steering"]["ratio"] * t["steering"]["max_road_wheel_angle_rad"] for t in params])
         self.max_rate = dp("robot_max_rate_radps")
         self.cmd_tau = dp("command_time_constant_s")
+        self.slip_margin = dp("steer_slip_margin_rad")
         self.follow_sw = np.zeros(B)
 
         # paths, padded to one length; runs without a path get a straight line
@@ -146,6 +148,9 @@ class Driver:
         seg = np.diff(self.path, axis=1)
         heading = np.arctan2(seg[..., 1], seg[..., 0])
         self.path_heading = np.concatenate([heading, heading[:, -1:]], axis=1)
+        dh = np.angle(np.exp(1j * np.diff(self.path_heading, axis=1)))
+        curv = dh / np.maximum(np.hypot(seg[..., 0], seg[..., 1]), 1e-9)
+        self.path_curv = np.concatenate([curv, curv[:, -1:]], axis=1)
 
         k_mu = max(len(p.mu_dist) for p in plans)
         self.mu_dist = np.full((B, max(k_mu, 1)), np.inf)
@@ -187,6 +192,11 @@ class Driver:
         pts = self.path[rows[:, None], win]
         d2 = ((pts - pos[:, None, :]) ** 2).sum(axis=2)
         self.idx = win[rows, np.argmin(d2, axis=1)]
+        lost = d2.min(axis=1) > self.REACQUIRE_M**2
+        if lost.any():  # far from the path (a spin, a wide line): search the whole path again
+            full = ((self.path[lost] - pos[lost, None, :]) ** 2).sum(axis=2)
+            ahead = np.arange(self.path.shape[1])[None, :] < self.path_len[lost, None]
+            self.idx[lost] = np.argmin(np.where(ahead, full, np.inf), axis=1)
         near = self.path[rows, self.idx]
         hd = self.path_heading[rows, self.idx]
         err = -(pos[:, 0] - near[:, 0]) * np.sin(hd) + (pos[:, 1] - near[:, 1]) * np.cos(hd)
@@ -202,6 +212,12 @@ class Driver:
         curvature = 2.0 * y_local / dist2
         self.lat_int += err * CONTROL_DT
         delta = np.arctan(v.L * curvature) - self.k_lat_i * self.lat_int
+        # a driver does not wind the wheels far past the tyres' grip: at most the
+        # kinematic angle of the sharpest curvature in the preview plus a slip margin
+        span = win[:, :: max(1, self.WINDOW // 8)]
+        k_ahead = np.abs(self.path_curv[rows[:, None], span]).max(axis=1)
+        limit = np.arctan(v.L * np.maximum(k_ahead, np.abs(curvature))) + self.slip_margin
+        delta = np.clip(delta, -limit, limit)
         vt = self.path_speed[rows, self.idx]
         return delta * v.ratio, vt
 
@@ -249,9 +265,11 @@ class Driver:
         brake_dem = np.where(smode == SPEED_OPEN, self.brake_cmd[:, k], brake_dem)
         motor_dem = np.where(smode == SPEED_COAST, 0.0, motor_dem)
         brake_dem = np.where(smode == SPEED_COAST, 0.0, brake_dem)
-        # motor limits: torque and power at the current motor speed
-        w_motor = np.maximum(np.abs(vx) / v.R0 * v.gear, 1.0)
+        # motor limits: torque, power, and no torque beyond the motor's top speed (the
+        # motor turns with the mean of the driven wheels through the open differential)
+        w_motor = np.maximum(0.5 * np.abs(x[:, IOM][:, 0] + x[:, IOM][:, 1]) * v.gear, 1.0)
         tmax = np.minimum(v.motor_tmax, v.motor_pmax / w_motor)
+        tmax = tmax * np.clip((v.motor_wmax - w_motor) / (0.05 * v.motor_wmax), 0.0, 1.0)
         motor_dem = np.clip(motor_dem, -tmax, tmax)
         brake_dem = np.clip(brake_dem, 0.0, v.brake_front_max)
         self.motor += (motor_dem - self.motor) * (CONTROL_DT / np.maximum(v.motor_tau, CONTROL_DT))

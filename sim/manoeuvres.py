@@ -39,10 +39,14 @@ from sim.linear import linear_model
 G = 9.81
 MU_RANGE = (0.1, 1.2)
 #: "driven briskly": share of the road's friction the track speed profile asks of the
-#: car in corners. The car's tyres give about 0.85 g on a mu = 1 road, so 0.72 is
-#: brisk without running wide at every hairpin (0.85 made the car plough off at the
-#: first corner).
-TRACK_AY_FRACTION = 0.72
+#: car in corners. The tyres give about 0.85 g on a mu = 1 road and the front-heavy
+#: car understeers before that; 0.62 is brisk and still on the line (0.85 and 0.72
+#: made the car plough off at the first corners).
+TRACK_AY_FRACTION = 0.62
+#: braking share of the friction limit on the track: without ABS and with a 78 %
+#: front brake balance the front wheels lock near 0.85 g, and a locked front cannot
+#: steer into the next corner.
+TRACK_BRAKE_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
@@ -279,7 +283,8 @@ def magny_cours(v: float, mu: float, rng: np.random.Generator, params: Mapping[s
     laps = tr.laps(2).aligned_to_start()  # the car starts at the start line heading +x
     s = laps.s
     mu_s = np.where(s < tr.length, mu, wet_mu)
-    vprof = trk.speed_profile(laps.curvature, s, mu_s, v_max_mps=v, ay_frac=TRACK_AY_FRACTION)
+    vprof = trk.speed_profile(laps.curvature, s, mu_s, v_max_mps=v, ay_frac=TRACK_AY_FRACTION,
+                              ax_brake_frac=TRACK_BRAKE_FRACTION)
     px, py = laps.x, laps.y
     ds = float(s[1] - s[0])
     lap_time = float(np.sum(ds / np.maximum(vprof, 1.0)))

@@ -190,6 +190,7 @@ class Vehicle:
         pt = "powertrain"
         self.motor_tmax = p(pt, "motor_max_torque_nm")
         self.motor_pmax = p(pt, "motor_max_power_w")
+        self.motor_wmax = p(pt, "motor_max_speed_radps")
         self.gear = p(pt, "gear_ratio")
         self.eta = p(pt, "efficiency")
         self.motor_tau = p(pt, "torque_time_constant_s")
