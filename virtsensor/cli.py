@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("replay", "play a CAN log (or a simulated manoeuvre) onto a python-can bus"),
     "train": ("train", "train the paper's MLP (or the improved one) on recordings, export ONNX + model card"),
     "evaluate": ("evaluate", "Table IV: the paper's protocols and honest ones, baselines, JSON and Markdown"),
+    "explain": ("explain", "Section IV.B figures: input correlation, SHAP importance/dependence, track laps"),
+    "run": ("run", "the real-time virtual-sensor daemon: CAN in, 20 Hz SAT_FRONT out"),
 }
 
 

@@ -63,8 +63,8 @@ RECIPES: dict[str, dict[str, Any]] = {
     # beyond the paper: eq. (1)'s steering rate and acceleration and the dynamic state
     # (features "history"), a wider network and longer training
     "improved": {"features": "history",
-                 "params": {**PAPER_PARAMS, "hidden_layer_sizes": (64, 32), "max_iter": 600,
-                            "learning_rate_init": 2e-3, "n_iter_no_change": 25}},
+                 "params": {**PAPER_PARAMS, "hidden_layer_sizes": (64, 32), "max_iter": 800, "early_stopping": False,
+                            "learning_rate_init": 1e-3, "alpha": 1e-5}},
 }
 
 

@@ -1,0 +1,51 @@
+"""``virtsensor explain``: the paper's Section IV.B figures for a shipped model.
+
+Correlation of the inputs (Fig. 2), global SHAP importance (Fig. 8) and SHAP
+dependence (Fig. 9) of the ONNX model on the test rows of the paper's random
+70/30 split, and, with ``--track``, the Magny-Cours laps (Figs. 5-7). See
+:mod:`virtsensor.explain` for what is computed and why.
+
+Example::
+
+    virtsensor explain --model models/paper.onnx --data data/paper --track data/track.csv --out figures/
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = "Section IV.B figures: input correlation, SHAP importance/dependence, track laps"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, metavar="FILE.onnx",
+                        help="the shipped model (its card beside it names the features)")
+    parser.add_argument("--data", nargs="+", required=True, metavar="PATH",
+                        help="recordings (files or directories), as for train")
+    parser.add_argument("--track", metavar="FILE",
+                        help="Magny-Cours recording (dry lap then wet lap): adds Figs. 5, 6 and 7")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory for the PNGs and explain.json")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the 70/30 split, of the explained and background rows and of the permutations")
+    parser.add_argument("--samples", type=int, default=500, help="test rows to explain (default 500)")
+    parser.add_argument("--background", type=int, default=100,
+                        help="background rows of the independent masker (default 100)")
+    parser.add_argument("--method", choices=("auto", "exact", "permutation"), default="auto",
+                        help="SHAP explainer: exact Shapley values when affordable (auto, default), "
+                             "or force exact / permutation sampling")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def run(args: argparse.Namespace) -> int:
+    from virtsensor.explain import explain
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(msg, file=sys.stderr)
+
+    doc = explain(args.model, args.data, args.out, track=args.track, seed=args.seed, samples=args.samples,
+                  background=args.background, method=args.method, log=log)
+    fl = doc["model"]["outputs"][0]
+    print(f"{fl}: " + ", ".join(doc["ranking"][fl][:3]) + f"  ({len(doc['figures'])} figures in {args.out})")
+    return 0

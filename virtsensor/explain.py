@@ -1,0 +1,597 @@
+"""Section IV.B of the paper: what the estimator looks at, and how it does on the track.
+
+Figures (PNG, matplotlib's Agg canvas: no display, no pyplot state):
+
+* ``fig2_correlation.png``: Pearson correlation of the 12 inputs and the 2 SATs
+  over every finite row of the recordings (the paper's Fig. 2);
+* ``fig8_shap_importance.png``: global SHAP importance, mean |SHAP| (Nm) per
+  feature, front-left and front-right SAT (the paper's Fig. 8);
+* ``fig9_shap_dependence.png``: SHAP value against feature value for the three
+  most important features of the front-left SAT (the paper's Fig. 9);
+* ``fig5_track_dry.png``, ``fig6_track_wet.png``: estimated (red) and true
+  (blue) front SATs on the dry and wet Magny-Cours laps (Figs. 5 and 6);
+* ``fig7_axle_total.png``: the axle total FL + FR on the wet lap (Fig. 7).
+
+What is explained
+-----------------
+The shipped ONNX graph itself, through :meth:`virtsensor.onnx_model.OnnxModel.predict`,
+on rows of the test side of the paper's random 70/30 split
+(:func:`virtsensor.evaluation.random_split`), against a background of
+:data:`BACKGROUND_ROWS` rows drawn from the training side. Both draws and the
+explainer's permutations derive from one seed: the same seed gives the same numbers.
+
+The SHAP values are *interventional* Shapley values: a feature left out of a
+coalition takes its values from the background rows (``shap.maskers.Independent``),
+and the game's value is the model's mean output over them. Values are in Nm and
+add up, row by row, to the prediction minus the mean background prediction.
+
+Explainer choice
+----------------
+Exact Shapley values of a black-box model need the model on all ``2**d``
+coalitions of the ``d`` features, each over the ``B`` background rows:
+``n * 2**d * B`` model rows for ``n`` explained rows. ``shap.explainers.Exact``
+does precisely that (Gray-code order, one changed feature per step). For the
+paper's 12 features that is 500 * 4096 * 100 = 2e8 rows: about a minute with the
+single-threaded ONNX runtime (~6 M rows/s for the 12-32-12-2 network), so the
+default (``method="auto"``) computes the **exact** values whenever
+``n * 2**d * B <= EXACT_BUDGET_ROWS``. For 20-22 features (the ``history`` spec)
+it would be 256-1024 times more (hours): no model-agnostic method gives exact
+Shapley values of an MLP with 20 inputs in minutes. There ``auto`` falls back to
+``shap.explainers.Permutation``: antithetic permutations (each ordering walked
+forward and backward, ``2d + 1`` coalitions), exact for models whose
+interactions are at most of second order, and an unbiased estimate otherwise
+whose error shrinks as 1/sqrt(permutations). It uses as many permutations as
+``PERMUTATION_BUDGET_ROWS`` allows (at least :data:`MIN_PERMUTATIONS`), and
+``explain.json`` records the method, the permutation count and the standard
+error of each mean |SHAP|. On the paper's model, 80 permutations give every
+mean |SHAP| within 0.05 Nm of the exact value, with the same ranking.
+``KernelExplainer`` was not chosen: its weighted regression over coalitions is
+exact only when it enumerates all ``2**d`` of them (the Exact cost again), and
+sampled it has no guarantee comparable to the antithetic permutations' (exact up
+to second-order interactions).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from virtsensor import signals as cat
+from virtsensor.errors import UserError
+
+#: Background rows of the independent masker (drawn with the seed from the training side).
+BACKGROUND_ROWS = 100
+#: Largest model-row count (n * 2**d * B) for which ``method="auto"`` computes exact Shapley values.
+EXACT_BUDGET_ROWS = 2.5e8
+#: Model rows the permutation explainer may spend (n * permutations * (2d + 1) * B) under ``auto``.
+PERMUTATION_BUDGET_ROWS = 1.0e8
+#: Fewest / most antithetic permutations the permutation explainer runs.
+MIN_PERMUTATIONS = 10
+MAX_PERMUTATIONS = 200
+#: Rows per ONNX call: large enough to amortise the call, small enough to stay in cache.
+PREDICT_CHUNK_ROWS = 16384
+
+FIGURES = {
+    "correlation": "fig2_correlation.png",
+    "importance": "fig8_shap_importance.png",
+    "dependence": "fig9_shap_dependence.png",
+    "track_dry": "fig5_track_dry.png",
+    "track_wet": "fig6_track_wet.png",
+    "axle": "fig7_axle_total.png",
+}
+WHEEL_LABEL = {"sat_fl_nm": "front-left SAT", "sat_fr_nm": "front-right SAT"}
+TRUE_COLOUR, ESTIMATE_COLOUR = "tab:blue", "tab:red"
+
+SHAP_MISSING = "the SHAP figures need the shap library: install the 'explain' extra: pip install 'virtsensor[explain]'"
+
+
+def require_shap() -> Any:
+    """Import and return ``shap``, or raise a one-line :class:`UserError` naming the extra to install."""
+    try:
+        import shap
+    except ImportError:
+        raise UserError(SHAP_MISSING) from None
+    return shap
+
+
+def _require_matplotlib() -> None:
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise UserError("the figures need matplotlib: install the 'explain' extra: "
+                        "pip install 'virtsensor[explain]'") from None
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# numbers
+# ---------------------------------------------------------------------------------------------------------------
+def correlation_matrix(columns: np.ndarray) -> np.ndarray:
+    """Pearson correlation (d, d) of the columns of ``columns`` (n, d); NaN where a column is constant."""
+    A = np.asarray(columns, dtype=np.float64)
+    A = A - A.mean(axis=0)
+    norm = np.sqrt((A * A).sum(axis=0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        C = (A.T @ A) / np.outer(norm, norm)
+    C[:, norm == 0] = np.nan
+    C[norm == 0, :] = np.nan
+    return np.clip(C, -1.0, 1.0)
+
+
+def table_columns(tables: Sequence[Mapping[str, np.ndarray]], names: Sequence[str]) -> np.ndarray:
+    """The rows (n, len(names)) of every table where all ``names`` are finite, tables concatenated."""
+    blocks = []
+    for t in tables:
+        M = np.column_stack([np.asarray(t[n], dtype=np.float64) for n in names])
+        blocks.append(M[np.isfinite(M).all(axis=1)])
+    return np.concatenate(blocks) if blocks else np.zeros((0, len(names)))
+
+
+def choose_method(n_rows: int, n_features: int, n_background: int, method: str = "auto") -> tuple[str, int | None]:
+    """The explainer (``exact`` or ``permutation``) and, for the latter, its antithetic permutation count.
+
+    ``auto`` picks ``exact`` when ``n_rows * 2**n_features * n_background <= EXACT_BUDGET_ROWS``;
+    otherwise ``permutation`` with as many permutations as :data:`PERMUTATION_BUDGET_ROWS` pays for,
+    within [:data:`MIN_PERMUTATIONS`, :data:`MAX_PERMUTATIONS`]. ``permutation`` forced uses the same count.
+    """
+    if method not in ("auto", "exact", "permutation"):
+        raise ValueError(f"unknown SHAP method {method!r} (auto, exact or permutation)")
+    exact_rows = n_rows * 2.0**n_features * n_background
+    if method == "exact" or (method == "auto" and exact_rows <= EXACT_BUDGET_ROWS):
+        return "exact", None
+    per_perm = max(1, n_rows * (2 * n_features + 1) * n_background)
+    k = int(PERMUTATION_BUDGET_ROWS // per_perm)
+    return "permutation", min(MAX_PERMUTATIONS, max(MIN_PERMUTATIONS, k))
+
+
+@dataclass
+class ShapResult:
+    """SHAP values of a multi-output model on explained rows.
+
+    Attributes:
+        values: (n, d, k) SHAP values, in the outputs' unit (Nm).
+        base_values: (k,) mean model output over the background (Nm).
+        data: (n, d) the explained rows.
+        feature_names, output_names: column names of ``data`` and of the outputs.
+        method: ``exact`` or ``permutation``; permutations: antithetic permutation count (permutation only).
+        error_std: (n, d, k) spread of the per-direction estimates (permutation only), else None.
+        background_rows: rows of the independent masker.
+        model_rows: model rows evaluated; seconds: wall time of the explainer.
+    """
+
+    values: np.ndarray
+    base_values: np.ndarray
+    data: np.ndarray
+    feature_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    method: str
+    permutations: int | None
+    error_std: np.ndarray | None
+    background_rows: int
+    model_rows: int
+    seconds: float
+
+    def mean_abs(self) -> np.ndarray:
+        """Global importance: mean |SHAP| per feature and output, (d, k), Nm."""
+        return np.abs(self.values).mean(axis=0)
+
+    def mean_abs_stderr(self) -> np.ndarray | None:
+        """Approximate standard error (d, k) of :meth:`mean_abs` from the permutation sampling (None when exact).
+
+        Each row's value is a mean of ``2 * permutations`` directional estimates with spread
+        ``error_std`` (shap's); taking them as independent, and the rows' errors as independent,
+        the mean over ``n`` rows has ``sqrt(sum(error_std**2) / (2 * permutations)) / n``
+        (|.| is 1-Lipschitz). It ignores the small upward bias of |value + noise|.
+        """
+        if self.error_std is None or not self.permutations:
+            return None
+        n = len(self.values)
+        return np.sqrt((self.error_std**2).sum(axis=0) / (2 * self.permutations)) / n
+
+    def ranking(self, output: int = 0) -> list[str]:
+        """Feature names by decreasing mean |SHAP| for output ``output`` (ties keep the feature order)."""
+        imp = self.mean_abs()[:, output]
+        return [self.feature_names[i] for i in np.argsort(-imp, kind="stable")]
+
+
+def _chunked(predict: Callable[[np.ndarray], np.ndarray], counter: list[int]) -> Callable[[np.ndarray], np.ndarray]:
+    """``predict`` in chunks of :data:`PREDICT_CHUNK_ROWS` rows, counting the rows it sees."""
+
+    def f(X: np.ndarray) -> np.ndarray:
+        counter[0] += len(X)
+        if len(X) <= PREDICT_CHUNK_ROWS:
+            return predict(X)
+        return np.concatenate([predict(X[i:i + PREDICT_CHUNK_ROWS]) for i in range(0, len(X), PREDICT_CHUNK_ROWS)])
+
+    return f
+
+
+def shap_values(predict: Callable[[np.ndarray], np.ndarray], X: np.ndarray, background: np.ndarray, *,
+                seed: int, feature_names: Sequence[str], output_names: Sequence[str],
+                method: str = "auto") -> ShapResult:
+    """Interventional SHAP values of ``predict`` (rows (N, d) -> (N, k)) on the rows ``X``.
+
+    Args:
+        predict: the model, e.g. :meth:`OnnxModel.predict` (called on batches of masked rows).
+        X: (n, d) rows to explain.
+        background: (B, d) rows the independent masker draws left-out features from.
+        seed: seed of the permutation explainer's orderings (the exact one has no randomness).
+        feature_names, output_names: names of the d columns and k outputs.
+        method: ``auto``, ``exact`` or ``permutation`` (see :func:`choose_method` and the module docstring).
+    """
+    shap = require_shap()
+    X = np.asarray(X, dtype=np.float64)
+    background = np.asarray(background, dtype=np.float64)
+    n, d = X.shape
+    B = len(background)
+    chosen, perms = choose_method(n, d, B, method)
+    masker = shap.maskers.Independent(background, max_samples=B)  # all B rows: no internal subsampling
+    counter = [0]
+    f = _chunked(predict, counter)
+    batch = max(1, PREDICT_CHUNK_ROWS // max(1, B))  # coalitions per model call
+    t0 = time.perf_counter()
+    # shap's permutation explainer seeds numpy's legacy global generator: restore it afterwards
+    state = np.random.get_state()  # noqa: NPY002
+    try:
+        if chosen == "exact":
+            explainer = shap.explainers.Exact(f, masker, feature_names=list(feature_names))
+            exp = explainer(X, max_evals=2**d, batch_size=batch, silent=True)
+            error_std = None
+        else:
+            explainer = shap.explainers.Permutation(f, masker, feature_names=list(feature_names), seed=int(seed))
+            exp = explainer(X, max_evals=perms * (2 * d + 1), batch_size=max(batch, 2 * d + 1),
+                            error_bounds=True, silent=True)
+            error_std = None if exp.error_std is None else np.asarray(exp.error_std, dtype=np.float64)
+    finally:
+        np.random.set_state(state)  # noqa: NPY002
+    seconds = time.perf_counter() - t0
+    values = np.asarray(exp.values, dtype=np.float64)
+    if values.ndim == 2:  # single-output model
+        values = values[:, :, None]
+        error_std = None if error_std is None else error_std.reshape(values.shape)
+    base = np.asarray(exp.base_values, dtype=np.float64).reshape(n, -1)[0]
+    return ShapResult(values, base, X, tuple(feature_names), tuple(output_names), chosen, perms, error_std, B,
+                      int(counter[0]), seconds)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# figures
+# ---------------------------------------------------------------------------------------------------------------
+def _figure(width: float, height: float) -> Any:
+    """A matplotlib Figure on an Agg canvas (no pyplot, no display)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Any, path: Path) -> None:
+    fig.savefig(path, format="png")
+
+
+def _label(name: str) -> str:
+    """Axis label of a feature or catalogue signal: its name and unit (``steer_angle_rad@rate [rad/s]``)."""
+    base, _, op = name.partition("@")
+    if base not in cat.SIGNALS:
+        return name
+    unit = cat.SIGNALS[base].unit
+    suffix = {"rate": "/s", "accel": "/s^2"}.get(op, "")
+    return f"{name} [{unit}{suffix}]"
+
+
+def plot_correlation(path: Path, names: Sequence[str], C: np.ndarray, subtitle: str = "") -> None:
+    """Annotated heat map of the correlation matrix ``C`` (the paper's Fig. 2)."""
+    from matplotlib.colors import to_rgba
+
+    k = len(names)
+    fig = _figure(1.6 + 0.62 * k, 1.2 + 0.55 * k)
+    ax = fig.add_subplot()
+    cmap = _cmap("RdBu_r").with_extremes(bad=to_rgba("0.85"))  # grey: undefined (a constant column)
+    im = ax.imshow(np.ma.masked_invalid(C), cmap=cmap, vmin=-1.0, vmax=1.0)
+    ax.set_xticks(range(k), names, rotation=50, ha="right", rotation_mode="anchor", fontsize=8)
+    ax.set_yticks(range(k), names, fontsize=8)
+    for i in range(k):
+        for j in range(k):
+            c = C[i, j]
+            text = "n/a" if not np.isfinite(c) else f"{c:.2f}"
+            colour = "white" if np.isfinite(c) and abs(c) > 0.6 else "black"
+            ax.text(j, i, text, ha="center", va="center", fontsize=6.5, color=colour)
+    n_in = sum(n in cat.INPUTS for n in names)
+    if 0 < n_in < k:  # separate inputs and outputs
+        for pos in (n_in - 0.5,):
+            ax.axhline(pos, color="black", lw=1.0)
+            ax.axvline(pos, color="black", lw=1.0)
+    fig.colorbar(im, ax=ax, shrink=0.8, label="Pearson correlation coefficient")
+    ax.set_title("Correlation of the 12 inputs and the 2 front SATs" + (f"\n{subtitle}" if subtitle else ""),
+                 fontsize=10)
+    _save(fig, path)
+
+
+def _cmap(name: str) -> Any:
+    import matplotlib
+
+    return matplotlib.colormaps[name]
+
+
+def plot_importance(path: Path, result: ShapResult, subtitle: str = "") -> None:
+    """Horizontal bars of mean |SHAP| per feature, descending, one panel per output (the paper's Fig. 8)."""
+    imp = result.mean_abs()
+    se = result.mean_abs_stderr()
+    d, k = imp.shape
+    fig = _figure(6.0 * k, 1.4 + 0.36 * d)
+    for j in range(k):
+        ax = fig.add_subplot(1, k, j + 1)
+        order = np.argsort(-imp[:, j], kind="stable")[::-1]  # largest at the top
+        y = np.arange(d)
+        ax.barh(y, imp[order, j], color="tab:red" if j == 0 else "tab:orange",
+                xerr=None if se is None else se[order, j], ecolor="0.3", capsize=2)
+        ax.set_yticks(y, [result.feature_names[i] for i in order], fontsize=8)
+        top = float(imp[:, j].max()) if d else 1.0
+        for yi, i in zip(y, order, strict=True):
+            ax.text(imp[i, j] + 0.01 * top, yi, f"{imp[i, j]:.2f}", va="center", fontsize=7)
+        ax.set_xlim(0, top * 1.18 if top > 0 else 1.0)
+        ax.set_xlabel("mean |SHAP value| [Nm]")
+        name = result.output_names[j]
+        ax.set_title(f"{WHEEL_LABEL.get(name, name)} ({name})", fontsize=10)
+        ax.grid(axis="x", alpha=0.3)
+    what = "exact Shapley values" if result.method == "exact" else f"{result.permutations} antithetic permutations"
+    fig.suptitle(f"Global SHAP importance ({what}, {len(result.values)} test rows, "
+                 f"{result.background_rows} background rows)" + (f"\n{subtitle}" if subtitle else ""), fontsize=10)
+    _save(fig, path)
+
+
+def interaction_partner(shap_module: Any, result: ShapResult, feature: int, output: int = 0) -> int | None:
+    """The feature that seems to interact most with ``feature`` (shap's binning heuristic), or None."""
+    if result.values.shape[1] < 2:
+        return None
+    order = shap_module.utils.approximate_interactions(feature, result.values[:, :, output], result.data)
+    order = [int(i) for i in order if int(i) != feature]
+    return order[0] if order else None
+
+
+def plot_dependence(path: Path, result: ShapResult, features: Sequence[int], partners: Sequence[int | None],
+                    output: int = 0) -> None:
+    """SHAP value against feature value, coloured by the strongest interacting feature (the paper's Fig. 9)."""
+    m = len(features)
+    fig = _figure(5.0 * m, 4.4)
+    name = result.output_names[output]
+    for p, (i, partner) in enumerate(zip(features, partners, strict=True)):
+        ax = fig.add_subplot(1, m, p + 1)
+        x, s = result.data[:, i], result.values[:, i, output]
+        if partner is None:
+            ax.scatter(x, s, s=9, color="tab:red", alpha=0.7, linewidths=0)
+        else:
+            c = result.data[:, partner]
+            lo, hi = np.percentile(c, [2.0, 98.0])  # robust colour limits: a few outliers do not wash it out
+            if hi <= lo:
+                lo, hi = float(c.min()), float(c.max()) + 1e-12
+            sc = ax.scatter(x, s, s=9, c=c, cmap="coolwarm", vmin=lo, vmax=hi, alpha=0.8, linewidths=0)
+            fig.colorbar(sc, ax=ax, label=_label(result.feature_names[partner]), shrink=0.9)
+        ax.axhline(0.0, color="0.5", lw=0.7)
+        ax.set_xlabel(_label(result.feature_names[i]))
+        ax.set_ylabel(f"SHAP value for {name} [Nm]")
+        ax.set_title(f"#{p + 1}: {result.feature_names[i]}", fontsize=10)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"SHAP dependence of the {WHEEL_LABEL.get(name, name)}: top {m} features", fontsize=10)
+    _save(fig, path)
+
+
+def plot_track(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: Mapping[str, Any],
+               lap: str) -> None:
+    """Estimated (red) and true (blue) front SATs over a lap, one panel per wheel (the paper's Figs. 5 and 6)."""
+    fig = _figure(12.0, 6.4)
+    for j, (wheel, name) in enumerate((("fl", "sat_fl_nm"), ("fr", "sat_fr_nm"))):
+        ax = fig.add_subplot(2, 1, j + 1)
+        ax.plot(t, Y[:, j], color=TRUE_COLOUR, lw=0.9, label="true")
+        ax.plot(t, P[:, j], color=ESTIMATE_COLOUR, lw=0.8, label="estimated (ONNX)")
+        m = metrics[wheel]
+        ax.set_title(f"{lap} lap, {WHEEL_LABEL[name]}: R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
+        ax.set_ylabel(f"{name} [Nm]")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8, framealpha=0.8)
+    ax.set_xlabel("time in the lap [s]")
+    _save(fig, path)
+
+
+def plot_axle(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: Mapping[str, Any],
+              lap: str) -> None:
+    """Estimated (red) and true (blue) axle total FL + FR over a lap (the paper's Fig. 7)."""
+    fig = _figure(12.0, 3.8)
+    ax = fig.add_subplot()
+    ax.plot(t, Y.sum(axis=1), color=TRUE_COLOUR, lw=0.9, label="true")
+    ax.plot(t, P.sum(axis=1), color=ESTIMATE_COLOUR, lw=0.8, label="estimated (ONNX)")
+    m = metrics["axle"]
+    ax.set_title(f"{lap} lap, axle total SAT (FL + FR): R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
+    ax.set_xlabel("time in the lap [s]")
+    ax.set_ylabel("sat_fl_nm + sat_fr_nm [Nm]")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8, framealpha=0.8)
+    _save(fig, path)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the whole report
+# ---------------------------------------------------------------------------------------------------------------
+def _round(x: Any) -> Any:
+    """JSON-friendly floats (full precision: the file doubles as a reproducibility check)."""
+    if isinstance(x, dict):
+        return {k: _round(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_round(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def make_out_dir(out: str | os.PathLike[str]) -> Path:
+    """Create the output directory (and parents) or raise a one-line :class:`UserError`."""
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise UserError(f"--out {p}: exists and is not a directory")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {p}: cannot create the directory: {exc.strerror or exc}") from None
+    if not os.access(p, os.W_OK):
+        raise UserError(f"--out {p}: directory is not writable")
+    return p
+
+
+def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str],
+            *, track: str | os.PathLike[str] | None = None, seed: int = 0, samples: int = 500,
+            background: int = BACKGROUND_ROWS, method: str = "auto",
+            log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Write the Section IV.B figures and ``explain.json`` to ``out``; return the JSON document.
+
+    Args:
+        model_path: the shipped ``.onnx`` (its model card beside it names the features).
+        data: recordings (files or directories) of the data set, as for ``virtsensor train``.
+        out: output directory (created).
+        track: optional Magny-Cours recording (dry lap then wet lap) for Figs. 5-7.
+        seed: seed of the 70/30 split, of the explained and background rows and of the permutations.
+        samples: test rows to explain (fewer if the test side is smaller).
+        background: rows of the independent masker.
+        method: ``auto`` (exact when affordable, else permutation), ``exact`` or ``permutation``.
+        log: progress messages (default: none).
+
+    Raises:
+        UserError: missing/invalid model, data lacking a signal, output directory not creatable,
+            shap or matplotlib not installed, nothing to explain.
+    """
+    from virtsensor.dataset import build_dataset, load_runs, split_track_laps
+    from virtsensor.evaluation import random_split
+    from virtsensor.features import FeatureSpec
+    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.training import metrics as fit_metrics
+
+    say = log or (lambda _msg: None)
+    if samples < 1:
+        raise UserError(f"--samples {samples}: must be at least 1")
+    if background < 1:
+        raise UserError(f"--background {background}: must be at least 1")
+    if method not in ("auto", "exact", "permutation"):
+        raise UserError(f"--method {method!r}: choose auto, exact or permutation")
+    shap = require_shap()
+    _require_matplotlib()
+    model = OnnxModel.load(model_path)
+    try:
+        spec = FeatureSpec.from_json(model.card["feature_spec"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{model.card_path}: no usable feature_spec in the model card ({exc})") from None
+    if spec.names != model.input_names:
+        raise UserError(f"{model.card_path}: feature_spec names {list(spec.names)} differ from the graph's "
+                        f"feature_names {list(model.input_names)}")
+    outputs = tuple(model.outputs)
+    missing_out = [o for o in outputs if o not in cat.SIGNALS]
+    if missing_out:
+        raise UserError(f"{model.card_path}: outputs {missing_out} are not catalogue signals")
+    needed = sorted(set(cat.INPUTS) | set(spec.signals) | set(outputs))
+    out_dir = make_out_dir(out)
+    runs = load_runs(data, needed=needed)
+    track_run = load_runs([track], needed=sorted(set(spec.signals) | set(outputs)))[0] if track else None
+
+    # ---- Fig. 2: correlation of the raw catalogue signals --------------------------------------------------
+    corr_names = (*cat.INPUTS, *cat.OUTPUTS)
+    cols = table_columns([r.table for r in runs], corr_names)
+    if len(cols) < 2:
+        raise UserError("the data hold fewer than 2 finite rows: nothing to correlate")
+    C = correlation_matrix(cols)
+    figures = []
+    plot_correlation(out_dir / FIGURES["correlation"], corr_names, C, f"{len(cols)} rows of {len(runs)} runs")
+    figures.append(FIGURES["correlation"])
+    say(f"correlation of {len(corr_names)} signals over {len(cols)} rows")
+
+    # ---- Figs. 8 and 9: SHAP of the ONNX model on the paper's test rows ----------------------------------
+    ds = build_dataset(runs, spec, targets=outputs)
+    train_idx, test_idx = random_split(len(ds.X), seed)
+    if len(test_idx) == 0 or len(train_idx) == 0:
+        raise UserError(f"the data hold {len(ds.X)} usable rows: too few for a 70/30 split")
+    rng = np.random.default_rng(seed)
+    explained = np.sort(rng.choice(test_idx, min(samples, len(test_idx)), replace=False))
+    bg_idx = np.sort(rng.choice(train_idx, min(background, len(train_idx)), replace=False))
+    chosen, perms = choose_method(len(explained), len(spec.names), len(bg_idx), method)
+    say(f"SHAP ({chosen}{'' if perms is None else f', {perms} antithetic permutations'}) of {model.path.name} "
+        f"on {len(explained)} test rows, {len(bg_idx)} background rows...")
+    res = shap_values(model.predict, ds.X[explained], ds.X[bg_idx], seed=seed, feature_names=spec.names,
+                      output_names=outputs, method=method)
+    say(f"SHAP: {res.model_rows:,} model rows in {res.seconds:.1f} s")
+    # local accuracy: the values add up to the prediction minus the mean background prediction
+    additivity = float(np.abs(res.values.sum(axis=1) + res.base_values - model.predict(res.data)).max())
+    plot_importance(out_dir / FIGURES["importance"], res, f"model {model.path.name}, seed {seed}")
+    figures.append(FIGURES["importance"])
+    top = [int(i) for i in np.argsort(-res.mean_abs()[:, 0], kind="stable")[:3]]
+    partners = [interaction_partner(shap, res, i, 0) for i in top]
+    plot_dependence(out_dir / FIGURES["dependence"], res, top, partners, 0)
+    figures.append(FIGURES["dependence"])
+
+    imp, se = res.mean_abs(), res.mean_abs_stderr()
+    doc: dict[str, Any] = {
+        "model": {"file": str(model_path), "sha256": model.card["sha256"], "feature_spec": spec.name,
+                  "features": list(spec.names), "outputs": list(outputs)},
+        "data": {"sources": [str(p) for p in data], "runs": len(runs), "rows": int(len(ds.X)),
+                 "dropped_nonfinite": int(ds.dropped_nonfinite)},
+        "seed": int(seed),
+        "correlation": {"signals": list(corr_names), "rows": int(len(cols)), "pearson": C.tolist()},
+        "shap": {
+            "library": f"shap {shap.__version__}",
+            "explainer": "shap.explainers.Exact" if res.method == "exact" else "shap.explainers.Permutation",
+            "method": res.method,
+            "exact": res.method == "exact",
+            "antithetic_permutations": res.permutations,
+            "masker": "shap.maskers.Independent (interventional Shapley values)",
+            "background_rows": res.background_rows,
+            "background_from": "training side of the random 70/30 split",
+            "explained_rows": int(len(explained)),
+            "explained_from": "test side of the random 70/30 split (evaluation.random_split)",
+            "model_rows_evaluated": res.model_rows,
+            "model": "the ONNX graph through OnnxModel.predict",
+            "base_value_nm": dict(zip(outputs, res.base_values.tolist(), strict=True)),
+            "additivity_max_abs_nm": additivity,
+        },
+        "mean_abs_shap_nm": {o: {f: float(imp[i, j]) for i, f in enumerate(spec.names)}
+                             for j, o in enumerate(outputs)},
+        "mean_abs_shap_stderr_nm": None if se is None else {
+            o: {f: float(se[i, j]) for i, f in enumerate(spec.names)} for j, o in enumerate(outputs)},
+        "ranking": {o: res.ranking(j) for j, o in enumerate(outputs)},
+        "dependence": {"output": outputs[0], "features": [spec.names[i] for i in top],
+                       "colour_by": [None if p is None else spec.names[p] for p in partners]},
+    }
+
+    # ---- Figs. 5-7: the Magny-Cours laps ----------------------------------------------------------------
+    if track_run is not None:
+        laps = split_track_laps(track_run)
+        for lap in ("dry", "wet"):
+            if lap not in laps:
+                raise UserError(f"--track {track}: no {lap} lap found (road_mu must drop for the wet lap)")
+        doc["track"] = {}
+        for lap, key in (("dry", "track_dry"), ("wet", "track_wet")):
+            lds = build_dataset([laps[lap]], spec, targets=outputs)
+            if len(lds.X) < 2:
+                raise UserError(f"--track {track}: the {lap} lap has {len(lds.X)} usable rows")
+            P = model.predict(lds.X)
+            m = fit_metrics(lds.Y, P)
+            t = lds.time_s - lds.time_s[0]
+            plot_track(out_dir / FIGURES[key], t, lds.Y, P, m, lap)
+            figures.append(FIGURES[key])
+            doc["track"][lap] = m
+            if lap == "wet":
+                plot_axle(out_dir / FIGURES["axle"], t, lds.Y, P, m, lap)
+                figures.append(FIGURES["axle"])
+            say(f"{lap} lap: R2 {m['r2']:.3f}, MAE {m['mae_nm']:.2f} Nm, axle R2 {m['axle']['r2']:.3f}")
+    doc["figures"] = figures
+    doc = _round(doc)
+    (out_dir / "explain.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    say(f"wrote {len(figures)} figures and explain.json to {out_dir}")
+    return doc
