@@ -1,0 +1,90 @@
+"""Helpers shared by the runtime daemon's tests (tiny models, synthetic CAN streams, sync frames)."""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+
+import can
+import numpy as np
+
+from virtsensor import signals as cat
+from virtsensor.features import HISTORY, FeatureSpec
+from virtsensor.onnx_model import export_pipeline
+
+#: A dedicated sync id of the tests (not in the DBC).
+SYNC_ID = 0x7F0
+#: Sync frames go this long after each 20 Hz grid instant: after the frames stamped at the
+#: instant, before any later one (frame phases are multiples of 0.25 ms), and inside the
+#: offline table's 1 us tolerance, so both paths see the same frames at each tick.
+SYNC_OFFSET_S = 0.5e-6
+
+
+def card_inputs(spec: FeatureSpec) -> list[dict]:
+    """The card's ``inputs`` entries, as ``virtsensor train`` writes them."""
+    out = []
+    for f in spec.features:
+        s = cat.SIGNALS[f.signal]
+        out.append({"name": f.name, "signal": f.signal, "op": f.op, "lag": f.lag, "unit": f.unit,
+                    "dbc_message": s.message, "dbc_signal": s.dbc_signal, "critical": s.critical})
+    return out
+
+
+def train_model(tables: Sequence[Mapping[str, np.ndarray]], path: Path, spec: FeatureSpec = HISTORY,
+                hidden: tuple[int, ...] = (8,), max_iter: int = 200, seed: int = 0) -> dict:
+    """Fit RobustScaler + a small MLP on 20 Hz tables (features by ``spec.transform``) and export it."""
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import RobustScaler
+    from threadpoolctl import threadpool_limits
+
+    xs, ys = [], []
+    for t in tables:
+        x = spec.transform(t)
+        y = np.column_stack([t[o] for o in cat.OUTPUTS])
+        ok = np.isfinite(x).all(1) & np.isfinite(y).all(1)
+        xs.append(x[ok])
+        ys.append(y[ok])
+    X, Y = np.concatenate(xs), np.concatenate(ys)
+    mlp = MLPRegressor(hidden_layer_sizes=hidden, max_iter=max_iter, random_state=seed, learning_rate_init=3e-3)
+    pipe = Pipeline([("scaler", RobustScaler()), ("mlp", mlp)])
+    with warnings.catch_warnings(), threadpool_limits(1):
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        pipe.fit(X, Y)
+    return export_pipeline(pipe, X.shape[1], path, parity_X=X[:200], card_extra={
+        "model": "virtsensor-test", "feature_spec": spec.to_json(), "inputs": card_inputs(spec),
+        "signals": list(spec.signals)})
+
+
+def synthetic_streams(duration_s: float, seed: int = 0, rate_hz: float = 100.0):
+    """Smooth in-range input signals and SAT-like outputs on a ``rate_hz`` grid (no simulator needed)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration_s, 1.0 / rate_hz)
+    sig: dict[str, np.ndarray] = {}
+    for name in cat.INPUTS:
+        s = cat.SIGNALS[name]
+        mid, half = (s.minimum + s.maximum) / 2, (s.maximum - s.minimum) / 2
+        f1, f2 = rng.uniform(0.1, 0.6, 2)
+        p1, p2 = rng.uniform(0, 2 * np.pi, 2)
+        sig[name] = mid + 0.3 * half * (0.7 * np.sin(2 * np.pi * f1 * t + p1) + 0.3 * np.sin(2 * np.pi * f2 * t + p2))
+    steer = sig["steer_angle_rad"] / 4.0
+    sig["sat_fl_nm"] = -60.0 * np.tanh(steer) + 2.0 * sig["ay_mps2"]
+    sig["sat_fr_nm"] = -50.0 * np.tanh(steer) - 2.0 * sig["ay_mps2"]
+    return t, sig
+
+
+def with_sync(frames: Iterable[can.Message], t_first: float, t_last: float, sync_id: int = SYNC_ID,
+              period: float = 0.05) -> tuple[list[can.Message], np.ndarray]:
+    """``frames`` with a sync frame ``SYNC_OFFSET_S`` after each grid instant ``t_first + k * period``.
+
+    Returns the merged frames (time order) and the tick times.
+    """
+    frames = list(frames)
+    n = int(np.floor((t_last - t_first) / period + 1e-9)) + 1
+    ticks = t_first + np.arange(n) * period
+    syncs = [can.Message(timestamp=float(tk + SYNC_OFFSET_S), arbitration_id=sync_id, is_extended_id=False,
+                         data=b"", dlc=0) for tk in ticks]
+    merged = sorted(frames + syncs, key=lambda m: m.timestamp)  # stable; no ties by construction
+    return merged, ticks

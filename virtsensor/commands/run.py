@@ -1,0 +1,92 @@
+"""``virtsensor run``: the real-time virtual-sensor daemon (CAN in, 20 Hz SAT_FRONT and VS_Health out).
+
+Examples::
+
+    virtsensor run --model models/improved.onnx --dbc dbc/virtsensor.dbc --interface socketcan --channel vcan0
+    virtsensor run --config /etc/virtsensor/virtsensor.toml --cpu 1 --realtime
+    virtsensor run --model m.onnx --interface virtual --channel test --sync-id 0x7F0 --duration 10
+
+Every option can also come from the TOML file given with ``--config`` (same
+names, ``-`` or ``_``); options on the command line override the file; an
+unknown key in the file is an error. Logs are JSON lines on stderr. SIGTERM or
+SIGINT stops it cleanly (exit 0). See ``docs/deployment.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+HELP = "the real-time virtual-sensor daemon: CAN in, 20 Hz SAT_FRONT out"
+
+
+def _can_id(text: str) -> int:
+    try:
+        v = int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a CAN id: {text!r} (e.g. 0x7F0)") from None
+    if not 0 <= v <= 0x7FF:
+        raise argparse.ArgumentTypeError(f"{text} is not an 11-bit CAN id (0x000..0x7FF)")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", metavar="FILE.onnx", help="ONNX model (its .card.json beside it)")
+    parser.add_argument("--dbc", metavar="FILE.dbc", help="CAN matrix (default: the bundled dbc/virtsensor.dbc)")
+    parser.add_argument("--interface", "-i", help="python-can interface: socketcan, virtual, udp_multicast, pcan...")
+    parser.add_argument("--channel", "-c", help="bus channel, e.g. vcan0, can0")
+    parser.add_argument("--bitrate", type=int, default=None, help="bit rate in bit/s, for interfaces that set it")
+    parser.add_argument("--sync-id", type=_can_id, default=None, metavar="ID",
+                        help="tick on frames with this CAN id (e.g. 0x7F0) instead of the free-running 20 Hz clock")
+    parser.add_argument("--sync-every", type=int, default=None, metavar="N",
+                        help="tick on every N-th sync frame (default 1; e.g. 5 for a 100 Hz input frame)")
+    parser.add_argument("--config", metavar="FILE.toml", help="TOML file with any of these settings")
+    parser.add_argument("--cpu", type=int, default=None, metavar="N", help="pin the daemon to CPU N")
+    parser.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=None,
+                        help="ask for SCHED_FIFO scheduling (logged and ignored when not permitted)")
+    parser.add_argument("--rt-priority", type=int, default=None, metavar="P", help="SCHED_FIFO priority (default 50)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    parser.add_argument("--timeout-cycles", type=float, default=None, metavar="C",
+                        help="an input message is stale after C cycles without a usable frame (default 3)")
+    parser.add_argument("--model-id", type=int, default=None, metavar="BYTE",
+                        help="VS_ModelId byte (default: the card's model_id, else its sha256's first byte)")
+    parser.add_argument("--log-level", default=None, choices=("debug", "info", "warning", "error"),
+                        help="log level (default info)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    from virtsensor.runtime import VirtualSensor, configure_logging, load_config, log
+
+    keys = ("model", "dbc", "interface", "channel", "bitrate", "sync_id", "sync_every", "cpu", "realtime",
+            "rt_priority", "duration", "timeout_cycles", "model_id", "log_level")
+    cfg = load_config(args.config, {k: getattr(args, k) for k in keys})
+    configure_logging(cfg.log_level)
+    sensor = VirtualSensor.from_config(cfg)  # refusals (UserError) happen here, before any log line
+    if log.isEnabledFor(logging.INFO):
+        log.info("config", extra={"fields": {**cfg.to_dict(), "config_file": args.config,
+                                             "sha256": sensor.model.card.get("sha256")}})
+    rc = sensor.run(duration=cfg.duration)
+    if _is_main_program():
+        # Stopped cleanly: bus closed, shutdown logged. Flush and leave without CPython's finalisation
+        # of onnxruntime and cantools (~100 ms), so a supervisor sees the process gone within ~30 ms.
+        logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(rc)
+    return rc
+
+
+def _is_main_program() -> bool:
+    """True when this process is the ``virtsensor`` command itself (console script or ``python -m
+    virtsensor.cli``), not a program (e.g. a test) that calls :func:`virtsensor.cli.main`."""
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    if spec is not None and spec.name in ("virtsensor.cli", "virtsensor"):
+        return True
+    return os.path.basename(sys.argv[0] if sys.argv else "") == "virtsensor"
