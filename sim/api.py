@@ -95,6 +95,16 @@ def simulate_many(
     return runs
 
 
+def simulate_plan(plan: Plan, params: Mapping[str, Any] | None = None, seed: int = 0) -> SimRun:
+    """Simulate one ready-made plan (e.g. :func:`sim.manoeuvres.from_recording`)."""
+    params = car_parameters() if params is None else params
+    check_specs(params)
+    truth = simulate_batch([plan], [params]).run(0)
+    streams = make_streams(truth, params, seed=int(np.random.SeedSequence([seed, 1]).generate_state(1)[0]))
+    mu = float(plan.mu_values[0])
+    return SimRun(Request(plan.name, float(plan.speed0_mps * 3.6), mu, seed), plan, params, truth, streams)
+
+
 def simulate(manoeuvre: str, speed_kmh: float, mu: float, seed: int = 0,
              params: Mapping[str, Any] | None = None) -> SimRun:
     """Simulate one run (see :func:`simulate_many`)."""

@@ -297,6 +297,60 @@ def magny_cours(v: float, mu: float, rng: np.random.Generator, params: Mapping[s
     return plan
 
 
+def from_recording(table: Mapping[str, np.ndarray], mu: float, *, longitudinal: str = "speed",
+                   name: str = "recorded") -> Plan:
+    """Re-simulate a recorded run from its driver inputs.
+
+    The steering robot follows the recorded steering-wheel angle
+    (``steer_angle_rad``); the longitudinal input is either the recorded speed
+    (``longitudinal="speed"``: the speed controller tracks ``vx_mps``) or the
+    recorded traction-motor torque (``"torque"``: ``motor_torque_nm`` open loop,
+    no braking). Samples may come at any steady rate (a 20 Hz table, say); they
+    are interpolated linearly onto the 100 Hz control grid. Non-finite samples
+    (gaps) are not bridged silently: the plan holds the last good value and the
+    gap positions are listed in ``plan.label["gaps_s"]``.
+
+    Args:
+        table: ``time_s`` and the recorded signals (catalogue names, SI units).
+        mu: road friction for the re-simulation.
+        longitudinal: ``"speed"`` or ``"torque"``.
+    """
+    needed = ["time_s", "steer_angle_rad", "vx_mps" if longitudinal == "speed" else "motor_torque_nm"]
+    if longitudinal not in ("speed", "torque"):
+        raise ManoeuvreError(f"longitudinal input must be 'speed' or 'torque', got {longitudinal!r}")
+    missing = [k for k in needed if k not in table]
+    if missing:
+        raise ManoeuvreError(f"recorded inputs lack {', '.join(missing)}")
+    t_rec = np.asarray(table["time_s"], dtype=float)
+    if t_rec.size < 2 or not np.all(np.diff(t_rec) > 0):
+        raise ManoeuvreError("recorded inputs need at least two samples with increasing time_s")
+    t_rec = t_rec - t_rec[0]
+    gaps: list[float] = []
+
+    def series(key: str) -> np.ndarray:
+        y = np.asarray(table[key], dtype=float)
+        bad = ~np.isfinite(y)
+        if bad.all():
+            raise ManoeuvreError(f"recorded {key} has no finite sample")
+        if bad.any():
+            gaps.extend(float(x) for x in t_rec[bad & ~np.roll(bad, 1)])
+            good = np.flatnonzero(~bad)
+            y = y[good[np.maximum(np.searchsorted(good, np.arange(len(y)), side="right") - 1, 0)]]
+        return y
+
+    sw = series("steer_angle_rad")
+    duration = float(t_rec[-1])
+    v0 = float(series("vx_mps")[0]) if "vx_mps" in table else 20.0
+    t, plan = _base(name, duration, v0, mu, {"gaps_s": sorted(set(gaps)), "longitudinal": longitudinal})
+    plan.steer_sw[:] = np.interp(t, t_rec, sw)
+    if longitudinal == "speed":
+        plan.speed_target[:] = np.interp(t, t_rec, series("vx_mps"))
+    else:
+        plan.speed_mode[:] = SPEED_OPEN
+        plan.motor_cmd[:] = np.interp(t, t_rec, series("motor_torque_nm"))
+    return plan
+
+
 MANOEUVRES: dict[str, Manoeuvre] = {
     m.name: m
     for m in (

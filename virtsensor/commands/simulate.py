@@ -18,12 +18,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("manoeuvre", metavar="MANOEUVRE",
                         help="free-steer, steering-pulse, double-lane-change, steady-state-circular, "
                              "single-sine, random-steer, braking-in-turn, fishhook, sine-with-dwell, "
-                             "brake-accel, magny-cours")
-    parser.add_argument("--speed", type=float, required=True, metavar="KMH",
-                        help="entry speed in km/h (magny-cours: top speed)")
+                             "brake-accel, magny-cours, or recorded (with --inputs)")
+    parser.add_argument("--speed", type=float, metavar="KMH",
+                        help="entry speed in km/h (magny-cours: top speed); not with 'recorded'")
     parser.add_argument("--mu", type=float, required=True, help="road friction coefficient (magny-cours: dry lap)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the manoeuvre's levels and the sensor noise")
     parser.add_argument("--out", required=True, metavar="FILE", help="output: .csv table or .blf/.asc/.log CAN log")
+    parser.add_argument("--inputs", metavar="FILE",
+                        help="for MANOEUVRE 'recorded': a table (.csv) or CAN log whose steering-wheel angle and "
+                             "speed (or motor torque) drive the re-simulation")
+    parser.add_argument("--longitudinal", choices=("speed", "torque"), default="speed",
+                        help="for 'recorded': follow the recorded speed (default) or apply the recorded motor torque")
     add_car_arguments(parser)
 
 
@@ -37,16 +42,44 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out}: unknown format {suffix or '(none)'}; use .csv, .blf, .asc or .log")
     if not out.parent.exists():
         raise UserError(f"--out {out}: directory {out.parent} does not exist")
-    with sim_errors():
-        check(args.manoeuvre, args.speed, args.mu)
-    params = car_from_args(args)
-    with sim_errors():
-        sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params)
+    if args.manoeuvre == "recorded":
+        sim_run = _resimulate(args)
+    else:
+        if args.speed is None:
+            raise UserError(f"{args.manoeuvre}: --speed KMH is required")
+        if args.inputs is not None:
+            raise UserError("--inputs goes with the manoeuvre 'recorded' only")
+        with sim_errors():
+            check(args.manoeuvre, args.speed, args.mu)
+        params = car_from_args(args)
+        with sim_errors():
+            sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params)
     table = write_run(sim_run, out)
     n = len(table["time_s"])
-    print(f"{args.manoeuvre} at {args.speed:g} km/h, mu {args.mu:g}: {n} samples at 20 Hz "
+    speed = f"{args.speed:g} km/h" if args.speed is not None else f"recorded inputs of {args.inputs}"
+    print(f"{args.manoeuvre} at {speed}, mu {args.mu:g}: {n} samples at 20 Hz "
           f"({table['time_s'][-1]:.2f} s) -> {out}", file=sys.stderr)
     return 0
+
+
+def _resimulate(args: argparse.Namespace):
+    """Re-simulate a recorded run from its driver inputs (``simulate recorded``)."""
+    from sim.api import simulate_plan
+    from sim.manoeuvres import MU_RANGE, from_recording
+    from virtsensor.dataset import load_runs
+
+    if args.inputs is None:
+        raise UserError("recorded: --inputs FILE is required (a .csv table or a CAN log)")
+    if args.speed is not None:
+        raise UserError("recorded: the speed comes from --inputs; drop --speed")
+    if not MU_RANGE[0] <= args.mu <= MU_RANGE[1]:
+        raise UserError(f"mu {args.mu:g} is outside the range {MU_RANGE[0]:g}-{MU_RANGE[1]:g}")
+    needed = ["steer_angle_rad", "vx_mps" if args.longitudinal == "speed" else "motor_torque_nm"]
+    table = load_runs([args.inputs], needed=needed)[0].table
+    params = car_from_args(args)
+    with sim_errors():
+        plan = from_recording(table, args.mu, longitudinal=args.longitudinal)
+        return simulate_plan(plan, params, args.seed)
 
 
 def run_table(sim_run) -> dict:
