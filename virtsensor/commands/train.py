@@ -111,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _export(export_pipeline, model, ds, out, parity_rows, args, recipe, spec, report) -> dict:
+    from virtsensor.onnx_model import pipeline_weights
+
     return export_pipeline(model, len(ds.feature_names), out, parity_X=parity_rows, card_extra={
         "model": f"virtsensor-{args.recipe}",
         "recipe": recipe,
@@ -123,4 +125,6 @@ def _export(export_pipeline, model, ds, out, parity_rows, args, recipe, spec, re
         },
         "metrics": report,
         "seed": args.seed,
+        # the same weights as plain arrays: the numpy back-end and audits need no sklearn
+        "weights": pipeline_weights(model),
     })
