@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("evaluate", "Table IV: the paper's protocols and honest ones, baselines, JSON and Markdown"),
     "explain": ("explain", "Section IV.B figures: input correlation, SHAP importance/dependence, track laps"),
     "run": ("run", "the real-time virtual-sensor daemon: CAN in, 20 Hz SAT_FRONT out"),
+    "bench": ("bench", "measure the daemon: stage/end-to-end latency, jitter, CPU/RSS, max tick rate, soak"),
 }
 
 
