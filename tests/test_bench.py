@@ -1,0 +1,103 @@
+"""``virtsensor bench --quick`` on a tiny model built here (never models/): the JSON is complete and sane.
+
+No timing thresholds: only keys, ordering of the percentiles, positivity and plausibility.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from runtime_support import card_inputs, synthetic_streams
+
+from virtsensor import cli
+from virtsensor import signals as cat
+from virtsensor.features import HISTORY
+from virtsensor.onnx_model import export_pipeline, pipeline_weights
+from virtsensor.recording import simulated_recording
+
+PCT = ("p50", "p99", "p999", "max")
+
+
+@pytest.fixture(autouse=True)
+def _restore_logging():
+    import logging
+
+    lg = logging.getLogger("virtsensor")
+    saved = (list(lg.handlers), lg.level, lg.propagate)
+    yield
+    lg.handlers[:], lg.level, lg.propagate = saved[0], saved[1], saved[2]
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory) -> Path:
+    """RobustScaler + MLP(8) on synthetic streams, exported with its plain weights in the card."""
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import RobustScaler
+
+    spec = HISTORY
+    table = simulated_recording(*synthetic_streams(20.0, seed=1), seed=1).table
+    X = spec.transform(table)
+    Y = np.column_stack([table[o] for o in cat.OUTPUTS])
+    ok = np.isfinite(X).all(1) & np.isfinite(Y).all(1)
+    X, Y = X[ok], Y[ok]
+    pipe = Pipeline([("scaler", RobustScaler()),
+                     ("mlp", MLPRegressor(hidden_layer_sizes=(8,), max_iter=50, random_state=0))])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        pipe.fit(X, Y)
+    path = tmp_path_factory.mktemp("bench") / "tiny.onnx"
+    export_pipeline(pipe, X.shape[1], path, parity_X=X[:100], card_extra={
+        "model": "virtsensor-bench-test", "feature_spec": spec.to_json(), "inputs": card_inputs(spec),
+        "signals": list(spec.signals), "weights": pipeline_weights(pipe)})
+    return path
+
+
+def _check_pct(name: str, p, *, strictly_positive: bool = True) -> None:
+    assert isinstance(p, dict), (name, p)
+    vals = [p[k] for k in PCT]
+    assert all(isinstance(v, (int, float)) and np.isfinite(v) for v in vals), (name, p)
+    assert vals == sorted(vals), (name, p)  # p50 <= p99 <= p999 <= max
+    assert vals[0] > 0 if strictly_positive else vals[0] >= 0, (name, p)
+
+
+def test_bench_quick_json_complete_and_sane(tiny_model, tmp_path):
+    out = tmp_path / "bench.json"
+    md = tmp_path / "bench.md"
+    png = tmp_path / "bench.png"
+    rc = cli.main(["bench", "--model", str(tiny_model), "--quick", "--soak-ticks", "600", "--json", str(out),
+                   "--markdown", str(md), "--histogram", str(png), "--quiet"])
+    assert rc == 0
+    r = json.loads(out.read_text())
+    for key in ("tick_compute_us", "e2e_latency_us", "stages_us", "inference_us", "jitter_us", "max_tick_rate_hz",
+                "missed_ticks", "rss_mb_start", "rss_mb_end", "cpu_percent_at_20hz", "machine", "model"):
+        assert key in r, key
+    _check_pct("tick_compute_us", r["tick_compute_us"])
+    _check_pct("e2e_latency_us", r["e2e_latency_us"])
+    _check_pct("e2e in_process", r["e2e_latency_us"]["in_process"])
+    xp = r["e2e_latency_us"]["cross_process"]
+    if xp is None:
+        assert r["e2e_latency_us"]["cross_process_skipped"]  # null only with a reason
+    else:
+        _check_pct("e2e cross_process", xp)
+    assert set(r["stages_us"]) == {"decode", "feature_vector", "inference", "encode", "send"}
+    for k, v in r["stages_us"].items():
+        _check_pct(f"stage {k}", v)
+    for k in ("onnxruntime", "sklearn", "numpy"):  # the tiny card has weights: no back-end is skipped
+        _check_pct(f"inference {k}", r["inference_us"][k])
+    assert max(r["inference_us"]["max_abs_diff_vs_onnxruntime_nm"].values()) < 1e-2
+    _check_pct("jitter_us", r["jitter_us"], strictly_positive=False)
+    assert r["max_tick_rate_hz"] > 20
+    assert isinstance(r["missed_ticks"], int) and r["missed_ticks"] >= 0
+    assert r["soak"]["ticks"] == 600 and r["soak"]["ticks_produced"] == 600
+    assert r["rss_mb_start"] > 0 and r["rss_mb_end"] > 0
+    assert 0 < r["cpu_percent_at_20hz"] < 100 * (r["machine"]["cores"] or 1)
+    assert r["machine"]["python"] and r["machine"]["platform"] and r["machine"]["cores"] >= 1
+    assert r["model"]["file"] == str(tiny_model) and len(r["model"]["sha256"]) == 64
+    assert set(r["targets"]) >= {"tick_compute_p99_us", "e2e_in_process_p99_us", "max_tick_rate_hz"}
+    assert md.read_text().startswith("# virtsensor bench") and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,0 +1,58 @@
+"""``virtsensor bench``: the daemon's latency, jitter, throughput, CPU/RSS and soak figures (issue 6).
+
+Examples::
+
+    virtsensor bench --json bench.json --markdown bench.md --histogram bench.png
+    virtsensor bench --model m.onnx --quick
+    virtsensor bench --soak-ticks 10000
+
+See :mod:`virtsensor.bench` for what each figure measures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = "measure the daemon: per-stage and end-to-end latency, jitter, CPU/RSS, max tick rate, soak"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from virtsensor.bench import DEFAULT_MODEL
+
+    parser.add_argument("--model", metavar="FILE.onnx", default=DEFAULT_MODEL,
+                        help=f"ONNX model (its .card.json beside it; default {DEFAULT_MODEL})")
+    parser.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    parser.add_argument("--markdown", metavar="FILE", help="write a Markdown summary")
+    parser.add_argument("--histogram", metavar="PNG", help="write a histogram of the tick compute times")
+    parser.add_argument("--quick", action="store_true", help="small counts everywhere (a few seconds)")
+    parser.add_argument("--soak-ticks", type=int, default=None, metavar="N",
+                        help="ticks of the soak (default 72000 = one hour at 20 Hz; --quick: 1000)")
+    parser.add_argument("--no-cross-process", action="store_true",
+                        help="skip the udp_multicast run in a private network namespace")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+
+
+def run(args: argparse.Namespace) -> int:
+    from virtsensor.bench import run_bench, to_json, write_histogram, write_markdown
+
+    def say(text: str) -> None:
+        if not args.quiet:
+            print(f"bench: {text}", file=sys.stderr, flush=True)
+
+    r = run_bench(args.model, quick=args.quick, soak_ticks=args.soak_ticks,
+                  cross_process=not args.no_cross_process, progress=say)
+    text = to_json(r)
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as f:
+            f.write(text)
+    if args.markdown:
+        write_markdown(r, args.markdown)
+    if args.histogram:
+        write_histogram(r, args.histogram)
+    t = r["targets"]
+    for k, v in t.items():
+        say(f"{k}: {v['value']} ({v['limit']}) {'met' if v['met'] else 'MISSED'}")
+    if not args.json:
+        sys.stdout.write(text)
+    return 0
