@@ -22,16 +22,6 @@ from virtsensor.recording import simulated_recording
 PCT = ("p50", "p99", "p999", "max")
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging():
-    import logging
-
-    lg = logging.getLogger("virtsensor")
-    saved = (list(lg.handlers), lg.level, lg.propagate)
-    yield
-    lg.handlers[:], lg.level, lg.propagate = saved[0], saved[1], saved[2]
-
-
 @pytest.fixture(scope="module")
 def tiny_model(tmp_path_factory) -> Path:
     """RobustScaler + MLP(8) on synthetic streams, exported with its plain weights in the card."""

@@ -43,17 +43,6 @@ TRACK_MAE_NM = 4.0
 
 
 # ------------------------------------------------------------------------------------------------ fixtures
-@pytest.fixture(autouse=True)
-def _restore_logging():
-    """``virtsensor run`` (called in-process) sets up JSON logging on the ``virtsensor`` logger: undo it."""
-    import logging
-
-    lg = logging.getLogger("virtsensor")
-    saved = (list(lg.handlers), lg.level, lg.propagate)
-    yield
-    lg.handlers[:], lg.level, lg.propagate = saved[0], saved[1], saved[2]
-
-
 @pytest.fixture(scope="module")
 def sim_runs():
     """Five training runs and the test run, simulated in one batch; their recordings as a CAN receiver sees them."""

@@ -80,6 +80,16 @@ QUICK = {"stage_ticks": 200, "e2e_ticks": 100, "jitter_s": 1.5, "soak_ticks": 1_
 # ---------------------------------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------------------------------
+
+def _await_frame(bus, frame_id: int, timeout_s: float = 1.0) -> bool:
+    """Wait up to ``timeout_s`` for a standard frame ``frame_id`` on ``bus``; True when it came."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        m = bus.recv(0.5)
+        if m is not None and m.arbitration_id == frame_id and not m.is_extended_id:
+            return True
+    return False
+
 def percentiles(values: Any) -> dict[str, float] | None:
     """p50/p99/p999/max (and mean, n) of ``values``; None when empty."""
     a = np.asarray(values, dtype=float).ravel()
@@ -306,13 +316,7 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
                 tx.send(batch[-1])
             tx.send(sync)
             sent += 1 + bool(batch)
-            got = False
-            deadline = time.monotonic() + 1.0
-            while time.monotonic() < deadline:
-                m = listener.recv(0.5)
-                if m is not None and m.arbitration_id == sat_id and not m.is_extended_id:
-                    got = True
-                    break
+            got = _await_frame(listener, sat_id)
             t1 = pc()
             if got:
                 lat.append((t1 - t0) / 1e3)
@@ -668,13 +672,7 @@ def _xproc_driver(out_path: str, n_ticks: int) -> int:
             if batch:
                 tx.send(batch[-1])
             tx.send(sync)
-            got = False
-            deadline = time.monotonic() + 1.0
-            while time.monotonic() < deadline:
-                m = rx.recv(0.5)
-                if m is not None and m.arbitration_id == sat_id and not m.is_extended_id:
-                    got = True
-                    break
+            got = _await_frame(rx, sat_id)
             t1 = pc()
             if got:
                 lat.append((t1 - t0) / 1e3)
