@@ -63,7 +63,6 @@ NSTATE = 29
 WHEELS = ("fl", "fr", "rl", "rr")
 #: +1 for left wheels (y > 0), -1 for right wheels
 SIDE = np.array([1.0, -1.0, 1.0, -1.0])
-FRONT = np.array([True, True, False, False])
 #: the tyre file describes a right-hand tyre: left tyres are evaluated mirrored
 #: (slip angle negated in, lateral force and aligning torque negated out)
 MIRROR = -SIDE

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -179,7 +179,3 @@ def split_track_laps(run: Run) -> dict[str, Run]:
                             {**run.meta, "lap": name}, run.path)
     return out
 
-
-def table_columns(table: Mapping[str, np.ndarray]) -> list[str]:
-    """The catalogue columns of a table (for messages)."""
-    return [k for k in table if k in cat.SIGNALS]

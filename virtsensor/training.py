@@ -18,7 +18,7 @@ and the estimator's hyper-parameters.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -139,20 +139,6 @@ def metrics(Y: np.ndarray, P: np.ndarray, names: tuple[str, ...] = ("fl", "fr"))
     out["axle"] = {"r2": float(r2_score(ys, ps)), "mae_nm": float(mean_absolute_error(ys, ps))}
     out["n"] = int(len(Y))
     return out
-
-
-@dataclass
-class Fitted:
-    """A fitted estimator with how long it took."""
-
-    model: Any
-    seconds: float
-
-
-def fit(make: Callable[[], Any], X: np.ndarray, Y: np.ndarray) -> Fitted:
-    t0 = time.perf_counter()
-    model = make().fit(X, Y)
-    return Fitted(model, time.perf_counter() - t0)
 
 
 @dataclass
