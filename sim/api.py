@@ -65,6 +65,7 @@ def simulate_many(
     requests: Sequence[Request],
     params: Mapping[str, Any] | Sequence[Mapping[str, Any]] | None = None,
     progress: Callable[[int], None] | None = None,
+    plans: Sequence[Plan] | None = None,
 ) -> list[SimRun]:
     """Simulate several runs in one vectorised batch.
 
@@ -72,6 +73,8 @@ def simulate_many(
         requests: the runs.
         params: one parameter tree for all runs, or one per run (default car if None).
         progress: called with the number of control steps simulated so far.
+        plans: the requests' plans when the caller has built them already
+            (:func:`sim.manoeuvres.build_plan`); built here otherwise.
     """
     if not requests:
         return []
@@ -84,7 +87,11 @@ def simulate_many(
         check_specs(tree)
     for r in requests:
         check(r.manoeuvre, r.speed_kmh, r.mu)
-    plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, tree) for r, tree in zip(requests, trees, strict=True)]
+    if plans is None:
+        plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, tree)
+                 for r, tree in zip(requests, trees, strict=True)]
+    elif len(plans) != len(requests):
+        raise ValueError("one plan per request")
     result = simulate_batch(plans, trees, progress=progress)
     runs = []
     for i, (req, tree) in enumerate(zip(requests, trees, strict=True)):

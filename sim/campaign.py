@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from sim.api import Request, SimRun, simulate_many
-from sim.manoeuvres import MANOEUVRES
+from sim.driver import Plan
+from sim.manoeuvres import MANOEUVRES, build_plan
 
 PAPER_MU = (1.0, 0.7, 0.5, 0.3, 0.2)
 PAPER_SPEEDS_PER_MANOEUVRE = 4
@@ -72,18 +73,16 @@ PRESETS: dict[str, Callable[[int], list[Request]]] = {
 }
 
 
-def _batches(requests: Sequence[Request], params: Mapping[str, Any], n_batches: int) -> list[list[int]]:
+def _batches(plans: Sequence[Plan], n_batches: int) -> list[list[int]]:
     """Group run indices into batches of similar duration (less padding per batch)."""
-    from sim.manoeuvres import build_plan
-
-    durations = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, params).duration_s for r in requests]
     # longest batches first, so the short ones fill the workers at the end
-    order = np.argsort(durations, kind="stable")[::-1]
+    order = np.argsort([p.duration_s for p in plans], kind="stable")[::-1]
     return [list(map(int, chunk)) for chunk in np.array_split(order, n_batches) if len(chunk)]
 
 
-def _run_batch(requests: Sequence[Request], params: Mapping[str, Any], writer: Callable[[SimRun], Any] | None):
-    runs = simulate_many(requests, params)
+def _run_batch(requests: Sequence[Request], plans: Sequence[Plan], params: Mapping[str, Any],
+               writer: Callable[[SimRun], Any] | None):
+    runs = simulate_many(requests, params, plans=plans)
     if writer is None:
         return runs
     return [writer(r) for r in runs]
@@ -117,12 +116,15 @@ def run_campaign(
 
     if not requests:
         return []
+    # plans are built once, here (the FMVSS 126 amplitude needs a simulated test per car),
+    # and shipped to the workers with their requests
+    plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, params) for r in requests]
     n_batches = max(1, int(np.ceil(len(requests) / batch_size)))
-    groups = _batches(requests, params, n_batches)
+    groups = _batches(plans, n_batches)
     results: list[Any] = [None] * len(requests)
     with parallel_config(backend=backend) if backend else nullcontext():
         par = Parallel(n_jobs=n_jobs, return_as="generator")
-        jobs = (delayed(_run_batch)([requests[i] for i in g], params, writer) for g in groups)
+        jobs = (delayed(_run_batch)([requests[i] for i in g], [plans[i] for i in g], params, writer) for g in groups)
         with tqdm(total=len(requests), unit="run", disable=not progress, desc="simulating") as bar:
             for g, out in zip(groups, par(jobs), strict=True):
                 for i, item in zip(g, out, strict=True):

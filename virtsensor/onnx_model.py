@@ -571,21 +571,10 @@ class NumpyForward:
         a = X[None, :] if one else X
         if a.ndim != 2 or a.shape[1] != self.n_features:
             raise ValueError(f"expected features of shape (N, {self.n_features}), got {X.shape}")
-        if self.center is not None:
-            a = a - self.center
-        if self.scale is not None:
-            a = a / self.scale
-        for W, b, act in self._layers:
-            a = a @ W
-            a += b
-            a = self._act(a, act)
+        a = self._forward(a)
         return a[0] if one else a
 
-    def predict_one(self, x: np.ndarray) -> np.ndarray:
-        """SAT (n_outputs,) in Nm for one feature vector ``x`` (n_features,) (a new array)."""
-        a = np.asarray(x, dtype=float)
-        if a.shape != (self.n_features,):
-            raise ValueError(f"expected {self.n_features} features, got shape {a.shape}")
+    def _forward(self, a: np.ndarray) -> np.ndarray:
         if self.center is not None:
             a = a - self.center
         if self.scale is not None:
@@ -595,6 +584,13 @@ class NumpyForward:
             a += b
             a = self._act(a, act)
         return a
+
+    def predict_one(self, x: np.ndarray) -> np.ndarray:
+        """SAT (n_outputs,) in Nm for one feature vector ``x`` (n_features,) (a new array)."""
+        a = np.asarray(x, dtype=float)
+        if a.shape != (self.n_features,):
+            raise ValueError(f"expected {self.n_features} features, got shape {a.shape}")
+        return self._forward(a)
 
 
 def numpy_forward(pipeline_or_card_weights: Any) -> NumpyForward:
