@@ -1,0 +1,199 @@
+"""`virtsensor demo`: the daemon on the bundled wet-road run, its figures, and bad input."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+import json
+import math
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from virtsensor.cli import main
+from virtsensor.demo import DEMO_RUN, default_model, default_recording
+
+HAVE_MPL = importlib.util.find_spec("matplotlib") is not None
+
+
+def run_demo_cli(*args: str) -> tuple[int, str]:
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = main(["demo", *args])
+    return rc, buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    d = tmp_path_factory.mktemp("demo")
+    plot, js = d / "figs" / "demo.png", d / "demo.json"
+    t0 = time.monotonic()
+    rc, text = run_demo_cli("--rate", "20", "--no-live", "--json", str(js), "--plot", str(plot))
+    wall = time.monotonic() - t0
+    return {"rc": rc, "text": text, "json": json.loads(js.read_text()), "plot": plot, "wall": wall}
+
+
+def test_the_bundled_recording_is_there_with_its_reference():
+    rec = default_recording()
+    assert rec.is_file() and rec.parent.name == "recordings"
+    info = json.loads(rec.with_suffix(".json").read_text())
+    name, speed, mu, seed = DEMO_RUN
+    assert (info["manoeuvre"], info["speed_kmh"], info["mu"], info["seed"]) == (name, speed, mu, seed)
+    assert mu <= 0.8  # a wet road
+    assert default_model().is_file()
+
+
+def test_demo_runs_on_the_bundled_defaults_and_its_figures_are_sane(demo):
+    assert demo["rc"] == 0, demo["text"]
+    r = demo["json"]
+    assert r["has_reference"] and not r["interrupted"]
+    assert r["rate"] == 20.0
+    # 20 s at 20 Hz: one tick per sync frame, every one answered by the daemon
+    assert r["sync_frames_planned"] == r["sync_frames"] == 401
+    assert r["ticks"] == 401 and r["daemon_ticks"] == 401
+    assert r["daemon_counters"]["tick_errors"] == 0 and r["daemon_counters"]["crc_errors"] == 0
+    for w in ("fl", "fr"):
+        st = r["statuses"][w]
+        assert sum(st.values()) == 401
+        assert st["VALID"] >= 390 and st["INVALID"] == 0
+    m = r["metrics"]
+    for w in ("fl", "fr", "mean"):
+        assert math.isfinite(m[w]["mae_nm"]) and 0 < m[w]["mae_nm"] < 6.0, m
+        assert m[w]["r2"] > 0.9, m
+    assert m["fl"]["peak_true_nm"] > 40  # a manoeuvre with something to estimate
+    lat = r["latency_ms"]
+    assert lat["n"] == 401 and 0 < lat["p50"] <= lat["p99"] <= lat["max"]
+    assert r["daemon_tick_latency_us"]["p99"] > 0
+    # 20 s at 20x, plus start-up: well under the 2-minute budget of the default run
+    assert demo["wall"] < 30
+    text = demo["text"]
+    for word in ("MAE", "R2", "latency p99", "ticks: 401", "VALID"):
+        assert word in text, text
+
+
+@pytest.mark.skipif(not HAVE_MPL, reason="matplotlib is not installed")
+def test_demo_writes_the_plot(demo):
+    assert demo["json"]["plot"] == str(demo["plot"])
+    assert demo["plot"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not list(demo["plot"].parent.glob("*.partial"))  # written atomically, nothing left behind
+
+
+def test_demo_figures_equal_the_offline_pipeline(demo):
+    """The daemon's estimates on the bus, paired by the demo, score what the offline table and model score
+    (up to SAT_FRONT's 0.02 Nm resolution): a tick paired with the wrong instant would show."""
+    from virtsensor.features import FeatureSpec
+    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.recording import read_log
+
+    model = OnnxModel.load(default_model())
+    table = read_log(default_recording()).table
+    x = FeatureSpec.from_json(model.card["feature_spec"]).transform(table)
+    ok = np.isfinite(x).all(1)
+    est = model.predict(x[ok])
+    m = demo["json"]["metrics"]
+    for k, w in enumerate(("fl", "fr")):
+        y = table[f"sat_{w}_nm"][ok]
+        err = est[:, k] - y
+        r2 = 1 - (err ** 2).sum() / ((y - y.mean()) ** 2).sum()
+        assert abs(m[w]["r2"] - r2) < 5e-4, (w, m[w], r2)
+        assert abs(m[w]["mae_nm"] - np.abs(err).mean()) < 0.01, (w, m[w], np.abs(err).mean())  # 0.02 Nm steps
+
+
+def test_demo_live_lines_and_max_rate(tmp_path):
+    rc, text = run_demo_cli("--rate", "max", "--plot", str(tmp_path / "p.png"))
+    assert rc == 0, text
+    live = [ln for ln in text.splitlines() if ln.strip()[:1].isdigit() and "/" in ln]
+    assert live, text  # at least the first tick's line (INIT)
+    assert "INIT" in live[0]
+    assert "mean" in text and "latency p99" in text
+
+
+def test_demo_without_matplotlib_still_prints_its_figures(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    js = tmp_path / "d.json"
+    rc, text = run_demo_cli("--rate", "max", "--no-live", "--json", str(js), "--plot", str(tmp_path / "p.png"))
+    assert rc == 0, text
+    assert "plot skipped: matplotlib is not installed" in text and "pip install" in text
+    assert "MAE" in text
+    r = json.loads(js.read_text())
+    assert r["plot"] is None and "matplotlib" in r["plot_skipped"]
+    assert not (tmp_path / "p.png").exists()
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--recording", "{tmp}/missing.blf"], ["missing.blf", "no such log file"]),
+        (["--recording", "{tmp}/notalog.txt"], ["notalog.txt", "unsupported CAN log format"]),
+        (["--model", "{tmp}/missing.onnx"], ["--model", "missing.onnx"]),
+        (["--model", "{tmp}/notalog.txt"], ["model card"]),
+        (["--plot", "{tmp}/notalog.txt/demo.png"], ["--plot", "not a directory"]),
+        (["--plot", "{tmp}"], ["--plot", "is a directory"]),
+        (["--json", "{tmp}/notalog.txt/d.json"], ["--json", "not a directory"]),
+        (["--rate", "0"], ["--rate"]),
+        (["--rate", "fast"], ["--rate"]),
+    ],
+)
+def test_demo_bad_input_is_one_line_and_exit_2(tmp_path, capsys, args, words):
+    (tmp_path / "notalog.txt").write_text("hello\n")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    t0 = time.monotonic()
+    rc = main(["demo", "--no-live", *argv])
+    assert rc == 2
+    assert time.monotonic() - t0 < 10  # refused before any replay
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("virtsensor demo: error:"), err
+    for w in words:
+        assert w in err, err
+    assert "Traceback" not in err
+    assert not (tmp_path / "demo.png").exists()
+
+
+def test_demo_bad_input_from_the_shell_has_no_traceback(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "virtsensor.cli", "demo", "--recording", str(tmp_path / "x.blf")],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert res.returncode == 2
+    assert res.stderr.count("\n") == 1 and "no such log file" in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "figures").exists()  # nothing written
+
+
+def _write_log(path, frames):
+    import can
+
+    writer = can.Logger(str(path))
+    try:
+        for m in frames:
+            writer.on_message_received(m)
+    finally:
+        writer.stop()
+
+
+def test_demo_on_a_recording_without_reference_gives_estimates_only(tmp_path):
+    from virtsensor.can_codec import CanMatrix
+    from virtsensor.demo import run_demo
+    from virtsensor.recording import iter_log
+
+    te = CanMatrix.load().messages["TE_WheelForceTransducer"].frame_id
+    frames = [m for m in iter_log(default_recording()) if m.arbitration_id != te and m.timestamp < 5.0]
+    _write_log(tmp_path / "noref.blf", frames)
+    buf = io.StringIO()
+    r = run_demo(recording=tmp_path / "noref.blf", rate="max", live=False, plot=None, out=buf)
+    assert not r["has_reference"] and r["metrics"] is None
+    assert r["ticks"] == r["sync_frames"] == 100 and r["statuses"]["fl"]["VALID"] > 90
+    assert "no reference" in buf.getvalue() and "MAE / R2: n/a" in buf.getvalue()
+
+
+def test_demo_refuses_a_recording_without_the_models_inputs(tmp_path, capsys):
+    from virtsensor.can_codec import CanMatrix
+    from virtsensor.recording import iter_log
+
+    te = CanMatrix.load().messages["TE_WheelForceTransducer"].frame_id
+    _write_log(tmp_path / "te_only.blf", [m for m in iter_log(default_recording()) if m.arbitration_id == te][:200])
+    assert main(["demo", "--no-live", "--recording", str(tmp_path / "te_only.blf"),
+                 "--plot", str(tmp_path / "p.png")]) == 2
+    err = capsys.readouterr().err
+    assert "none of the model's input messages" in err and len(err.strip().splitlines()) == 1
