@@ -47,6 +47,9 @@ class Plan:
         mu_dist: distances (m) where the road friction changes (increasing).
         mu_values: friction before the first distance and after each one (len+1).
         label: free-form metadata kept with the run (speed, mu, amplitude...).
+        speed_feedforward: the speed controller adds the force the target's own
+            acceleration needs (``m dv/dt``) to its feedback, so it tracks a
+            recorded speed trace without the feedback loop's lag (re-simulation).
     """
 
     name: str
@@ -64,6 +67,7 @@ class Plan:
     mu_dist: Sequence[float] = ()
     mu_values: Sequence[float] = (1.0,)
     label: dict = field(default_factory=dict)
+    speed_feedforward: bool = False
 
     @property
     def n(self) -> int:
@@ -82,6 +86,7 @@ class Plan:
             self.speed_mode.copy(), self.speed_target.copy(), self.motor_cmd.copy(), self.brake_cmd.copy(),
             path, None if self.path_speed is None else self.path_speed.copy(), self.path_ds,
             tuple(self.mu_dist), tuple(self.mu_values), {**self.label, "mirrored": True},
+            self.speed_feedforward,
         )
 
 
@@ -113,6 +118,10 @@ class Driver:
         self.speed_target = _pad([p.speed_target for p in plans], self.n)
         self.motor_cmd = _pad([p.motor_cmd for p in plans], self.n)
         self.brake_cmd = _pad([p.brake_cmd for p in plans], self.n)
+        ff = np.array([p.speed_feedforward for p in plans], dtype=bool)
+        self.target_acc = np.zeros((B, self.n))
+        if ff.any() and self.n > 1:
+            self.target_acc[ff] = np.gradient(self.speed_target[ff], CONTROL_DT, axis=1)
 
         def dp(key: str) -> np.ndarray:
             return np.array([t["driver"][key] for t in params], dtype=float)
@@ -257,7 +266,9 @@ class Driver:
         err = target - vx
         self.v_int = np.where(smode == SPEED_TARGET, np.clip(self.v_int + err * CONTROL_DT, -5.0, 5.0), 0.0)
         resist = v.drag * vx * np.abs(vx) + 0.012 * v.m * v.g
-        force = resist + self.k_v * err + self.k_vi * self.v_int
+        # feedforward of the target's acceleration (zero unless the plan asks), with the
+        # wheels' spin inertia as an equivalent mass of about 3 %
+        force = resist + 1.03 * v.m * self.target_acc[:, k] + self.k_v * err + self.k_vi * self.v_int
         r_wheel = v.R0 * 0.97
         motor_dem = np.where(force > 0, force * r_wheel / (v.gear * v.eta), 0.0)
         brake_dem = np.where(force < 0, -force * r_wheel * 0.5 * v.brake_share, 0.0)

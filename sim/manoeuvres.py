@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.interpolate import CubicSpline
 
 from sim import profiles
 from sim.driver import (
@@ -306,7 +307,7 @@ def from_recording(table: Mapping[str, np.ndarray], mu: float, *, longitudinal: 
     (``longitudinal="speed"``: the speed controller tracks ``vx_mps``) or the
     recorded traction-motor torque (``"torque"``: ``motor_torque_nm`` open loop,
     no braking). Samples may come at any steady rate (a 20 Hz table, say); they
-    are interpolated linearly onto the 100 Hz control grid. Non-finite samples
+    are interpolated onto the 100 Hz control grid (a cubic spline for the steering). Non-finite samples
     (gaps) are not bridged silently: the plan holds the last good value and the
     gap positions are listed in ``plan.label["gaps_s"]``.
 
@@ -342,9 +343,21 @@ def from_recording(table: Mapping[str, np.ndarray], mu: float, *, longitudinal: 
     duration = float(t_rec[-1])
     v0 = float(series("vx_mps")[0]) if "vx_mps" in table else 20.0
     t, plan = _base(name, duration, v0, mu, {"gaps_s": sorted(set(gaps)), "longitudinal": longitudinal})
-    plan.steer_sw[:] = np.interp(t, t_rec, sw)
+    # a cubic spline through the samples: a 20 Hz table carries steering up to a few Hz,
+    # which straight lines between samples would cut by up to a tenth of its amplitude
+    plan.steer_sw[:] = CubicSpline(t_rec, sw)(np.clip(t, t_rec[0], t_rec[-1])) if len(sw) > 3 \
+        else np.interp(t, t_rec, sw)
     if longitudinal == "speed":
-        plan.speed_target[:] = np.interp(t, t_rec, series("vx_mps"))
+        # the speed is tracked with its own acceleration as feedforward; a centred
+        # 0.5 s average keeps the sensor's noise and quantisation out of that derivative
+        v = series("vx_mps")
+        dt_rec = float(np.median(np.diff(t_rec)))
+        w = max(1, int(round(0.5 / dt_rec)))
+        if w > 1 and len(v) > w:
+            pad = np.concatenate([np.full(w // 2, v[0]), v, np.full(w - 1 - w // 2, v[-1])])
+            v = np.convolve(pad, np.ones(w) / w, mode="valid")
+        plan.speed_target[:] = np.interp(t, t_rec, v)
+        plan.speed_feedforward = True
     else:
         plan.speed_mode[:] = SPEED_OPEN
         plan.motor_cmd[:] = np.interp(t, t_rec, series("motor_torque_nm"))

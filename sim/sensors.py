@@ -3,6 +3,9 @@
 Each sensor samples the true quantity at its own update rate (with a random
 phase per run), after a pure latency, applies a gain error, a bias and white
 noise, quantises to its resolution and holds the value until its next update.
+A fault of one signal (``[sensor_errors]``: extra delay, offset, gain) comes on
+top of its sensor model: that is how a car whose signals differ from the
+simulator's is modelled.
 The result is a set of *streams* on the 100 Hz base grid: what the CAN writer
 encodes at each message's cycle time. The canonical 20 Hz table is not made
 here: it is what a receiver on the bus samples from those frames
@@ -60,6 +63,7 @@ TRUTH_COLUMNS: dict[str, str] = {
 }
 
 SPEC_KEYS = ("rate_hz", "latency_s", "noise", "bias", "gain", "resolution")
+ERROR_KEYS = ("delay_s", "offset", "gain")
 
 
 def check_specs(params: Mapping[str, Any]) -> None:
@@ -76,18 +80,32 @@ def check_specs(params: Mapping[str, Any]) -> None:
             raise ValueError(f"sensors.{key}.rate_hz must be in (0, 100], got {spec['rate_hz']}")
         if spec["latency_s"] < 0 or spec["noise"] < 0 or spec["resolution"] < 0:
             raise ValueError(f"sensors.{key}: latency, noise and resolution must be >= 0")
+    for name, err in params.get("sensor_errors", {}).items():
+        if name not in SOURCES:
+            raise ValueError(f"sensor_errors.{name}: not a signal the sensors deliver")
+        missing = [k for k in ERROR_KEYS if k not in err]
+        if missing:
+            raise ValueError(f"sensor_errors.{name}: missing {', '.join(missing)}")
+        if not 0.0 <= err["delay_s"] <= 2.0:
+            raise ValueError(f"sensor_errors.{name}.delay_s must be in [0, 2] s, got {err['delay_s']}")
+        if err["gain"] <= 0.0:
+            raise ValueError(f"sensor_errors.{name}.gain must be > 0, got {err['gain']}")
 
 
-def _sensor(t: np.ndarray, x: np.ndarray, spec: Mapping[str, float], rng: np.random.Generator) -> np.ndarray:
-    """One sensor's held output on the base grid ``t`` from the true signal ``x``."""
+def _sensor(t: np.ndarray, x: np.ndarray, spec: Mapping[str, float], rng: np.random.Generator,
+            error: Mapping[str, float] | None = None) -> np.ndarray:
+    """One sensor's held output on the base grid ``t`` from the true signal ``x``;
+    ``error`` (``delay_s``, ``offset``, ``gain``) is a fault of this one signal on top."""
+    delay, offset, gain = (0.0, 0.0, 1.0) if error is None else (
+        error["delay_s"], error["offset"], error["gain"])
     dt = t[1] - t[0] if len(t) > 1 else 0.01
     every = max(1, int(round(1.0 / (spec["rate_hz"] * dt))))
     phase = int(rng.integers(every))
     upd = np.arange(phase, len(t), every)
     if upd.size == 0 or upd[0] != 0:
         upd = np.concatenate([[0], upd])  # the first value is known from t = 0
-    ts = t[upd] - spec["latency_s"]
-    val = np.interp(ts, t, x) * spec["gain"] + spec["bias"]
+    ts = t[upd] - spec["latency_s"] - delay
+    val = (np.interp(ts, t, x) * spec["gain"] + spec["bias"]) * gain + offset
     if spec["noise"] > 0:
         val = val + rng.normal(0.0, spec["noise"], size=val.shape)
     res = spec["resolution"]
@@ -108,9 +126,10 @@ def make_streams(run: Mapping[str, np.ndarray], params: Mapping[str, Any], seed:
     r_cal = 0.5 * (run["re_rl"][0] + run["re_rr"][0])
     truth["esc_speed_mps"] = 0.5 * (run["omega_rl"] + run["omega_rr"]) * r_cal
     rng = np.random.default_rng(seed)
+    errors = params.get("sensor_errors", {})
     streams = {"time_s": t}
     for name, (key, src) in SOURCES.items():
-        streams[name] = _sensor(t, truth[src], params["sensors"][key], rng)
+        streams[name] = _sensor(t, truth[src], params["sensors"][key], rng, errors.get(name))
     return streams
 
 
