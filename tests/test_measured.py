@@ -1,0 +1,131 @@
+"""Measured data: loading and the checks that refuse or flag bad data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from virtsensor import signals as cat
+from virtsensor.errors import UserError
+from virtsensor.measured import MIN_SEGMENT_S, NEEDED, load_measured
+from virtsensor.recording import write_csv
+
+
+def _table(n: int = 400, dt: float = 0.05) -> dict[str, np.ndarray]:
+    """A plausible 20 Hz table of a car cornering gently at 20 m/s."""
+    t = np.arange(n) * dt
+    sw = 0.5 * np.sin(2 * np.pi * 0.3 * t)
+    vx = np.full(n, 20.0)
+    yaw = vx * sw / (14.8 * 2.7 * 1.2)
+    tab = {"time_s": t}
+    for s in NEEDED:
+        tab[s] = np.zeros(n)
+    tab.update({"steer_angle_rad": sw, "vx_mps": vx, "yaw_rate_radps": yaw, "ay_mps2": yaw * vx,
+                "wheel_speed_fl_radps": vx / 0.31, "wheel_speed_fr_radps": vx / 0.31,
+                "sat_fl_nm": -30 * sw, "sat_fr_nm": -30 * sw})
+    return tab
+
+
+def test_a_good_table_loads_in_one_segment(tmp_path):
+    write_csv(tmp_path / "a.csv", _table())
+    (run,) = load_measured([tmp_path / "a.csv"])
+    assert len(run.segments) == 1 and run.gaps == []
+    assert run.table["time_s"][0] == 0.0
+
+
+def test_missing_signal_is_named(tmp_path):
+    tab = _table()
+    del tab["assist_torque_nm"]
+    write_csv(tmp_path / "a.csv", tab)
+    with pytest.raises(UserError, match=r"a\.csv.*assist_torque_nm"):
+        load_measured([tmp_path / "a.csv"])
+
+
+def test_other_sample_rate_is_named(tmp_path):
+    tab = _table(n=2000, dt=0.01)
+    write_csv(tmp_path / "a.csv", tab)
+    with pytest.raises(UserError, match=r"a\.csv: sample rate 100 Hz.*20 Hz"):
+        load_measured([tmp_path / "a.csv"])
+
+
+@pytest.mark.parametrize(("signal", "factor", "pattern"), [
+    ("vx_mps", 3.6, r"vx_mps is 3\.\d+ x what the kinematics give.*km/h instead of m/s"),
+    ("ay_mps2", 1 / 9.81, r"ay_mps2 is 0\.1\d* x what the kinematics give.*g instead of m/s\^2"),
+    ("steer_angle_rad", 57.2958, r"steer_angle_rad reaches 28\.6"),
+    ("yaw_rate_radps", 57.2958, r"yaw_rate_radps reaches"),
+])
+def test_unit_scaling_is_named(tmp_path, signal, factor, pattern):
+    tab = _table()
+    tab[signal] = tab[signal] * factor
+    write_csv(tmp_path / "a.csv", tab)
+    with pytest.raises(UserError, match=pattern):
+        load_measured([tmp_path / "a.csv"])
+
+
+def test_small_steering_in_degrees_is_caught_by_kinematics(tmp_path):
+    tab = _table()
+    tab["steer_angle_rad"] = np.degrees(tab["steer_angle_rad"]) / 4.0  # up to 7.2 "rad": inside the range
+    tab["yaw_rate_radps"] = tab["yaw_rate_radps"] / 4.0
+    tab["ay_mps2"] = tab["yaw_rate_radps"] * tab["vx_mps"]
+    write_csv(tmp_path / "a.csv", tab)
+    with pytest.raises(UserError, match="degrees instead of radians"):
+        load_measured([tmp_path / "a.csv"])
+
+
+def test_gaps_cut_segments_and_are_not_interpolated(tmp_path):
+    tab = _table(n=600)
+    tab["ay_mps2"][200:210] = np.nan           # a 0.5 s dropout of one signal
+    keep = np.ones(600, dtype=bool)
+    keep[400:420] = False                      # 1 s of missing rows
+    write_csv(tmp_path / "a.csv", {k: v[keep] for k, v in tab.items()})
+    (run,) = load_measured([tmp_path / "a.csv"])
+    assert [(s.start, s.stop) for s in run.segments] == [(0, 200), (210, 400), (420, 600)]
+    assert run.gaps == [(pytest.approx(10.0), pytest.approx(10.5)), (pytest.approx(20.0), pytest.approx(21.0))]
+    # the missing rows are there, as NaN: nothing was filled in
+    assert np.isnan(run.table["vx_mps"][400:420]).all() and np.isnan(run.table["ay_mps2"][200:210]).all()
+
+
+def test_short_stretches_between_gaps_are_reported(tmp_path):
+    tab = _table(n=400)
+    tab["ay_mps2"][100:101] = np.nan
+    tab["ay_mps2"][140:141] = np.nan  # 2 s between the two gaps
+    write_csv(tmp_path / "a.csv", tab)
+    (run,) = load_measured([tmp_path / "a.csv"])
+    assert len(run.segments) == 2
+    assert any(f"< {MIN_SEGMENT_S:g} s" in n for n in run.notes)
+
+
+def test_unsupported_and_missing_files(tmp_path):
+    (tmp_path / "x.txt").write_text("hello")
+    with pytest.raises(UserError, match=r"x\.txt: unsupported file type"):
+        load_measured([tmp_path / "x.txt"])
+    with pytest.raises(UserError, match="no such file"):
+        load_measured([tmp_path / "nope.csv"])
+
+
+def test_mdf4_channels_by_dbc_name_are_sampled_at_20hz(tmp_path):
+    asammdf = pytest.importorskip("asammdf")
+    tab = _table()
+    t100 = np.arange(0, tab["time_s"][-1] + 1e-9, 0.01)
+    mdf = asammdf.MDF(version="4.10")
+    sigs = []
+    for name in NEEDED:
+        s = cat.SIGNALS[name]
+        sigs.append(asammdf.Signal(np.interp(t100, tab["time_s"], tab[name]), t100, name=s.dbc_signal, unit=s.unit))
+    mdf.append(sigs)
+    mdf.save(tmp_path / "m.mf4", overwrite=True)
+    (run,) = load_measured([tmp_path / "m.mf4"])
+    assert set(NEEDED) <= set(run.table)
+    assert np.median(np.diff(run.table["time_s"])) == pytest.approx(0.05)
+    k = len(run.table["time_s"]) // 2
+    assert run.table["vx_mps"][k] == pytest.approx(20.0)
+
+
+def test_mdf4_unit_mismatch_is_named(tmp_path):
+    asammdf = pytest.importorskip("asammdf")
+    t = np.arange(0, 5, 0.01)
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append([asammdf.Signal(np.zeros_like(t), t, name="VehSpeed", unit="km/h")])
+    mdf.save(tmp_path / "m.mf4", overwrite=True)
+    with pytest.raises(UserError, match=r"VehSpeed.*km/h.*vx_mps.*m/s"):
+        load_measured([tmp_path / "m.mf4"])

@@ -1,0 +1,274 @@
+"""Measured data as a test vehicle records it, checked before anyone trusts it.
+
+Accepted: CAN logs (.blf, .asc, .log, .trc) decoded through the DBC by the
+runtime's front-end, MDF4 files (.mf4, .mdf; needs the ``mdf`` extra, asammdf)
+with channels named by catalogue name or DBC signal name, and the canonical
+20 Hz CSV table. Every run must carry the 12 estimator inputs and the reference
+SATs (wheel-force transducers); anything else the car had (TPMS pressures, rear
+wheel speeds...) is kept.
+
+Checks, each a one-line :class:`UserError` naming file and signal:
+
+* a needed signal missing;
+* a sample rate other than the canonical 20 Hz (CSV tables; logs and MDF files
+  are sampled at 20 Hz by the front-end, whatever their message rates);
+* a unit scaling that contradicts the car's kinematics (speed in km/h, angles in
+  degrees, accelerations in g, pressures in bar...), found by cross-checking
+  signals that physics ties together;
+* values outside the catalogue's valid range.
+
+Gaps (non-finite samples, or missing ticks in a CSV table) are kept as gaps: the
+run is cut into segments at them, never interpolated across; each segment is
+re-simulated on its own and the gaps are listed in the report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from virtsensor import signals as cat
+from virtsensor.errors import UserError
+
+RATE_HZ = cat.TABLE_RATE_HZ
+TICK_S = 1.0 / RATE_HZ
+#: signals a measured run must carry: the 12 inputs and the reference SATs
+NEEDED: tuple[str, ...] = (*cat.INPUTS, *cat.OUTPUTS)
+MDF_SUFFIXES = (".mf4", ".mdf")
+LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc")
+TABLE_SUFFIXES = (".csv",)
+#: shortest segment between gaps worth re-simulating (s)
+MIN_SEGMENT_S = 4.0
+
+
+@dataclass
+class Segment:
+    """A stretch of a measured run without gaps: rows ``start:stop`` of the table."""
+
+    start: int
+    stop: int
+
+    @property
+    def n(self) -> int:
+        return self.stop - self.start
+
+
+@dataclass
+class MeasuredRun:
+    """One measured run: its 20 Hz table (``time_s`` from the first tick), where it
+    came from, its segments and gaps."""
+
+    name: str
+    path: Path
+    table: dict[str, np.ndarray]
+    segments: list[Segment]
+    gaps: list[tuple[float, float]] = field(default_factory=list)  # (start, end) s
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def duration_s(self) -> float:
+        t = self.table["time_s"]
+        return float(t[-1] - t[0]) if len(t) else 0.0
+
+    def segment_table(self, seg: Segment) -> dict[str, np.ndarray]:
+        return {k: v[seg.start:seg.stop] for k, v in self.table.items()}
+
+
+def _files(paths: Iterable[str | Path]) -> list[Path]:
+    out: list[Path] = []
+    suffixes = TABLE_SUFFIXES + LOG_SUFFIXES + MDF_SUFFIXES
+    for p in map(Path, paths):
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir() if f.suffix.lower() in suffixes)
+            if not found:
+                raise UserError(f"{p}: no measured runs (.csv, .blf, .asc, .log, .mf4) in this directory")
+            out.extend(found)
+        elif p.is_file():
+            if p.suffix.lower() not in suffixes:
+                raise UserError(f"{p}: unsupported file type {p.suffix!r} (use .csv, .blf, .asc, .log, .trc, .mf4)")
+            out.append(p)
+        else:
+            raise UserError(f"{p}: no such file or directory")
+    return out
+
+
+def read_mdf(path: Path) -> dict[str, np.ndarray]:
+    """A 20 Hz table from an MDF4 file: each channel named by its catalogue name or
+    its DBC signal name is sampled and held at the ticks, as the CAN front-end does."""
+    try:
+        from asammdf import MDF
+    except ImportError:
+        raise UserError(f"{path}: reading MDF4 needs asammdf: pip install 'virtsensor[mdf]'") from None
+    by_dbc = {s.dbc_signal: s.name for s in cat.SIGNALS.values() if s.dbc_signal}
+    try:
+        mdf = MDF(str(path))
+    except Exception as exc:  # asammdf raises many kinds on a bad file
+        raise UserError(f"{path}: not a readable MDF file ({type(exc).__name__}: {exc})") from None
+    series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    with mdf:
+        for ch in list(mdf.channels_db):
+            name = ch if ch in cat.SIGNALS else by_dbc.get(ch)
+            if name is None or name == "time_s" or name in series:
+                continue
+            sig = mdf.get(ch)
+            unit = (sig.unit or "").strip()
+            want = cat.SIGNALS[name].unit
+            if unit and unit != want:
+                raise UserError(f"{path}: channel {ch!r} is in {unit!r}, the catalogue's {name} is in {want!r}")
+            series[name] = (np.asarray(sig.timestamps, dtype=float), np.asarray(sig.samples, dtype=float))
+    if not series:
+        raise UserError(f"{path}: no channel named like a catalogue or DBC signal")
+    t0 = min(ts[0] for ts, _ in series.values() if len(ts))
+    t1 = max(ts[-1] for ts, _ in series.values() if len(ts))
+    ticks = t0 + TICK_S * np.arange(1, int(np.floor((t1 - t0) / TICK_S + 1e-9)) + 1)
+    table = {"time_s": ticks - t0}
+    for name, (ts, ys) in series.items():
+        i = np.searchsorted(ts, ticks + 1e-9, side="right") - 1
+        col = np.where(i >= 0, ys[np.maximum(i, 0)], np.nan)
+        table[name] = col
+    return table
+
+
+def _read(path: Path) -> dict[str, np.ndarray]:
+    from virtsensor.recording import read_csv, read_log
+
+    suffix = path.suffix.lower()
+    if suffix in TABLE_SUFFIXES:
+        return read_csv(path)
+    if suffix in MDF_SUFFIXES:
+        return read_mdf(path)
+    return dict(read_log(path).table)
+
+
+def _check_rate(path: Path, t: np.ndarray) -> None:
+    if len(t) < 3:
+        raise UserError(f"{path}: only {len(t)} samples; a measured run needs several seconds at 20 Hz")
+    if not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
+        raise UserError(f"{path}: time_s must be finite and strictly increasing")
+    dt = float(np.median(np.diff(t)))
+    if abs(dt - TICK_S) > 0.02 * TICK_S:
+        raise UserError(f"{path}: sample rate {1.0 / dt:.4g} Hz (time_s steps of {dt:.4g} s); "
+                        f"the canonical table is {RATE_HZ:g} Hz (steps of {TICK_S:g} s): resample it on the bus "
+                        f"tick or give the CAN log")
+
+
+def _kinematic_checks(table: Mapping[str, np.ndarray]) -> list[tuple[str, float]]:
+    """LS ratios of a signal to what kinematics predicts from others (about 1 when the
+    units are right): speed against the front wheel speeds times a passenger-car
+    rolling radius (0.30 m, within 15 %), lateral acceleration against yaw rate x speed."""
+    def ratio(y: np.ndarray, x: np.ndarray, min_ref: float) -> float | None:
+        ok = np.isfinite(y) & np.isfinite(x)
+        if ok.sum() < 20 or np.max(np.abs(x[ok])) < min_ref:
+            return None  # not excited enough to tell
+        # only the samples where the reference is well away from zero
+        big = ok & (np.abs(x) > 0.3 * np.max(np.abs(x[ok])))
+        if big.sum() < 10 or float(np.sum(x[big] ** 2)) <= 0:
+            return None
+        return float(np.sum(y[big] * x[big]) / np.sum(x[big] ** 2))
+
+    out = []
+    wheels = 0.5 * (table["wheel_speed_fl_radps"] + table["wheel_speed_fr_radps"])
+    vx, yaw, ay = table["vx_mps"], table["yaw_rate_radps"], table["ay_mps2"]
+    for name, k in (("vx_mps", ratio(vx, wheels * 0.30, 5.0)), ("ay_mps2", ratio(ay, yaw * vx, 1.5))):
+        if k is not None:
+            out.append((name, k))
+    return out
+
+
+_NAMED_SCALES = {3.6: "km/h instead of m/s", 1 / 3.6: "m/s against wheel speeds in km/h",
+                 2.237: "mph instead of m/s", 1 / 9.81: "g instead of m/s^2", 9.81: "m/s^2 against g",
+                 57.2958: "degrees instead of radians", 1 / 57.2958: "radians against degrees",
+                 100.0: "a factor 100", 0.01: "a factor 1/100", 1000.0: "a factor 1000", 0.001: "a factor 1/1000"}
+
+
+def _check_units(path: Path, table: Mapping[str, np.ndarray]) -> None:
+    """Gross unit errors: kinematic cross-checks and the catalogue's valid ranges."""
+    for name, col in table.items():
+        s = cat.SIGNALS.get(name)
+        if s is None or name == "time_s":
+            continue
+        y = col[np.isfinite(col)]
+        if y.size and (y.min() < s.minimum or y.max() > s.maximum):
+            bad = y.max() if y.max() > s.maximum else y.min()
+            raise UserError(f"{path}: {name} reaches {bad:.6g} {s.unit}, outside its valid range "
+                            f"[{s.minimum:g}, {s.maximum:g}] (wrong unit or scaling?)")
+    for name, k in _kinematic_checks(table):
+        if not 0.6 < k < 1.6:
+            nearest = min(_NAMED_SCALES, key=lambda s: abs(np.log(k / s)))
+            hint = f" (about x{nearest:.4g}: {_NAMED_SCALES[nearest]}?)" if abs(np.log(k / nearest)) < 0.15 else ""
+            raise UserError(f"{path}: {name} is {k:.3g} x what the kinematics give from the other signals"
+                            f"{hint}; expected {cat.SIGNALS[name].unit}")
+    # steering-wheel angle in degrees: lock-to-lock is about +-8 rad; in degrees a
+    # moderate manoeuvre already exceeds 13 (caught by the range), a gentle one does not:
+    sw, yaw, vx = table["steer_angle_rad"], table["yaw_rate_radps"], table["vx_mps"]
+    ok = np.isfinite(sw) & np.isfinite(yaw) & np.isfinite(vx) & (vx > 5.0)
+    if ok.sum() > 40 and np.nanmax(np.abs(yaw[ok])) > 0.05:
+        # kinematic yaw rate of a car with a 14-18 steering ratio and a 2.4-3.0 m wheelbase
+        k_lo = 1.0 / (18.0 * 3.0)
+        big = ok & (np.abs(sw) > 0.3 * np.nanmax(np.abs(sw[ok])))
+        if big.sum() > 10:
+            gain = np.sum(yaw[big] * sw[big] * vx[big]) / np.sum((sw[big] * vx[big]) ** 2)
+            if gain < 0.1 * k_lo:
+                raise UserError(f"{path}: steer_angle_rad is far too large for the yaw rate it gives "
+                                f"(steering ratio {1.0 / (gain * 2.7):.0f}:1); degrees instead of radians?")
+
+
+def _segments(path: Path, table: dict[str, np.ndarray], needed: Sequence[str]
+              ) -> tuple[dict[str, np.ndarray], list[Segment], list[tuple[float, float]], list[str]]:
+    """Put the run on a regular tick grid (missing ticks become NaN rows), find gaps
+    (any needed signal non-finite), cut segments between them."""
+    t = table["time_s"]
+    k = np.round((t - t[0]) / TICK_S).astype(np.int64)
+    if np.any(np.diff(k) <= 0):
+        raise UserError(f"{path}: time_s is not on a {TICK_S:g} s grid (two samples in one tick)")
+    n = int(k[-1]) + 1
+    full = {"time_s": t[0] + TICK_S * np.arange(n)}
+    for name, col in table.items():
+        if name == "time_s":
+            continue
+        c = np.full(n, np.nan)
+        c[k] = col
+        full[name] = c
+    good = np.ones(n, dtype=bool)
+    for name in needed:
+        good &= np.isfinite(full[name])
+    notes = []
+    gaps: list[tuple[float, float]] = []
+    segs: list[Segment] = []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], good.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if (b - a) * TICK_S >= MIN_SEGMENT_S:
+            segs.append(Segment(int(a), int(b)))
+        else:
+            notes.append(f"a {(b - a) * TICK_S:.2f} s stretch at {full['time_s'][a]:.2f} s between gaps is too "
+                         f"short to re-simulate (< {MIN_SEGMENT_S:g} s)")
+    bad_edges = np.flatnonzero(np.diff(np.concatenate([[0], (~good).astype(np.int8), [0]])))
+    for a, b in zip(bad_edges[::2], bad_edges[1::2], strict=True):
+        gaps.append((float(full["time_s"][a]), float(full["time_s"][b - 1] + TICK_S)))
+    if not segs:
+        raise UserError(f"{path}: no stretch of at least {MIN_SEGMENT_S:g} s without gaps in the needed signals")
+    return full, segs, gaps, notes
+
+
+def load_measured(paths: Iterable[str | Path], needed: Sequence[str] = NEEDED) -> list[MeasuredRun]:
+    """Read and check measured runs (files or directories of them)."""
+    runs = []
+    for path in _files(paths):
+        table = _read(path)
+        missing = [s for s in ("time_s", *needed) if s not in table]
+        if missing:
+            raise UserError(f"{path}: measured run lacks the needed signal(s) {', '.join(missing)}")
+        t = np.asarray(table["time_s"], dtype=float)
+        _check_rate(path, t)
+        table = {k: np.asarray(v, dtype=float) for k, v in table.items()}
+        _check_units(path, table)
+        full, segs, gaps, notes = _segments(path, table, needed)
+        full["time_s"] = full["time_s"] - full["time_s"][0]
+        runs.append(MeasuredRun(path.stem, path, full, segs, gaps, notes))
+    names = [r.name for r in runs]
+    if len(set(names)) != len(names):
+        raise UserError("two measured runs have the same file name stem; rename one")
+    return runs
