@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "explain": ("explain", "Section IV.B figures: input correlation, SHAP importance/dependence, track laps"),
     "run": ("run", "the real-time virtual-sensor daemon: CAN in, 20 Hz SAT_FRONT out"),
     "bench": ("bench", "measure the daemon: stage/end-to-end latency, jitter, CPU/RSS, max tick rate, soak"),
+    "diagnose": ("diagnose", "sim-to-real: what the simulation gets wrong about measured runs, the cause, the gain"),
     "demo": ("demo", "the daemon on a bundled wet-road run: estimated vs true SAT live, then MAE, R2, latency, plot"),
 }
 

@@ -1,0 +1,194 @@
+"""Sim-to-real diagnosis: the effect catalogue, the pieces, and hidden effects found end to end.
+
+The end-to-end tests hide an effect in "measured" runs (drawn at random with a
+fixed seed, at a realistic magnitude, through the simulator's parameter
+overrides) and give the diagnosis only the files; a control car has no effect.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sim.effects import CAUSES, EFFECTS, OFFSET_RANGE, SENSOR_SIGNALS, Hidden, draw_hidden, with_effect
+from sim.params import car_parameters
+from virtsensor import signals as cat
+from virtsensor.diagnose.compare import signal_stats
+from virtsensor.diagnose.resim import Hypothesis, drive_table
+
+#: the hidden-effect test's seed (the effect it draws is whatever the seed gives)
+HIDDEN_SEED = 2026
+
+
+def test_every_effect_applies_to_the_car():
+    base = car_parameters()
+    for cause in CAUSES:
+        e = EFFECTS[cause]
+        sig = "ay_mps2" if cause.startswith("sensor_") else None
+        value = e.nominal + (0.1 if cause != "vehicle_mass" else 200.0)
+        tree = with_effect(base, cause, value, sig)
+        assert tree != base, cause
+
+
+def test_payload_moves_the_cg_back_and_adds_inertia():
+    base = car_parameters()
+    tree = with_effect(base, "vehicle_mass", 300.0)
+    v0, v1 = base["vehicle"], tree["vehicle"]
+    assert v1["mass_kg"] == pytest.approx(v0["mass_kg"] + 300.0)
+    assert v1["front_axle_load_fraction"] < v0["front_axle_load_fraction"]
+    assert v1["yaw_inertia_kgm2"] > v0["yaw_inertia_kgm2"]
+    # static moment about the front axle is conserved
+    L = v0["wheelbase_m"]
+    m0 = v0["mass_kg"] * (1 - v0["front_axle_load_fraction"]) * L + 300.0 * 2.0
+    assert v1["mass_kg"] * (1 - v1["front_axle_load_fraction"]) * L == pytest.approx(m0)
+
+
+def test_hidden_draws_are_realistic_and_reproducible():
+    draws = [draw_hidden(np.random.default_rng(s)) for s in range(200)]
+    assert draws[:5] == [draw_hidden(np.random.default_rng(s)) for s in range(5)]
+    assert {d.cause for d in draws} == set(CAUSES)
+    for d in draws:
+        e = EFFECTS[d.cause]
+        lo, hi = e.bounds
+        assert lo <= d.value <= hi
+        if d.cause == "sensor_offset":
+            assert OFFSET_RANGE[d.signal][0] <= abs(d.value) <= OFFSET_RANGE[d.signal][1]
+        if d.cause.startswith("sensor_"):
+            assert d.signal in SENSOR_SIGNALS
+        else:
+            assert abs(d.value - e.nominal) > e.floor
+
+
+def test_sensor_errors_act_on_one_signal_only():
+    from sim.api import simulate
+
+    base = car_parameters()
+    r0 = simulate("steering-pulse", 50.0, 1.0, seed=3, params=base)
+    r1 = simulate("steering-pulse", 50.0, 1.0, seed=3, params=with_effect(
+        with_effect(base, "sensor_offset", 0.3, "ay_mps2"), "sensor_delay", 0.1, "yaw_rate_radps"))
+    s0, s1 = r0.streams, r1.streams
+    assert np.mean(s1["ay_mps2"] - s0["ay_mps2"]) == pytest.approx(0.3, abs=0.01)
+    # a 0.1 s delay is 10 samples of the 100 Hz grid (noise aside)
+    assert np.max(np.abs(s1["yaw_rate_radps"][10:] - s0["yaw_rate_radps"][:-10])) < 0.006
+    assert np.array_equal(s1["sat_fl_nm"], s0["sat_fl_nm"])
+    assert np.array_equal(s1["steer_angle_rad"], s0["steer_angle_rad"])
+
+
+def test_a_drive_sensor_hypothesis_corrects_the_drive():
+    t = np.arange(100) * 0.05
+    seg = {"time_s": t + 3.0, "steer_angle_rad": 0.1 * t, "vx_mps": np.full(100, 20.0)}
+    off = drive_table(seg, Hypothesis("sensor_offset", 0.05, "steer_angle_rad"))
+    assert off["steer_angle_rad"] == pytest.approx(0.1 * t - 0.05)
+    gain = drive_table(seg, Hypothesis("sensor_gain", 1.25, "vx_mps"))
+    assert gain["vx_mps"] == pytest.approx(16.0)
+    late = drive_table(seg, Hypothesis("sensor_delay", 0.2, "steer_angle_rad"))
+    assert late["steer_angle_rad"][:90] == pytest.approx(0.1 * (t[:90] + 0.2))
+    assert late["time_s"][0] == 0.0
+
+
+def test_signal_stats_recover_bias_gain_and_lag():
+    t = np.arange(0, 30, 0.05)
+    p = np.sin(2 * np.pi * 0.4 * t) + 0.3 * np.sin(2 * np.pi * 1.1 * t)
+    y = 1.2 * np.interp(t - 0.15, t, p) + 0.5
+    st = signal_stats(y[40:], p[40:], [(y, p)])
+    assert st["bias"] == pytest.approx(0.5, abs=0.02)
+    assert st["lag_s"] == pytest.approx(0.15, abs=0.01)
+    assert st["gain"] < 1.2  # the lag decorrelates part of the amplitude
+    st0 = signal_stats(1.2 * p + 0.5, p, [(1.2 * p + 0.5, p)])
+    assert st0["gain"] == pytest.approx(1.2) and st0["lag_s"] == pytest.approx(0.0, abs=1e-9)
+
+
+# ---------------------------------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def hidden_case(tmp_path_factory):
+    from virtsensor.diagnose.hidden import make_case
+
+    d = tmp_path_factory.mktemp("hidden")
+    return make_case(HIDDEN_SEED, d, holdout=(("single-sine", 70.0), ("fishhook", 70.0)))
+
+
+def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case):
+    """The diagnosis sees only the files; it must name the drawn cause, estimate its size
+    within the stated tolerance and improve the estimator on the held-out runs."""
+    from virtsensor.diagnose import diagnose
+    from virtsensor.measured import load_measured
+
+    h = hidden_case.hidden
+    assert h is not None
+    names = [p.name for p in hidden_case.diagnosis + hidden_case.holdout]
+    assert all(n.startswith("run") for n in names)  # nothing in the names gives it away
+    runs, hold = load_measured(hidden_case.diagnosis), load_measured(hidden_case.holdout)
+    res, _ = diagnose(runs, hold, car_parameters(), preset="tiny", max_iter=300, n_jobs=2)
+    assert res["cause"] == h.cause, (h, res["candidates"][:3])
+    assert res["signal"] == h.signal
+    assert EFFECTS[h.cause].within_tolerance(res["estimate"], h.value), (h, res["estimate"], res["ci95"])
+    assert res["ci95"][0] < res["estimate"] < res["ci95"][1]
+    assert res["mae_after_nm"] < res["mae_before_nm"], res
+    assert res["r2_after"] > res["r2_before"]
+    for key in ("cause", "signal", "estimate", "ci95", "mae_before_nm", "mae_after_nm", "r2_before", "r2_after",
+                "candidates"):
+        assert key in res
+    assert all("score" in c for c in res["candidates"])
+
+
+def test_a_control_car_answers_none_through_the_cli(tmp_path, capsys):
+    from virtsensor.cli import main
+    from virtsensor.diagnose.hidden import make_case
+
+    case = make_case(7, tmp_path / "runs", control=True, holdout=())
+    out = tmp_path / "diag.json"
+    rc = main(["diagnose", "--measured", *map(str, case.diagnosis), "--no-retrain", "--n-jobs", "2",
+               "--json", str(out), "--report", str(tmp_path / "report"), "--quiet"])
+    assert rc == 0
+    res = json.loads(out.read_text())
+    assert res["cause"] == "none", res["candidates"][:3]
+    assert res["signal"] is None and res["estimate"] is None
+    assert "none" in capsys.readouterr().out
+    md = (tmp_path / "report" / "diagnosis.md").read_text()
+    assert "**none**" in md and "signal by signal" in md
+    # every input and both reference SATs compared, with bias, gain and lag
+    assert set(res["comparison"]["nominal"]) >= {"ay_mps2", "steer_torque_nm", "sat_fl_nm", "sat_fr_nm"}
+    assert {"bias", "gain", "lag_s", "nrmse"} <= set(res["comparison"]["nominal"]["sat_fl_nm"])
+    pytest.importorskip("matplotlib")
+    assert (tmp_path / "report" / "diagnose_timeseries.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(("argv", "msg"), [
+    (["--measured", "nope.csv"], "nope.csv: no such file"),
+    (["--measured", "x.csv", "--campaign", "huge"], "--campaign 'huge'"),
+    (["--measured", "x.csv", "--export-model", "m.txt"], "expected a .onnx"),
+    (["--measured", "x.csv", "--json", "/no/such/dir/x.json"], "does not exist"),
+    (["--measured", "x.csv", "--mu", "3"], "--mu 3"),
+])
+def test_bad_command_lines(tmp_path, monkeypatch, capsys, argv, msg):
+    from virtsensor.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "x.csv").write_text("time_s\n0\n")
+    assert main(["diagnose", *argv]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_measured_and_holdout_must_differ(tmp_path, capsys):
+    from test_measured import _table
+
+    from virtsensor.cli import main
+    from virtsensor.recording import write_csv
+
+    write_csv(tmp_path / "a.csv", _table())
+    assert main(["diagnose", "--measured", str(tmp_path / "a.csv"), "--holdout", str(tmp_path / "a.csv")]) == 2
+    assert "both as --measured and --holdout" in capsys.readouterr().err
+
+
+def test_hidden_label_never_lands_next_to_the_runs(tmp_path):
+    from virtsensor.diagnose.hidden import make_case
+
+    case = make_case(1, tmp_path, hidden=Hidden("sensor_offset", 0.3, "ay_mps2"),
+                     programme=(("steering-pulse", 40.0),), holdout=())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run01.csv"]
+    header = (tmp_path / "run01.csv").read_text().splitlines()[0].split(",")
+    assert header == ["time_s", *cat.INPUTS, "sat_fl_nm", "sat_fr_nm"]
+    assert case.hidden.cause == "sensor_offset"

@@ -1,0 +1,194 @@
+"""``virtsensor diagnose``: what the simulation gets wrong about measured data, why, and the gain.
+
+Example::
+
+    virtsensor diagnose --measured day1/run01.blf day1/run02.blf day1/run03.blf \\
+        --holdout day1/run04.blf day1/run05.blf --json diagnosis.json --report diagnosis/ \\
+        --export-model models/calibrated.onnx
+
+Measured runs are CAN logs (decoded through the DBC), MDF4 files or canonical
+20 Hz CSV tables with the 12 inputs and the reference SATs. ``--holdout`` runs
+are used only to measure the estimator before and after the calibration; without
+it, the last third of the ``--measured`` runs is held out (when there are 3 or more).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+HELP = "sim-to-real: compare measured runs with their re-simulation, name the cause, calibrate, measure the gain"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from virtsensor.commands._simargs import add_car_arguments
+
+    parser.add_argument("--measured", nargs="+", required=True, metavar="FILE",
+                        help="measured runs (.blf/.asc/.log/.trc CAN logs, .mf4 MDF4, .csv tables) or directories")
+    parser.add_argument("--holdout", nargs="+", metavar="FILE",
+                        help="measured runs used only to score the estimator before/after (default: the last "
+                             "third of --measured when there are 3 or more)")
+    parser.add_argument("--json", metavar="FILE", help="write the result as JSON")
+    parser.add_argument("--report", metavar="DIR", help="write diagnosis.md and PNG plots into this directory")
+    parser.add_argument("--mu", type=float, default=1.0, help="road friction of the test track (default 1.0)")
+    parser.add_argument("--campaign", default="smoke", help="training campaign preset for the estimators "
+                        "(smoke, tiny, paper; default smoke)")
+    parser.add_argument("--recipe", default="improved", help="estimator recipe (paper, improved; default improved)")
+    parser.add_argument("--max-iter", type=int, default=None, help="MLP epochs (default: the recipe's)")
+    parser.add_argument("--ensemble", type=int, default=3,
+                        help="networks averaged per estimator (merged into one ONNX network; default 3)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the campaigns and the training")
+    parser.add_argument("--n-jobs", type=int, default=-1, help="joblib workers for the re-simulations (-1: all cores)")
+    parser.add_argument("--no-retrain", action="store_true", help="diagnose only: no calibration, no gain")
+    parser.add_argument("--export-model", metavar="FILE.onnx",
+                        help="export the calibrated estimator (ONNX and model card)")
+    parser.add_argument("--quiet", action="store_true")
+    add_car_arguments(parser)
+
+
+def _check_out(opt: str, path: str | None, is_dir: bool = False) -> None:
+    from virtsensor.errors import UserError
+
+    if not path:
+        return
+    p = Path(path)
+    parent = p if is_dir and p.exists() else p.parent
+    if is_dir and p.exists() and not p.is_dir():
+        raise UserError(f"--{opt} {path}: exists and is not a directory")
+    if not is_dir and p.is_dir():
+        raise UserError(f"--{opt} {path}: is a directory")
+    if not parent.exists() or not parent.is_dir():
+        raise UserError(f"--{opt} {path}: directory {parent} does not exist")
+
+
+def run(args: argparse.Namespace) -> int:
+    from sim.campaign import PRESETS
+    from virtsensor.commands._simargs import car_from_args
+    from virtsensor.diagnose import diagnose
+    from virtsensor.errors import UserError
+    from virtsensor.measured import load_measured
+    from virtsensor.training import RECIPES
+
+    _check_out("json", args.json)
+    _check_out("report", args.report, is_dir=True)
+    _check_out("export-model", args.export_model)
+    if args.export_model and not args.export_model.endswith(".onnx"):
+        raise UserError(f"--export-model {args.export_model}: expected a .onnx file name")
+    if args.export_model and args.no_retrain:
+        raise UserError("--export-model needs the retraining; drop --no-retrain")
+    if args.campaign not in PRESETS:
+        raise UserError(f"--campaign {args.campaign!r}: one of {', '.join(PRESETS)}")
+    if args.recipe not in RECIPES:
+        raise UserError(f"--recipe {args.recipe!r}: one of {', '.join(RECIPES)}")
+    if not 0.05 <= args.mu <= 1.5:
+        raise UserError(f"--mu {args.mu:g}: outside 0.05-1.5")
+    if not 1 <= args.ensemble <= 10:
+        raise UserError(f"--ensemble {args.ensemble}: must be 1-10")
+    if args.max_iter is not None and args.max_iter < 1:
+        raise UserError(f"--max-iter {args.max_iter}: must be >= 1")
+    base = car_from_args(args)
+    runs = load_measured(args.measured)
+    if args.holdout:
+        holdout = load_measured(args.holdout)
+        clash = {r.path.resolve() for r in runs} & {r.path.resolve() for r in holdout}
+        if clash:
+            raise UserError(f"{sorted(clash)[0]}: given both as --measured and --holdout; a held-out run must "
+                            "play no part in the diagnosis")
+    elif len(runs) >= 3 and not args.no_retrain:
+        k = len(runs) // 3
+        runs, holdout = runs[:-k], runs[-k:]
+    else:
+        holdout = []
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(msg, file=sys.stderr)
+
+    if holdout and not args.holdout and not args.quiet:
+        log(f"holding out {', '.join(r.name for r in holdout)} for the gain (give --holdout to choose)")
+    res, art = diagnose(runs, holdout, base, mu=args.mu, preset=args.campaign, recipe=args.recipe, seed=args.seed,
+                        max_iter=args.max_iter, ensemble=args.ensemble, n_jobs=args.n_jobs,
+                        retrain=not args.no_retrain, log=log)
+    if args.export_model:
+        res["exported_model"] = _export(art["after"], res, args)
+    print(_summary(res))
+    if args.json:
+        _write_json(Path(args.json), res)
+    if args.report:
+        from virtsensor.diagnose.report import markdown, plots
+
+        d = Path(args.report)
+        d.mkdir(exist_ok=True)
+        (d / "diagnosis.md").write_text(markdown(res))
+        files = plots(art, res, d)
+        log(f"report: {d / 'diagnosis.md'}" + (f" and {len(files)} plots" if files else
+                                                " (plots skipped: matplotlib is not installed)"))
+    return 0
+
+
+def _summary(res) -> str:
+    if res["cause"] == "none":
+        line = "cause: none (no candidate explains the residual decisively)"
+    else:
+        on = f" on {res['signal']}" if res["signal"] else ""
+        line = (f"cause: {res['cause']}{on}, estimate {res['estimate']:.4g} {res['unit']} "
+                f"(95 % CI {res['ci95'][0]:.4g} to {res['ci95'][1]:.4g}; nominal {res['nominal']:.4g})")
+    if res.get("mae_before_nm") is not None:
+        line += (f"\nheld-out SAT MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f} Nm, "
+                 f"R2 {res['r2_before']:.3f} -> {res['r2_after']:.3f}")
+    return line
+
+
+def _write_json(path: Path, res) -> None:
+    tmp = path.with_name(f".partial-{path.name}")
+    try:
+        tmp.write_text(json.dumps(res, indent=1, default=_jsonable))
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _jsonable(o):
+    import numpy as np
+
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+def _export(est, res, args) -> str:
+    from virtsensor.commands.train import _inputs_for_card
+    from virtsensor.errors import UserError
+    from virtsensor.features import SPECS
+    from virtsensor.onnx_model import export_pipeline, pipeline_weights
+
+    spec = SPECS[est.recipe["features"]]
+    import numpy as np
+
+    rng = np.random.default_rng(args.seed)
+    mlp_scale = est.pipeline[0]
+    parity = rng.normal(size=(500, len(spec.names))) * getattr(mlp_scale, "scale_", 1.0) + getattr(
+        mlp_scale, "center_", 0.0)
+    try:
+        card = export_pipeline(est.pipeline, len(spec.names), args.export_model, parity_X=parity, card_extra={
+            "model": f"virtsensor-{args.recipe}-calibrated",
+            "recipe": est.recipe,
+            "feature_spec": spec.to_json(),
+            "inputs": _inputs_for_card(spec),
+            "signals": list(spec.signals),
+            "training_data": {"fingerprint_sha256": est.fingerprint, "rows": est.samples,
+                              "campaign": args.campaign, "calibration": {
+                                  k: res[k] for k in ("cause", "signal", "estimate", "ci95")}},
+            "metrics": {k: res.get(k) for k in ("mae_before_nm", "mae_after_nm", "r2_before", "r2_after")},
+            "seed": args.seed,
+            "weights": pipeline_weights(est.pipeline),
+        })
+    except ValueError as exc:
+        raise UserError(f"{args.export_model}: export refused: {exc}") from None
+    return f"{args.export_model} (sha256 {card['sha256'][:12]}...)"

@@ -1,0 +1,490 @@
+"""Name the cause: identify every candidate effect's parameter, score, choose.
+
+The measure of fit is the Gaussian likelihood of the residuals (measured minus
+re-simulated) with one unknown variance per signal, profiled out:
+``-2 log L = sum_s n_s ln(RSS_s / n_s)``. It is free of units and weights (a
+signal is judged against its own misfit), and minimising it is the
+maximum-likelihood estimate for a multi-output system.
+
+Samples at 20 Hz are strongly correlated in time, so the evidence of ``n``
+samples is worth that of fewer independent ones: the effective size is
+``n_eff = n (1 - rho) / (1 + rho)`` with ``rho`` the residuals' lag-one
+autocorrelation at the best fit (an AR(1) approximation). Confidence intervals
+and the information criterion use ``n_eff``.
+
+Search:
+
+* sensor effects on signals that do not drive the re-simulation are applied to
+  the nominal prediction directly, so they are fitted exactly (a bounded scalar
+  search, after a grid for the delay);
+* physical effects and sensor effects on the drive signals need a
+  re-simulation per value: all are screened together at the nominal value +-
+  a typical step (one vectorised batch), then the most promising are refined by
+  safeguarded parabolic interpolation, their proposals batched together.
+
+For each candidate: the estimate, a 95 % interval from the curvature of the
+profiled likelihood, the share of misfit explained (the likelihood-ratio R^2,
+``1 - exp(-Delta/n)``), per-signal variance explained, and BIC. The best
+explanation is the candidate with the largest BIC gain over the nominal car;
+the answer is ``none`` unless that gain is decisive, the estimate differs from
+nominal by more than the effect's practical floor and its interval excludes
+the nominal value.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from sim.effects import DRIVE_SIGNALS, EFFECTS, OFFSET_RANGE, SENSOR_SIGNALS, offset_floor
+from virtsensor import signals as cat
+from virtsensor.diagnose.resim import (
+    NOMINAL,
+    Hypothesis,
+    _sample,
+    align,
+    predicted,
+    segment_mask,
+    simulate_hypotheses,
+)
+from virtsensor.measured import MeasuredRun
+
+#: a BIC gain above this is decisive evidence (Kass & Raftery: > 10)
+BIC_DECISIVE = 10.0
+#: sim-based candidates refined after screening, and refinement rounds
+REFINE_TOP = 3
+REFINE_ROUNDS = 4
+PHYSICAL = ("tyre_pressure", "vehicle_mass", "steering_friction", "road_friction", "relaxation_length")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A one-parameter candidate: cause, signal (sensor effects), search space."""
+
+    cause: str
+    signal: str | None
+    nominal: float
+    bounds: tuple[float, float]
+    step: float
+    floor: float
+    log: bool = False  # search in ln(value)
+
+    @property
+    def key(self) -> str:
+        return f"{self.cause}[{self.signal}]" if self.signal else self.cause
+
+    @property
+    def needs_sim(self) -> bool:
+        return self.signal is None or self.signal in DRIVE_SIGNALS
+
+    def hyp(self, value: float) -> Hypothesis:
+        return Hypothesis(self.cause, float(value), self.signal)
+
+
+def candidates() -> list[Candidate]:
+    """Every candidate of the catalogue (sensor effects on each of the 12 inputs)."""
+    out = []
+    for cause in PHYSICAL:
+        e = EFFECTS[cause]
+        step = 0.5 * (e.hidden[0] + e.hidden[1])
+        log = cause == "relaxation_length"
+        out.append(Candidate(cause, None, e.nominal, e.bounds, np.log(1.0 + step) if log else step, e.floor, log))
+    for s in SENSOR_SIGNALS:
+        lo, hi = OFFSET_RANGE[s]
+        span = max(abs(lo), abs(hi))
+        out.append(Candidate("sensor_offset", s, 0.0, (-4 * span, 4 * span), 0.5 * (lo + hi), offset_floor(s)))
+        g = EFFECTS["sensor_gain"]
+        out.append(Candidate("sensor_gain", s, 1.0, g.bounds, 0.5 * sum(g.hidden), g.floor))
+        d = EFFECTS["sensor_delay"]
+        out.append(Candidate("sensor_delay", s, 0.0, d.bounds, 0.5 * sum(d.hidden), d.floor))
+    return out
+
+
+@dataclass
+class Fit:
+    """One candidate's identification result."""
+
+    candidate: Candidate
+    estimate: float
+    m2ll: float                       # -2 log L at the estimate (raw n)
+    curvature: float                  # d2(-2 log L)/d value2 at the estimate (raw n)
+    rss: dict[str, float]             # per signal at the estimate
+    points: list[tuple[float, float]] = field(default_factory=list)  # evaluated (value, -2 log L)
+    ci95: tuple[float, float] = (float("nan"), float("nan"))
+    bic_gain: float = float("-inf")
+    variance_explained: float = 0.0
+    per_signal: dict[str, float] = field(default_factory=dict)
+    significant: bool = False
+
+    def as_dict(self) -> dict[str, Any]:
+        c = self.candidate
+        return {
+            "cause": c.cause, "signal": c.signal, "estimate": self.estimate, "ci95": list(self.ci95),
+            "nominal": c.nominal, "score": self.bic_gain, "bic_gain": self.bic_gain,
+            "variance_explained": self.variance_explained, "significant": self.significant,
+            "per_signal_variance_explained": self.per_signal, "evaluations": len(self.points),
+        }
+
+
+class Data:
+    """Measured values of every compared signal, the rows compared and the re-simulations."""
+
+    def __init__(self, runs: Sequence[MeasuredRun], names: tuple[str, ...]):
+        self.runs = runs
+        self.names = names
+        self.masks = {n: [[segment_mask(r, s, n) for s in range(len(r.segments))] for r in runs] for n in names}
+        self.meas = {n: np.concatenate([r.table[n][seg.start:seg.stop][m]
+                                        for r, ms in zip(runs, self.masks[n], strict=True)
+                                        for seg, m in zip(r.segments, ms, strict=True)]) for n in names}
+        self.n = {k: len(v) for k, v in self.meas.items()}
+        self.floor = {n: max(cat.SIGNALS[n].resolution, 1e-9) ** 2 / 12.0 for n in names}
+        self.shifts: dict[str, float] = {}
+
+    def shift(self, name: str) -> float:
+        """Reading age (s) of ``name``'s CAN message (see :func:`virtsensor.diagnose.resim.align`)."""
+        return self.shifts.get(str(cat.SIGNALS[name].message), 0.0)
+
+    def stack(self, sims: Sequence[Sequence[Mapping[str, Any]]], name: str,
+              override: Any = None) -> np.ndarray:
+        """Predicted ``name`` on the compared rows (``override(item, run, seg)`` replaces the prediction)."""
+        parts = []
+        for r, per_run in enumerate(sims):
+            for s, item in enumerate(per_run):
+                y = override(item, r, s) if override is not None else item["pred"][name]
+                parts.append(y[self.masks[name][r][s]])
+        return np.concatenate(parts)
+
+    def rss(self, sims: Sequence[Sequence[Mapping[str, Any]]]) -> dict[str, float]:
+        return {n: float(np.sum((self.meas[n] - self.stack(sims, n)) ** 2)) for n in self.names}
+
+    def m2ll(self, rss: Mapping[str, float]) -> float:
+        return float(sum(self.n[k] * np.log(rss[k] / self.n[k] + self.floor[k]) for k in self.names))
+
+    def rho(self, sims: Sequence[Sequence[Mapping[str, Any]]]) -> float:
+        """Lag-one autocorrelation of the residuals (median over signals, within segments)."""
+        rhos = []
+        for n in self.names:
+            num = den = 0.0
+            for r, per_run in enumerate(sims):
+                for s, item in enumerate(per_run):
+                    m = self.masks[n][r][s]
+                    seg = self.runs[r].segments[s]
+                    e = self.runs[r].table[n][seg.start:seg.stop] - item["pred"][n]
+                    e = np.where(m, e - np.mean(e[m]) if m.any() else 0.0, np.nan)
+                    a, b = e[1:], e[:-1]
+                    ok = np.isfinite(a) & np.isfinite(b)
+                    num += float(np.sum(a[ok] * b[ok]))
+                    den += float(np.sum(b[ok] ** 2))
+            if den > 0:
+                rhos.append(num / den)
+        return float(np.clip(np.median(rhos), 0.0, 0.995)) if rhos else 0.0
+
+
+def _exact_fit(data: Data, nominal: Sequence[Sequence[Mapping[str, Any]]], cand: Candidate,
+               rss0: Mapping[str, float]) -> Fit:
+    """A sensor effect on a non-drive signal: only that signal's prediction changes."""
+    s = cand.signal
+    assert s is not None
+
+    def pred_for(value: float):
+        if cand.cause == "sensor_offset":
+            return lambda item, r, g: item["pred"][s] + value
+        if cand.cause == "sensor_gain":
+            return lambda item, r, g: item["pred"][s] * value
+        return lambda item, r, g: _sample(item["t"], item["streams"][s], _times(data, r, g), s,
+                                          data.shift(s) + value)
+
+    def m2ll_of(value: float) -> float:
+        e = data.meas[s] - data.stack(nominal, s, pred_for(value))
+        rss = dict(rss0)
+        rss[s] = float(np.sum(e * e))
+        return data.m2ll(rss)
+
+    lo, hi = cand.bounds
+    if cand.cause == "sensor_offset":
+        x = est = float(np.mean(data.meas[s] - data.stack(nominal, s)))
+        est = float(np.clip(x, lo, hi))
+    elif cand.cause == "sensor_gain":
+        p = data.stack(nominal, s)
+        est = float(np.clip(np.sum(data.meas[s] * p) / max(np.sum(p * p), 1e-300), lo, hi))
+    else:  # delay: a grid (the misfit is not convex in the delay), then a bounded search
+        grid = np.arange(lo, hi + 1e-9, 0.01)
+        vals = [m2ll_of(v) for v in grid]
+        i = int(np.argmin(vals))
+        a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+        res = minimize_scalar(m2ll_of, bounds=(a, b), method="bounded", options={"xatol": 1e-4})
+        est = float(res.x) if res.fun <= vals[i] else float(grid[i])
+    h = _fd_step(cand, est)
+    f0 = m2ll_of(est)
+    lo_v, hi_v = max(est - h, lo), min(est + h, hi)
+    if hi_v - est < 1e-12:
+        lo_v, est_c, hi_v = est - 2 * h, est - h, est
+    elif est - lo_v < 1e-12:
+        lo_v, est_c, hi_v = est, est + h, est + 2 * h
+    else:
+        est_c = est
+    f_lo, f_c, f_hi = m2ll_of(lo_v), (f0 if est_c == est else m2ll_of(est_c)), m2ll_of(hi_v)
+    curv = _parabola(np.array([lo_v, est_c, hi_v]), np.array([f_lo, f_c, f_hi]))[1]
+    e = data.meas[s] - data.stack(nominal, s, pred_for(est))
+    rss = dict(rss0)
+    rss[s] = float(np.sum(e * e))
+    return Fit(cand, est, f0, curv, rss, [(est, f0)])
+
+
+def _excited(data: Data, nominal, cand: Candidate) -> bool:
+    """Whether the data can tell a gain or a delay of the candidate's signal at all: its
+    predicted values must stand well clear of its resolution (a gain needs size, a
+    delay needs change). Offsets are always identifiable."""
+    if cand.cause == "sensor_offset":
+        return True
+    p = data.stack(nominal, cand.signal)
+    res = cat.SIGNALS[cand.signal].resolution
+    size = np.sqrt(np.mean(p * p)) if cand.cause == "sensor_gain" else np.std(np.diff(p)) * cat.TABLE_RATE_HZ
+    return bool(size > 10.0 * res * (1.0 if cand.cause == "sensor_gain" else cat.TABLE_RATE_HZ))
+
+
+def _times(data: Data, r: int, s: int) -> np.ndarray:
+    return np.arange(data.runs[r].segments[s].n) * (1.0 / cat.TABLE_RATE_HZ)
+
+
+def _fd_step(cand: Candidate, est: float) -> float:
+    lo, hi = cand.bounds
+    span = (hi - lo) if np.isfinite(hi - lo) else 8 * abs(cand.step)
+    return max(1e-3 * span, 0.02 * abs(cand.step), 1e-6)
+
+
+def _parabola(x: np.ndarray, f: np.ndarray) -> tuple[float, float]:
+    """Vertex and second derivative of the parabola through three points."""
+    A = np.column_stack([x * x, x, np.ones(3)])
+    try:
+        a, b, _ = np.linalg.solve(A, f)
+    except np.linalg.LinAlgError:
+        return float(x[np.argmin(f)]), 0.0
+    if a <= 0:
+        return float(x[np.argmin(f)]), 0.0
+    return float(-b / (2 * a)), float(2 * a)
+
+
+class _Search:
+    """A safeguarded parabolic line search in (possibly log-) parameter space."""
+
+    def __init__(self, cand: Candidate):
+        self.cand = cand
+        self.pts: dict[float, float] = {}  # u -> -2logL
+        lo, hi = cand.bounds
+        self.ulo, self.uhi = (np.log(lo), np.log(hi)) if cand.log else (lo, hi)
+        self.done = False
+
+    def u(self, value: float) -> float:
+        return float(np.log(value)) if self.cand.log else float(value)
+
+    def value(self, u: float) -> float:
+        return float(np.exp(u)) if self.cand.log else float(u)
+
+    def screening(self) -> list[float]:
+        u0 = self.u(self.cand.nominal)
+        out = []
+        for d in (-self.cand.step, self.cand.step):
+            u = float(np.clip(u0 + d, self.ulo, self.uhi))
+            if abs(u - u0) > 1e-12:
+                out.append(self.value(u))
+        return out
+
+    def add(self, value: float, m2ll: float) -> None:
+        self.pts[self.u(value)] = m2ll
+
+    def best(self) -> tuple[float, float]:
+        u = min(self.pts, key=self.pts.__getitem__)
+        return u, self.pts[u]
+
+    def propose(self) -> float | None:
+        us = np.array(sorted(self.pts))
+        fs = np.array([self.pts[u] for u in us])
+        i = int(np.argmin(fs))
+        tol = 0.1 * abs(self.cand.step) if not self.cand.log else 0.02
+        if i == 0 or i == len(us) - 1:  # not bracketed: step out
+            if (i == 0 and us[0] <= self.ulo + 1e-12) or (i == len(us) - 1 and us[-1] >= self.uhi - 1e-12):
+                self.done = True
+                return None
+            j = 1 if i == 0 else len(us) - 2
+            u_new = float(np.clip(us[i] + 2.0 * (us[i] - us[j]), self.ulo, self.uhi))
+        else:
+            x, f = us[i - 1:i + 2], fs[i - 1:i + 2]
+            u_v, _ = _parabola(x, f)
+            # keep the new point inside the bracket and away from the ones we have
+            u_new = float(np.clip(u_v, x[0] + 0.05 * (x[1] - x[0]), x[2] - 0.05 * (x[2] - x[1])))
+            if np.min(np.abs(us - u_new)) < tol:
+                self.done = True
+                return None
+        return self.value(u_new)
+
+    def estimate(self) -> tuple[float, float]:
+        """(value, curvature of -2logL in value units) from the points around the best."""
+        us = np.array(sorted(self.pts))
+        fs = np.array([self.pts[u] for u in us])
+        i = int(np.argmin(fs))
+        if len(us) < 3:
+            return self.value(us[i]), 0.0
+        k = int(np.clip(i, 1, len(us) - 2))
+        x, f = us[k - 1:k + 2], fs[k - 1:k + 2]
+        u_v, c_u = _parabola(x, f)
+        if not (x[0] <= u_v <= x[2]) or c_u == 0.0:
+            u_v = float(us[i])
+        v = self.value(u_v)
+        # d2/dv2 = d2/du2 (du/dv)^2 at the minimum (first derivative ~ 0)
+        c = c_u / (v * v) if self.cand.log else c_u
+        return v, c
+
+
+@dataclass
+class Identification:
+    """Result of :func:`identify`."""
+
+    fits: list[Fit]
+    best: Fit | None                  # None: nothing explains the misfit
+    rss_nominal: dict[str, float]
+    n: dict[str, int]
+    n_eff_factor: float
+    nominal_sims: Any
+    best_sims: Any
+    simulations: int
+    names: tuple[str, ...]
+    shifts: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def cause(self) -> str:
+        return self.best.candidate.cause if self.best else "none"
+
+
+def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[str, ...], *, mu: float = 1.0,
+             n_jobs: int = 1, log=lambda msg: None) -> Identification:
+    """Identify every candidate effect on ``runs`` and name the best explanation."""
+    data = Data(runs, names)
+    cands = candidates()
+    sim_cands = [c for c in cands if c.needs_sim]
+    searches = {c.key: _Search(c) for c in sim_cands}
+    # 1. the nominal car, the messages' reading ages, then the screening in one batch
+    log(f"re-simulating {len(runs)} run(s) with the nominal car")
+    nominal = simulate_hypotheses(runs, [NOMINAL], base, mu, names, n_jobs=n_jobs, keep_streams=[True])[0]
+    shifts = align(runs, nominal, names)
+    data.shifts = shifts
+    for r, per_run in enumerate(nominal):
+        for g, item in enumerate(per_run):
+            item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, shifts)
+    hyps: list[Hypothesis] = []
+    owners: list[str] = []
+    for c in sim_cands:
+        for v in searches[c.key].screening():
+            hyps.append(c.hyp(v))
+            owners.append(c.key)
+    log(f"screening {len(hyps)} hypotheses")
+    sims = [nominal, *simulate_hypotheses(runs, hyps, base, mu, names, n_jobs=n_jobs, shifts=shifts)]
+    n_sim = 1 + len(hyps)
+    rss0 = data.rss(nominal)
+    f0 = data.m2ll(rss0)
+    sims_of: dict[tuple[str, float], Any] = {}
+    for hyp, owner, sim in zip(hyps, owners, sims[1:], strict=True):
+        searches[owner].add(hyp.value, data.m2ll(data.rss(sim)))
+        sims_of[(owner, hyp.value)] = sim
+    for s in searches.values():
+        s.add(s.cand.nominal, f0)
+    # 2. exact fits of the sensor effects on non-drive signals
+    fits = [_exact_fit(data, nominal, c, rss0) for c in cands if not c.needs_sim and _excited(data, nominal, c)]
+    # 3. refine the most promising sim-based candidates, their proposals in one batch per round
+    ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP]
+    for rnd in range(REFINE_ROUNDS):
+        props = [(s, v) for s in ranked if not s.done for v in [s.propose()] if v is not None]
+        if not props:
+            break
+        log(f"refining {', '.join(s.cand.key for s, _ in props)} (round {rnd + 1})")
+        hs = [s.cand.hyp(v) for s, v in props]
+        out = simulate_hypotheses(runs, hs, base, mu, names, n_jobs=n_jobs, shifts=shifts)
+        n_sim += len(hs)
+        for (s, v), sim in zip(props, out, strict=True):
+            s.add(v, data.m2ll(data.rss(sim)))
+            sims_of[(s.cand.key, v)] = sim
+    # 4. a fit per sim-based candidate; the refined ones are re-simulated at their estimate
+    final_h: list[Hypothesis] = []
+    final_s: list[_Search] = []
+    for s in searches.values():
+        v, c = s.estimate()
+        if s in ranked and (s.cand.key, v) not in sims_of and abs(v - s.cand.nominal) > 1e-12:
+            final_h.append(s.cand.hyp(v))
+            final_s.append(s)
+    if final_h:
+        out = simulate_hypotheses(runs, final_h, base, mu, names, n_jobs=n_jobs,
+                                  keep_streams=[True] * len(final_h), shifts=shifts)
+        n_sim += len(final_h)
+        for s, h, sim in zip(final_s, final_h, out, strict=True):
+            s.add(h.value, data.m2ll(data.rss(sim)))
+            sims_of[(s.cand.key, h.value)] = sim
+    for s in searches.values():
+        v, c = s.estimate()
+        u_best, _ = s.best()
+        v_best = s.value(u_best)
+        sim = sims_of.get((s.cand.key, v)) or sims_of.get((s.cand.key, v_best)) or nominal
+        v_use = v if (s.cand.key, v) in sims_of else (v_best if (s.cand.key, v_best) in sims_of else s.cand.nominal)
+        rss = data.rss(sim)
+        fits.append(Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())]))
+    # 5. scores
+    best_fit = min(fits, key=lambda f: f.m2ll)
+    best_sims = _sims_for(best_fit, nominal, sims_of, data)
+    rho = data.rho(best_sims)
+    feff = (1.0 - rho) / (1.0 + rho)
+    n_tot = sum(data.n.values())
+    for f in fits:
+        _score(f, f0, rss0, feff, n_tot)
+    fits.sort(key=lambda f: -f.bic_gain)
+    chosen = next((f for f in fits if f.significant), None)
+    if chosen is not None and chosen is not fits[0]:
+        chosen = None if fits[0].bic_gain > chosen.bic_gain + BIC_DECISIVE else chosen
+    return Identification(fits, chosen, rss0, dict(data.n), feff, nominal,
+                          _sims_for(chosen, nominal, sims_of, data) if chosen else nominal, n_sim, names, shifts)
+
+
+def _sims_for(fit: Fit, nominal, sims_of, data: Data):
+    c = fit.candidate
+    if not c.needs_sim:
+        s = c.signal
+
+        def patched(item, r, g):
+            if c.cause == "sensor_offset":
+                return item["pred"][s] + fit.estimate
+            if c.cause == "sensor_gain":
+                return item["pred"][s] * fit.estimate
+            return _sample(item["t"], item["streams"][s], _times(data, r, g), s, data.shift(s) + fit.estimate)
+
+        out = []
+        for r, per_run in enumerate(nominal):
+            row = []
+            for g, item in enumerate(per_run):
+                new = dict(item)
+                new["pred"] = dict(item["pred"])
+                new["pred"][s] = patched(item, r, g)
+                row.append(new)
+            out.append(row)
+        return out
+    return sims_of.get((c.key, fit.estimate), nominal)
+
+
+def _score(f: Fit, f0: float, rss0: Mapping[str, float], feff: float, n_tot: int) -> None:
+    c = f.candidate
+    delta = max(f0 - f.m2ll, 0.0)
+    n_eff = max(feff * n_tot, 2.0)
+    # one parameter; a sensor effect also picks one of 12 signals (a discrete choice, ln 12 twice as BIC would)
+    penalty = np.log(n_eff) + (2.0 * np.log(len(SENSOR_SIGNALS)) if c.signal else 0.0)
+    f.bic_gain = float(feff * delta - penalty)
+    f.variance_explained = float(1.0 - np.exp(-delta / n_tot))
+    f.per_signal = {k: float(1.0 - f.rss[k] / rss0[k]) if rss0[k] > 0 else 0.0 for k in rss0}
+    if f.curvature > 0:
+        half = 1.96 * np.sqrt(2.0 / (feff * f.curvature))
+        f.ci95 = (float(f.estimate - half), float(f.estimate + half))
+    else:
+        f.ci95 = (float("-inf"), float("inf"))
+    dev = abs(f.estimate - c.nominal)
+    excludes = not (f.ci95[0] <= c.nominal <= f.ci95[1])
+    f.significant = bool(f.bic_gain > BIC_DECISIVE and dev > c.floor and excludes)

@@ -1,0 +1,170 @@
+"""The diagnosis as a Markdown report and plots (matplotlib, optional)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from virtsensor import signals as cat
+
+
+def _f(x: Any, nd: int = 4) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float) and not math.isfinite(x):
+        return "inf" if x > 0 else ("-inf" if x < 0 else "nan")
+    return f"{x:.{nd}g}" if isinstance(x, float) else str(x)
+
+
+def markdown(res: Mapping[str, Any]) -> str:
+    """The report of a :func:`virtsensor.diagnose.diagnose` result."""
+    out = ["# Sim-to-real diagnosis", ""]
+    runs = res["runs"]
+    out.append(f"Measured runs for the diagnosis: {len(runs)} ("
+               f"{sum(r['duration_s'] for r in runs):.0f} s); held out for the gain: {len(res['holdout_runs'])}. "
+               f"{res['simulations']} re-simulation batches (hypotheses) in {res['seconds_identify']:.0f} s.")
+    gaps = [(r["name"], g) for r in runs for g in r["gaps_s"]]
+    if gaps:
+        out.append("")
+        out.append("Gaps (not interpolated; each stretch between them was re-simulated on its own): "
+                   + "; ".join(f"{n} {a:.2f}-{b:.2f} s" for n, (a, b) in gaps))
+    out += ["", "## Cause", ""]
+    if res["cause"] == "none":
+        out.append("**none**: no candidate explains the residual decisively. Residual RMS per signal "
+                   "(the signature left unexplained):")
+        out.append("")
+        out += [f"- {k}: {_f(v)}" for k, v in res["signature"]["residual_rms"].items()]
+    else:
+        on = f" on `{res['signal']}`" if res["signal"] else ""
+        out.append(f"**{res['cause']}**{on}: estimate {_f(res['estimate'])} {res['unit']} "
+                   f"(95 % interval {_f(res['ci95'][0])} to {_f(res['ci95'][1])}; nominal {_f(res['nominal'])}), "
+                   f"explaining {100 * res['variance_explained']:.0f} % of the misfit (likelihood-ratio R2).")
+        sig = res["signature"].get("explains", {})
+        if sig:
+            out.append("")
+            out.append("Signature (share of each signal's residual it explains): "
+                       + ", ".join(f"{k} {100 * v:.0f} %" for k, v in sig.items()))
+    out += ["", "## Candidates (best first)", "",
+            "| cause | signal | estimate | 95 % interval | BIC gain | misfit explained | significant |",
+            "|---|---|---|---|---|---|---|"]
+    for c in res["candidates"][:12]:
+        out.append(f"| {c['cause']} | {c['signal'] or ''} | {_f(c['estimate'])} | {_f(c['ci95'][0])} .. "
+                   f"{_f(c['ci95'][1])} | {c['bic_gain']:.1f} | {100 * c['variance_explained']:.1f} % | "
+                   f"{'yes' if c['significant'] else 'no'} |")
+    out.append("")
+    out.append(f"BIC gain: evidence over the nominal car with the effective sample size "
+               f"({res['n_eff_factor']:.3f} x n, from the residuals' autocorrelation); > 10 is decisive.")
+    comp = res["comparison"]
+    out += ["", "## What the simulation gets wrong, signal by signal", "",
+            "Measured minus re-simulated (nominal car): bias, gain (slope about the means), lag "
+            "(> 0: measured later), normalised RMS error and R2"
+            + ("; and the calibrated car's NRMSE." if comp["calibrated"] else "."), "",
+            "| signal | unit | bias | gain | lag [s] | NRMSE | R2 |"
+            + (" NRMSE calibrated |" if comp["calibrated"] else ""),
+            "|---|---|---|---|---|---|---|" + ("---|" if comp["calibrated"] else "")]
+    for n, s in comp["nominal"].items():
+        row = (f"| {n} | {cat.SIGNALS[n].unit} | {_f(s['bias'], 3)} | {_f(s['gain'], 3)} | {_f(s['lag_s'], 2)} | "
+               f"{_f(s['nrmse'], 3)} | {_f(s['r2'], 3)} |")
+        if comp["calibrated"]:
+            row += f" {_f(comp['calibrated'][n]['nrmse'], 3)} |"
+        out.append(row)
+    dep = comp["sat_residual_dependence"]
+    if dep:
+        out += ["", "## SAT (front left) residual against the operating point", ""]
+        for k, d in dep.items():
+            out.append(f"- {k} [{d['unit']}]: " + ", ".join(
+                f"{c:.3g}: {m:+.2f} Nm" for c, m in zip(d["centre"], d["mean_residual_nm"], strict=True)))
+    est = res.get("estimator")
+    if est:
+        on = res["estimator_on_diagnosis_runs"]
+        out += ["", "## The SAT estimator", "",
+                f"Trained on the `{est['preset']}` campaign, recipe features `{est['recipe']['features']}`, "
+                f"seed {est['seed']}.", "",
+                f"- On the diagnosis runs, nominal estimator: MAE {on['measured']['mae_nm']:.2f} Nm on the measured "
+                f"data against {on['simulated']['mae_nm']:.2f} Nm on their re-simulation "
+                f"(R2 {on['measured']['r2']:.3f} against {on['simulated']['r2']:.3f})."]
+        if res.get("mae_before_nm") is not None:
+            out.append(f"- On the held-out measured runs: MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f}"
+                       f" Nm, R2 {res['r2_before']:.3f} -> {res['r2_after']:.3f} (before -> after calibration).")
+        else:
+            out.append(f"- {res.get('gain_note', 'no gain measured')}")
+    return "\n".join(out) + "\n"
+
+
+def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list[Path]:
+    """PNG figures into ``out_dir``; returns the files written (none without matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    comp = art["comparison"]
+    series = comp.series
+    shown = ("sat_fl_nm", "steer_torque_nm", "ay_mps2", "yaw_rate_radps")
+    fig, axes = plt.subplots(len(shown), len(series), figsize=(4.5 * len(series), 2.2 * len(shown)), squeeze=False)
+    for j, s in enumerate(series):
+        for i, n in enumerate(shown):
+            ax = axes[i][j]
+            ax.plot(s["time_s"], s["measured"][n], "k", lw=1, label="measured")
+            ax.plot(s["time_s"], s["nominal"][n], "C0", lw=0.9, label="nominal sim")
+            if s["calibrated"] is not None:
+                ax.plot(s["time_s"], s["calibrated"][n], "C3--", lw=0.9, label="calibrated sim")
+            ax.set_ylabel(f"{n} [{cat.SIGNALS[n].unit}]", fontsize=7)
+            if i == 0:
+                ax.set_title(f"{s['run']} #{s['segment']}", fontsize=8)
+            ax.tick_params(labelsize=7)
+    axes[0][0].legend(fontsize=7)
+    for ax in axes[-1]:
+        ax.set_xlabel("time [s]", fontsize=7)
+    fig.tight_layout()
+    written.append(_save(fig, out_dir / "diagnose_timeseries.png", plt))
+    cands = res["candidates"][:10]
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    labels = [c["cause"] + (f"[{c['signal']}]" if c["signal"] else "") for c in cands]
+    ax.barh(range(len(cands))[::-1], [max(c["bic_gain"], 0.0) for c in cands],
+            color=["C3" if c["significant"] else "C7" for c in cands])
+    ax.set_yticks(range(len(cands))[::-1], labels, fontsize=7)
+    ax.axvline(10.0, color="k", lw=0.8, ls=":")
+    ax.set_xlabel("BIC gain over the nominal car (> 10: decisive)")
+    fig.tight_layout()
+    written.append(_save(fig, out_dir / "diagnose_candidates.png", plt))
+    dep = comp.dependence
+    if dep:
+        fig, axes = plt.subplots(1, len(dep), figsize=(3.2 * len(dep), 2.8), squeeze=False)
+        for ax, (k, d) in zip(axes[0], dep.items(), strict=True):
+            ax.plot(d["centre"], d["mean_residual_nm"], "o-", label="mean")
+            ax.plot(d["centre"], d["mean_abs_residual_nm"], "s--", label="mean |.|")
+            ax.set_xlabel(f"{k} [{d['unit']}]", fontsize=8)
+            ax.axhline(0.0, color="k", lw=0.6)
+        axes[0][0].set_ylabel("SAT FL residual [Nm]")
+        axes[0][0].legend(fontsize=7)
+        fig.tight_layout()
+        written.append(_save(fig, out_dir / "diagnose_dependence.png", plt))
+    if comp.spectra:
+        fig, axes = plt.subplots(1, len(comp.spectra), figsize=(3.6 * len(comp.spectra), 2.8), squeeze=False)
+        for ax, (n, d) in zip(axes[0], comp.spectra.items(), strict=True):
+            ax.semilogy(d["f_hz"], d["psd_measured"], "k", label="measured")
+            ax.semilogy(d["f_hz"], d["psd_simulated"], "C0", label="nominal sim")
+            ax.set_title(n, fontsize=8)
+            ax.set_xlabel("f [Hz]", fontsize=8)
+        axes[0][0].legend(fontsize=7)
+        fig.tight_layout()
+        written.append(_save(fig, out_dir / "diagnose_spectra.png", plt))
+    return written
+
+
+def _save(fig, path: Path, plt) -> Path:
+    tmp = path.with_name(f".partial-{path.name}")
+    try:
+        fig.savefig(tmp, dpi=110, format="png")
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+        plt.close(fig)
+    return path

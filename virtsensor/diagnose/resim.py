@@ -1,0 +1,252 @@
+"""Re-simulate measured runs from their driver inputs, under hypotheses.
+
+A hypothesis is the nominal car, or the car with one candidate effect of
+:mod:`sim.effects` at one value. Each gap-free segment of a measured run is
+re-simulated from its recorded steering-wheel angle and speed
+(:func:`sim.manoeuvres.from_recording`), and the car's signals are predicted
+at the measured ticks: the sensor model without its random noise (latency,
+update rate, quantisation and the hypothesis' sensor error kept), read as a
+receiver on the bus reads it (a held frame is on average half a cycle old).
+
+A sensor effect on a signal that drives the re-simulation (steering angle,
+speed) also corrects the drive: if the car's sensor reads ``y = g x(t - d) + o``,
+the re-simulation is driven by ``x(t) = (y(t + d) - o) / g``.
+
+All hypotheses' segments advance together in vectorised batches, spread over
+joblib workers (``n_jobs``).
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sim.effects import DRIVE_SIGNALS, effect_overrides
+from sim.params import apply_overrides
+from virtsensor import signals as cat
+from virtsensor.measured import TICK_S, MeasuredRun
+
+#: the re-simulation starts from straight-line running: its first seconds are not compared
+SETTLE_S = 1.5
+#: truth channels kept at the ticks (for the residuals' dependence on the operating point)
+TRUTH_AT_TICKS = ("alpha_fl", "alpha_fr", "fz_fl", "fz_fr", "sat_fl", "sat_fr")
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """The nominal car (``cause is None``) or one effect at ``value``."""
+
+    cause: str | None = None
+    value: float = 0.0
+    signal: str | None = None
+
+    def label(self) -> str:
+        if self.cause is None:
+            return "nominal"
+        on = f"[{self.signal}]" if self.signal else ""
+        return f"{self.cause}{on}={self.value:.6g}"
+
+
+NOMINAL = Hypothesis()
+
+
+def compared_signals(runs: Sequence[MeasuredRun]) -> tuple[str, ...]:
+    """Signals compared: the 12 inputs, the reference SATs and the TPMS pressures
+    when every run carries them."""
+    extra = tuple(s for s in ("tyre_pressure_fl_pa", "tyre_pressure_fr_pa", "tyre_pressure_rl_pa",
+                              "tyre_pressure_rr_pa") if all(s in r.table for r in runs))
+    return (*cat.INPUTS, *cat.OUTPUTS, *extra)
+
+
+def noise_free(params: Mapping[str, Any]) -> dict[str, Any]:
+    """``params`` with every sensor's white noise off (the expected reading)."""
+    tree = copy.deepcopy(dict(params))
+    for spec in tree["sensors"].values():
+        spec["noise"] = 0.0
+    return tree
+
+
+def car_for(base: Mapping[str, Any], hyp: Hypothesis) -> dict[str, Any]:
+    """The car of a hypothesis (noise-free sensors)."""
+    tree = noise_free(base)
+    if hyp.cause is None:
+        return tree
+    return apply_overrides(tree, effect_overrides(hyp.cause, hyp.value, tree, hyp.signal))
+
+
+def measurement_age(params: Mapping[str, Any], name: str) -> float:
+    """Mean age (s) of a signal's value in the 20 Hz table: the sensor's latency, half
+    its update period and half its CAN message's cycle (a held frame)."""
+    from sim.sensors import SOURCES
+
+    spec = params["sensors"][SOURCES[name][0]]
+    sig = cat.SIGNALS[name]
+    return float(spec["latency_s"] + 0.5 / spec["rate_hz"] + 0.5 * cat.MESSAGES[sig.message].cycle_s)
+
+
+def drive_table(seg: Mapping[str, np.ndarray], hyp: Hypothesis,
+                params: Mapping[str, Any] | None = None) -> dict[str, np.ndarray]:
+    """The drive inputs of a segment, corrected for a hypothesised error of a drive sensor.
+
+    The recorded values are measurements of some age (:func:`measurement_age`);
+    the drive is advanced by that age so that the re-simulated car steers when
+    the real one did, not when its sensor reported it.
+    """
+    t = seg["time_s"] - seg["time_s"][0]
+    out = {"time_s": t}
+    for name in DRIVE_SIGNALS:
+        y = np.asarray(seg[name], dtype=float)
+        lead = measurement_age(params, name) if params is not None else 0.0
+        out[name] = np.interp(t + lead, t, y) if lead > 0 else y
+    if hyp.cause and hyp.cause.startswith("sensor_") and hyp.signal in DRIVE_SIGNALS:
+        y = out[hyp.signal]
+        if hyp.cause == "sensor_delay":
+            x = np.interp(t + hyp.value, t, y)  # the last value is held beyond the end
+        elif hyp.cause == "sensor_offset":
+            x = y - hyp.value
+        else:
+            x = y / hyp.value
+        out[hyp.signal] = x
+    return out
+
+
+@dataclass
+class Job:
+    """One segment of one run under one hypothesis."""
+
+    hyp: int
+    run: int
+    seg: int
+    plan: Any
+    tree: dict[str, Any]
+    times: np.ndarray  # segment ticks on the re-simulation's clock (s)
+    keep_streams: bool
+
+
+def _sample(t: np.ndarray, stream: np.ndarray, times: np.ndarray, name: str, shift: float = 0.0) -> np.ndarray:
+    """A stream read at ``times - shift`` (linear between its samples), quantised to the
+    signal's resolution: ``shift`` is the reading's age (see :func:`align`)."""
+    sig = cat.SIGNALS[name]
+    y = np.interp(times - shift, t, stream)
+    if sig.resolution > 0:
+        y = np.round(y / sig.resolution) * sig.resolution
+    return y
+
+
+def predicted(t: np.ndarray, streams: Mapping[str, np.ndarray], times: np.ndarray,
+              names: Sequence[str], shifts: Mapping[str, float] | None = None) -> dict[str, np.ndarray]:
+    """The signals ``names`` at ``times`` from sensor streams on the grid ``t``;
+    ``shifts`` maps a CAN message to the age of its readings (s)."""
+    shifts = shifts or {}
+    return {n: _sample(t, streams[n], times, n, shifts.get(str(cat.SIGNALS[n].message), 0.0)) for n in names}
+
+
+def align(runs: Sequence[MeasuredRun], nominal: Sequence[Sequence[Mapping[str, Any]]],
+          names: Sequence[str]) -> dict[str, float]:
+    """Each CAN message's reading age (s): when a receiver samples a held frame at a
+    tick, the value it reads is up to one cycle old, by a phase that depends on the
+    bus schedule and is unknown for measured data. It is estimated per message, once,
+    on the nominal re-simulation (all the message's signals together), within
+    +-1 cycle: far less than the sensor delays the diagnosis looks for, and common
+    to every hypothesis."""
+    out: dict[str, float] = {}
+    by_msg: dict[str, list[str]] = {}
+    for n in names:
+        by_msg.setdefault(str(cat.SIGNALS[n].message), []).append(n)
+    for msg, sigs in by_msg.items():
+        cyc = cat.MESSAGES[msg].cycle_s
+        grid = np.arange(-cyc, cyc + 1e-9, 0.0025)
+        cost = np.zeros(len(grid))
+        for n in sigs:
+            per = np.zeros(len(grid))
+            for r, run in enumerate(runs):
+                for s, seg in enumerate(run.segments):
+                    item = nominal[r][s]
+                    y = run.table[n][seg.start:seg.stop]
+                    times = np.arange(seg.n) / cat.TABLE_RATE_HZ
+                    m = segment_mask(run, s, n)
+                    for i, g in enumerate(grid):
+                        e = y[m] - np.interp(times[m] - g, item["t"], item["streams"][n])
+                        per[i] += float(np.sum(e * e))
+            cost += per / max(per[np.argmin(np.abs(grid))], 1e-300)
+        out[msg] = float(grid[int(np.argmin(cost))])
+    return out
+
+
+def _run_jobs(jobs: Sequence[Job], names: tuple[str, ...], shifts: Mapping[str, float] | None
+              ) -> list[dict[str, Any]]:
+    """Simulate a group of jobs in one batch; per job the predicted signals (and the
+    streams and truth at the ticks when asked)."""
+    from sim.engine import simulate_batch
+    from sim.sensors import make_streams
+
+    res = simulate_batch([j.plan for j in jobs], [j.tree for j in jobs])
+    out = []
+    for i, job in enumerate(jobs):
+        truth = res.run(i)
+        streams = make_streams(truth, job.tree, seed=0)
+        t = truth["time_s"]
+        item: dict[str, Any] = {"pred": predicted(t, streams, job.times, names, shifts),
+                                "complete": bool(t[-1] >= job.times[-1] - 0.02)}
+        if job.keep_streams:
+            item["t"] = t
+            item["streams"] = {n: streams[n] for n in names}
+            item["truth"] = {k: np.interp(job.times, t, truth[k]) for k in TRUTH_AT_TICKS}
+        out.append(item)
+    return out
+
+
+def simulate_hypotheses(runs: Sequence[MeasuredRun], hyps: Sequence[Hypothesis], base: Mapping[str, Any],
+                        mu: float, names: tuple[str, ...], *, n_jobs: int = 1,
+                        keep_streams: Sequence[bool] | None = None, shifts: Mapping[str, float] | None = None
+                        ) -> list[list[list[dict[str, Any]]]]:
+    """Re-simulate every segment of every run under every hypothesis.
+
+    Returns ``out[h][r][s]``: dict with ``pred`` (signal -> values at the segment's
+    ticks) and ``complete`` (False if the re-simulation ended early: the car spun
+    or stopped); with ``t``, ``streams`` and ``truth`` for hypotheses whose
+    ``keep_streams`` is set.
+    """
+    from joblib import Parallel, delayed
+
+    from sim.manoeuvres import from_recording
+
+    keep = list(keep_streams) if keep_streams is not None else [False] * len(hyps)
+    jobs: list[Job] = []
+    for h, hyp in enumerate(hyps):
+        tree = car_for(base, hyp)
+        for r, run in enumerate(runs):
+            for s, seg in enumerate(run.segments):
+                table = run.segment_table(seg)
+                drive = drive_table(table, hyp, base)
+                plan = from_recording(drive, mu, name=f"{run.name}#{s}")
+                jobs.append(Job(h, r, s, plan, tree, drive["time_s"], keep[h]))
+    # batches of similar length (little padding), a few per worker
+    order = np.argsort([len(j.times) for j in jobs], kind="stable")[::-1]
+    workers = max(1, n_jobs if n_jobs > 0 else os.cpu_count() or 1)
+    n_groups = max(workers, int(np.ceil(len(jobs) / 40)))
+    groups = [list(map(int, g)) for g in np.array_split(order, n_groups) if len(g)]
+    if workers == 1 or len(groups) == 1:
+        results = [_run_jobs([jobs[i] for i in g], names, shifts) for g in groups]
+    else:
+        results = Parallel(n_jobs=workers)(delayed(_run_jobs)([jobs[i] for i in g], names, shifts)
+                                           for g in groups)
+    out: list[list[list[dict[str, Any]]]] = [[[{} for _ in run.segments] for run in runs] for _ in hyps]
+    for g, items in zip(groups, results, strict=True):
+        for i, item in zip(g, items, strict=True):
+            j = jobs[i]
+            out[j.hyp][j.run][j.seg] = item
+    return out
+
+
+def segment_mask(run: MeasuredRun, seg_index: int, name: str) -> np.ndarray:
+    """Rows of a segment that are compared for ``name``: finite, after the settling time."""
+    seg = run.segments[seg_index]
+    y = run.table[name][seg.start:seg.stop]
+    t = np.arange(seg.n) * TICK_S
+    return np.isfinite(y) & (t >= SETTLE_S)
