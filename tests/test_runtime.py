@@ -397,6 +397,32 @@ class _Capture(can.BusABC):
         return None, False
 
 
+def test_sync_on_an_input_message_decodes_it_then_ticks(model, test_frames):
+    """The sync id may be an input message (every 5th IMU_Motion frame, 20 Hz): that frame is decoded and
+    counted as an input first, then the tick runs and already sees its values."""
+    frames, _ = test_frames
+    imu = MATRIX.messages["IMU_Motion"].frame_id
+    vs = VirtualSensor(_Capture(), model, MATRIX, sync_id=imu, sync_every=5, freeze_gc=False)
+    ax = vs.signals.index("ax_mps2")
+    inputs = {MATRIX.messages[m].frame_id for m in vs.input_messages}
+    sub = frames[:4000]
+    n_imu = 0
+    for f in sub:
+        ticks = vs.counters["ticks"]
+        vs.process(f)
+        if f.arbitration_id == imu:
+            n_imu += 1
+            if vs.counters["ticks"] > ticks:  # this frame ticked: the tick's snapshot holds its own value
+                assert vs._t_times[ax] == f.timestamp
+    c = vs.counters
+    assert c["sync_frames"] == n_imu > 100 and c["ticks"] == (n_imu + 4) // 5
+    assert c["input_frames"] == sum(f.arbitration_id in inputs for f in sub)
+    assert c["other_frames"] == len(sub) - c["input_frames"] and c["unknown_ids"] == 0
+    assert c["e2e_error"] == c["e2e_repeated"] == c["e2e_wrongsequence"] == c["tick_errors"] == 0
+    _, sts, _ = _decode_outputs([m for m in vs.bus.sent if m.arbitration_id == SAT_ID])
+    assert (sts[-10:] == VALID).all()
+
+
 # ------------------------------------------------------------------------------------------------ (e)
 class _FlakyBus(can.BusABC):
     """A virtual bus that raises on send/recv while the shared ``state`` asks it to."""

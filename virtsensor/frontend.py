@@ -16,8 +16,10 @@ catalogue's units.
 
 Two implementations:
 
-* :class:`SampleHoldStore` — the online store the daemon updates per frame
-  and samples per tick (:meth:`SampleHoldStore.sample`);
+* :class:`SampleHoldStore` — the online store, updated per frame and sampled
+  per tick (:meth:`SampleHoldStore.sample`); the daemon keeps the same store
+  as plain lists written by its generated per-message receivers
+  (:func:`virtsensor.fastdecode.compile_receiver`, tested against this path);
 * :func:`to_table` — replays a whole log; the default vectorised path uses one
   ``np.searchsorted`` per signal, ``online=True`` drives the store frame by
   frame (the tests check both agree exactly).

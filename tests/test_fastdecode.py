@@ -1,0 +1,259 @@
+"""The generated decoders/encoders of ``virtsensor.fastdecode`` against cantools and ``CanMatrix``.
+
+* ``compile_decoder`` equals cantools ``Message.decode(data, decode_choices=False)`` on random payloads of
+  every message of ``dbc/virtsensor.dbc`` (signed signals, scale and offset, CRC and counter included) and
+  of an extra DBC with awkward fields (signed with offset, 1-bit, 64-bit, byte-crossing, float scale).
+* ``compile_encoder`` equals ``CanMatrix.encode`` byte for byte.
+* ``compile_receiver`` (the daemon's receive path) leaves exactly the state that ``CanMatrix.decode`` plus
+  the documented bookkeeping leaves, frame after frame, on random frames with good and bad CRCs, wrong
+  lengths, counter jumps and repeats, SNA and implausible values, and reception gaps (E2E timeouts).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import zlib
+
+import cantools
+import numpy as np
+import pytest
+
+from virtsensor import signals as cat
+from virtsensor.can_codec import DEFAULT_DBC, CanMatrix
+from virtsensor.e2e import _TABLE, USABLE, E2EStatus, frame_crc
+from virtsensor.fastdecode import compile_decoder, compile_encoder, compile_receiver, crc_ok_expr
+
+MATRIX = CanMatrix.load()
+DB = cantools.database.load_file(str(DEFAULT_DBC), database_format="dbc", strict=True)
+N_FRAMES = 3000
+
+EXTRA_DBC = """VERSION ""
+
+NS_ :
+
+BS_:
+
+BU_: A
+
+BO_ 1 Odd: 8 A
+ SG_ SignedOffset : 3|11@1- (0.25,-100) [-356|155.75] "u" A
+ SG_ OneBit : 14|1@1+ (1,0) [0|1] "" A
+ SG_ OneBitSigned : 15|1@1- (1,0) [-1|0] "" A
+ SG_ Crossing : 16|23@1- (0.001,12.5) [-4181.804|4206.803] "u" A
+ SG_ IntScale : 39|9@1+ (3,-7) [-7|1526] "" A
+ SG_ Top : 48|16@1- (1e-05,0) [-0.32768|0.32767] "" A
+
+BO_ 2 Full: 8 A
+ SG_ All64 : 0|64@1+ (1,0) [0|1.8446744073709552e+19] "" A
+
+BO_ 3 Short: 3 A
+ SG_ Low : 0|5@1- (2,1) [-31|31] "" A
+ SG_ High : 5|19@1+ (0.5,0) [0|262143.5] "" A
+"""
+
+
+def _random_payloads(rng: np.random.Generator, length: int, n: int) -> list[bytes]:
+    out = [bytes(rng.integers(0, 256, length, dtype=np.uint8)) for _ in range(n)]
+    # the extremes of every field: all zeros, all ones, sign bits only
+    return out + [bytes(length), b"\xff" * length, b"\x80" * length, b"\x7f" * length]
+
+
+def _check_decoder_against_cantools(msg, rng: np.random.Generator) -> None:
+    dec = compile_decoder(msg)
+    names = [s.name for s in msg.signals]
+    for data in _random_payloads(rng, msg.length, N_FRAMES):
+        theirs = msg.decode(data, decode_choices=False)
+        ours = dec(data)
+        assert len(ours) == len(names)
+        for name, v in zip(names, ours, strict=True):
+            assert v == theirs[name], (msg.name, name, data.hex(), v, theirs[name])
+            assert type(v) is type(theirs[name]), (msg.name, name, type(v), type(theirs[name]))
+        ours_bytearray = dec(bytearray(data))
+        assert ours_bytearray == ours
+
+
+@pytest.mark.parametrize("name", [m.name for m in DB.messages])
+def test_decoder_equals_cantools_on_random_frames(name):
+    _check_decoder_against_cantools(DB.get_message_by_name(name), np.random.default_rng(zlib.crc32(name.encode())))
+
+
+def test_decoder_covers_scale_offset_and_unsigned_fields():
+    kinds = {(s.is_signed, s.scale != 1, s.offset != 0) for m in DB.messages for s in m.signals}
+    assert (True, True, False) in kinds and (False, True, True) in kinds and (False, False, False) in kinds
+
+
+def test_decoder_equals_cantools_on_awkward_fields():
+    db = cantools.database.load_string(EXTRA_DBC, database_format="dbc", strict=True)
+    rng = np.random.default_rng(7)
+    for msg in db.messages:
+        _check_decoder_against_cantools(msg, rng)
+
+
+def test_decoder_subset_and_wrong_length():
+    msg = DB.get_message_by_name("ESC_VehicleSpeed")
+    dec = compile_decoder(msg, ["VehSpeed"])
+    data = MATRIX.encode("ESC_VehicleSpeed", {"vx_mps": 23.45}, 3)
+    assert dec(data) == (msg.decode(data, decode_choices=False)["VehSpeed"],)
+    with pytest.raises(ValueError, match="expected 8 bytes"):
+        dec(data[:7])
+    with pytest.raises(ValueError, match="expected 8 bytes"):
+        dec(data + b"\x00")
+
+
+def test_decoder_refuses_big_endian():
+    text = EXTRA_DBC.replace("SG_ OneBit : 14|1@1+", "SG_ OneBit : 14|1@0+")
+    db = cantools.database.load_string(text, database_format="dbc", strict=True)
+    with pytest.raises(ValueError, match="little-endian"):
+        compile_decoder(db.get_message_by_name("Odd"))
+
+
+def test_crc_expression_equals_frame_crc():
+    rng = np.random.default_rng(3)
+    for m in MATRIX.messages.values():
+        ok = eval(f"lambda T, b0, b1, b2, b3, b4, b5, b6, b7: {crc_ok_expr(m.seed, 8)}")
+        for data in _random_payloads(rng, 8, 500):
+            good = bytes([frame_crc(m.seed, data)]) + data[1:]
+            assert ok(_TABLE, *good)
+            assert not ok(_TABLE, good[0] ^ 0x01, *good[1:])
+
+
+def test_encoder_equals_codec():
+    rng = random.Random(11)
+    for name, mc in MATRIX.messages.items():
+        enc = compile_encoder(mc)
+        for _ in range(2000):
+            values: dict[str, float] = {}
+            for s in mc.signals:
+                key = s.catalogue if (s.catalogue and rng.random() < 0.8) else s.name
+                r = rng.random()
+                if r < 0.05:
+                    continue
+                if r < 0.1:
+                    values[key] = math.nan
+                elif r < 0.2:
+                    values[key] = rng.choice([-1e9, 1e9, math.inf, -math.inf])
+                elif r < 0.3:
+                    values[key] = rng.randrange(-5, 5)
+                else:
+                    span = max(abs(s.raw_lo), abs(s.raw_hi)) * s.scale / s.si_factor
+                    values[key] = rng.uniform(-1.5, 1.5) * span
+            counter = rng.randrange(0, 40)
+            assert enc(values, counter) == MATRIX.encode(name, values, counter), (name, values, counter)
+
+
+# ----------------------------------------------------------------------------------------------- receiver
+_KEYS = {s: f"e2e_{s.name.lower()}" for s in E2EStatus}
+_COUNTERS = ("crc_errors", "dlc_errors", "sna_values", "implausible_values", *_KEYS.values())
+
+
+class _Reference:
+    """The daemon's receive path before the generated receivers: ``CanMatrix.decode`` then bookkeeping."""
+
+    def __init__(self, name: str, slots: list[tuple[str, int]], n: int) -> None:
+        self.matrix = MATRIX.fresh()
+        self.fid = MATRIX.messages[name].frame_id
+        self.slots = slots
+        self.values, self.times, self.flags = [math.nan] * n, [-math.inf] * n, [False] * n
+        self.last_ok, self.errors = [-math.inf], [False]
+        self.counters = dict.fromkeys(_COUNTERS, 0)
+
+    def __call__(self, data: bytes, t: float) -> None:
+        d = self.matrix.decode(self.fid, data, t)
+        c = self.counters
+        c[_KEYS[d.status]] += 1
+        if d.status in USABLE:
+            self.last_ok[0] = t
+            for cname, i in self.slots:
+                if cname in d.values:
+                    self.values[i], self.times[i], self.flags[i] = d.values[cname], t, False
+                elif cname in d.unavailable:
+                    self.flags[i] = True
+                    c["sna_values"] += 1
+                else:
+                    assert cname in d.implausible
+                    self.flags[i] = True
+                    c["implausible_values"] += 1
+        elif d.status in (E2EStatus.ERROR, E2EStatus.REPEATED, E2EStatus.WRONGSEQUENCE):
+            self.errors[0] = True
+            if d.status is E2EStatus.ERROR:
+                c["dlc_errors" if not d.dlc_ok else "crc_errors"] += 1
+
+
+def _frames(name: str, rng: random.Random, n: int) -> list[tuple[bytes, float]]:
+    """Random frames of ``name``: mostly good (right CRC, counter +1), with every kind of fault."""
+    mc = MATRIX.messages[name]
+    out: list[tuple[bytes, float]] = []
+    t, ctr = 100.0, 0
+    for _ in range(n):
+        t += mc.cycle_s * (rng.choice([1.0] * 8 + [0.2, 7.0]))  # some gaps longer than the E2E timeout
+        r = rng.random()
+        if r < 0.6:  # plausible values
+            values = {s.catalogue: rng.uniform(cat.SIGNALS[s.catalogue].minimum, cat.SIGNALS[s.catalogue].maximum)
+                      for s in mc.signals if s.catalogue}
+            data = bytearray(MATRIX.encode(name, values, ctr))
+        else:  # any bits: SNA, implausible, anything
+            data = bytearray(rng.randbytes(mc.length))
+            data[1] = (data[1] & 0xF0) | (ctr & 0xF)
+            data[0] = frame_crc(mc.seed, data)
+            if r < 0.7:  # force SNA codes
+                for s in mc.signals:
+                    if s.sna is not None and rng.random() < 0.5:
+                        v = int.from_bytes(data, "little") & ~(s.mask << s.start) | ((s.sna & s.mask) << s.start)
+                        data = bytearray(v.to_bytes(mc.length, "little"))
+                data[0] = frame_crc(mc.seed, data)
+        f = rng.random()
+        if f < 0.05:
+            data[0] ^= 1 << rng.randrange(8)  # CRC error
+        elif f < 0.08:
+            data[rng.randrange(1, mc.length)] ^= 1 << rng.randrange(8)  # corrupted payload: CRC error
+        elif f < 0.11:
+            data = data[: rng.randrange(0, mc.length)] if rng.random() < 0.7 else data + b"\x00"  # DLC
+        elif f < 0.14:
+            ctr += rng.randrange(1, 9)  # lost frames: the next counter jumps by 2..9
+        elif f < 0.17:
+            out.append((bytes(data), t))  # sent twice: repeated counter
+        ctr += 1
+        out.append((bytes(data), t))
+    return out
+
+
+@pytest.mark.parametrize("name", [n for n, m in MATRIX.messages.items() if m.catalogue_names])
+def test_receiver_leaves_the_reference_state(name):
+    mc = MATRIX.messages[name]
+    slots = [(s.catalogue, k + 1) for k, s in enumerate(mc.signals) if s.catalogue]  # index 0: someone else's
+    n = len(slots) + 2
+    ref = _Reference(name, slots, n)
+    fresh = MATRIX.fresh()
+    values, times, flags = [math.nan] * n, [-math.inf] * n, [False] * n
+    last_ok, errors = [-math.inf], [False]
+    counters = dict.fromkeys(_COUNTERS, 0)
+    codec = {s.catalogue: s for s in mc.signals}
+    rx = compile_receiver(mc, fresh.receivers[name], 0, [(codec[c], i) for c, i in slots], values, times, flags,
+                          last_ok, errors, counters)
+    frames = _frames(name, random.Random(name), N_FRAMES)
+    for k, (data, t) in enumerate(frames):
+        ref(data, t)
+        rx(bytearray(data) if k % 2 else data, t)
+        assert counters == ref.counters, (k, data.hex())
+        assert times == ref.times and flags == ref.flags and last_ok == ref.last_ok and errors == ref.errors, k
+        assert all(a == b or (math.isnan(a) and math.isnan(b)) for a, b in zip(values, ref.values, strict=True)), k
+        if k % 97 == 0:  # the daemon clears the error flags at each tick
+            errors[0] = ref.errors[0] = False
+    seen = {k for k, v in counters.items() if v}
+    assert {"e2e_ok", "e2e_initial", "e2e_error", "e2e_repeated", "crc_errors", "dlc_errors"} <= seen, seen
+    assert {"e2e_oksomelost", "e2e_wrongsequence"} <= seen, seen
+    if any(s.sna is not None for s in mc.signals if s.catalogue):
+        assert counters["sna_values"] > 0
+    assert math.isnan(values[0]) and times[0] == -math.inf and flags[0] is False  # untouched
+
+
+def test_receiver_source_has_the_constants_inlined():
+    mc = MATRIX.messages["ESC_VehicleSpeed"]
+    s = mc.signals[0]
+    rx = compile_receiver(mc, MATRIX.fresh().receivers[mc.name], 3, [(s, 5)], [0.0] * 6, [0.0] * 6,
+                          [False] * 6, [0.0] * 4, [False] * 4, dict.fromkeys(_COUNTERS, 0))
+    src = rx.__source__
+    assert "values[5] = x" in src and "last_ok[3] = t" in src and f"r == {s.sna}" in src
+    assert "-20.0" in src  # the DBC offset of VehSpeed
+    assert "for " not in src  # no loop per frame
