@@ -47,9 +47,11 @@ class Plan:
         mu_dist: distances (m) where the road friction changes (increasing).
         mu_values: friction before the first distance and after each one (len+1).
         label: free-form metadata kept with the run (speed, mu, amplitude...).
-        speed_feedforward: the speed controller adds the force the target's own
-            acceleration needs (``m dv/dt``) to its feedback, so it tracks a
-            recorded speed trace without the feedback loop's lag (re-simulation).
+        motor_feedforward: (N,) motor torque (Nm) the speed controller starts from
+            in SPEED_TARGET steps, its feedback adding what tracking the target
+            still needs (re-simulating a recorded run: the car's own recorded
+            motor torque carries its accelerations and resistances, so the speed
+            is tracked without the feedback loop's lag); None: feedback only.
     """
 
     name: str
@@ -67,7 +69,7 @@ class Plan:
     mu_dist: Sequence[float] = ()
     mu_values: Sequence[float] = (1.0,)
     label: dict = field(default_factory=dict)
-    speed_feedforward: bool = False
+    motor_feedforward: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -86,7 +88,7 @@ class Plan:
             self.speed_mode.copy(), self.speed_target.copy(), self.motor_cmd.copy(), self.brake_cmd.copy(),
             path, None if self.path_speed is None else self.path_speed.copy(), self.path_ds,
             tuple(self.mu_dist), tuple(self.mu_values), {**self.label, "mirrored": True},
-            self.speed_feedforward,
+            None if self.motor_feedforward is None else self.motor_feedforward.copy(),
         )
 
 
@@ -118,10 +120,15 @@ class Driver:
         self.speed_target = _pad([p.speed_target for p in plans], self.n)
         self.motor_cmd = _pad([p.motor_cmd for p in plans], self.n)
         self.brake_cmd = _pad([p.brake_cmd for p in plans], self.n)
-        ff = np.array([p.speed_feedforward for p in plans], dtype=bool)
-        self.target_acc = np.zeros((B, self.n))
-        if ff.any() and self.n > 1:
-            self.target_acc[ff] = np.gradient(self.speed_target[ff], CONTROL_DT, axis=1)
+        self.has_ff = np.array([p.motor_feedforward is not None for p in plans], dtype=bool)
+        # a recorded speed is the ESC's: rear wheel spin times their radius at the start
+        # (static load); with a recording, the loop compares like with like
+        speed0 = np.array([p.speed0_mps for p in plans], dtype=float)
+        re0 = np.broadcast_to(vehicle.tyre.effective_rolling_radius(
+            vehicle.fz_static, speed0[:, None] / vehicle.R0, vehicle.pressure), (B, 4))
+        self.r_esc = 0.5 * (re0[:, 2] + re0[:, 3])
+        self.motor_ff = _pad([p.motor_feedforward if p.motor_feedforward is not None else np.zeros(p.n)
+                              for p in plans], self.n)
 
         def dp(key: str) -> np.ndarray:
             return np.array([t["driver"][key] for t in params], dtype=float)
@@ -263,14 +270,17 @@ class Driver:
         # longitudinal
         smode = self.speed_mode[:, k]
         vx = x[:, IVX]
-        err = target - vx
+        v_esc = 0.5 * (x[:, IOM][:, 2] + x[:, IOM][:, 3]) * self.r_esc
+        err = target - np.where(self.has_ff, v_esc, vx)
         self.v_int = np.where(smode == SPEED_TARGET, np.clip(self.v_int + err * CONTROL_DT, -5.0, 5.0), 0.0)
         resist = v.drag * vx * np.abs(vx) + 0.012 * v.m * v.g
-        # feedforward of the target's acceleration (zero unless the plan asks), with the
-        # wheels' spin inertia as an equivalent mass of about 3 %
-        force = resist + 1.03 * v.m * self.target_acc[:, k] + self.k_v * err + self.k_vi * self.v_int
+        # with a motor-torque feedforward (a recorded run) the feedback adds only what
+        # tracking still needs: the recorded torque already overcomes the resistances
+        # (and at half the gain: it corrects what the recorded torque leaves, not noise)
+        fb = np.where(self.has_ff, 0.5, 1.0) * (self.k_v * err + self.k_vi * self.v_int)
+        force = np.where(self.has_ff, 0.0, resist) + fb
         r_wheel = v.R0 * 0.97
-        motor_dem = np.where(force > 0, force * r_wheel / (v.gear * v.eta), 0.0)
+        motor_dem = np.where(force > 0, force * r_wheel / (v.gear * v.eta), 0.0) + self.motor_ff[:, k]
         brake_dem = np.where(force < 0, -force * r_wheel * 0.5 * v.brake_share, 0.0)
         motor_dem = np.where(smode == SPEED_OPEN, self.motor_cmd[:, k], motor_dem)
         brake_dem = np.where(smode == SPEED_OPEN, self.brake_cmd[:, k], brake_dem)

@@ -52,7 +52,7 @@ GAIN_RANGE = (0.06, 0.15)      # |gain - 1|: a scale or tyre-radius calibration 
 DELAY_RANGE = (0.04, 0.20)     # s: a gateway, a slow filter, a second-hand signal
 
 #: signals the re-simulation is driven by: their sensor effects need a re-simulation
-DRIVE_SIGNALS = ("steer_angle_rad", "vx_mps")
+DRIVE_SIGNALS = ("steer_angle_rad", "vx_mps", "motor_torque_nm")
 
 #: where a payload sits: behind the front axle (m, rear seats and boot) and its height
 PAYLOAD_X_M = 2.0

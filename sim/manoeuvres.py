@@ -304,7 +304,8 @@ def from_recording(table: Mapping[str, np.ndarray], mu: float, *, longitudinal: 
 
     The steering robot follows the recorded steering-wheel angle
     (``steer_angle_rad``); the longitudinal input is either the recorded speed
-    (``longitudinal="speed"``: the speed controller tracks ``vx_mps``) or the
+    (``longitudinal="speed"``: the speed controller tracks ``vx_mps``, starting
+    from the recorded ``motor_torque_nm`` when there is one) or the
     recorded traction-motor torque (``"torque"``: ``motor_torque_nm`` open loop,
     no braking). Samples may come at any steady rate (a 20 Hz table, say); they
     are interpolated onto the 100 Hz control grid (a cubic spline for the steering). Non-finite samples
@@ -348,16 +349,16 @@ def from_recording(table: Mapping[str, np.ndarray], mu: float, *, longitudinal: 
     plan.steer_sw[:] = CubicSpline(t_rec, sw)(np.clip(t, t_rec[0], t_rec[-1])) if len(sw) > 3 \
         else np.interp(t, t_rec, sw)
     if longitudinal == "speed":
-        # the speed is tracked with its own acceleration as feedforward; a centred
-        # 0.5 s average keeps the sensor's noise and quantisation out of that derivative
         v = series("vx_mps")
-        dt_rec = float(np.median(np.diff(t_rec)))
-        w = max(1, int(round(0.5 / dt_rec)))
-        if w > 1 and len(v) > w:
+        if "motor_torque_nm" in table and len(v) > 6:
+            # a centred 0.3 s average keeps the speed sensor's noise and steps out of the loop
+            w = max(1, int(round(0.3 / float(np.median(np.diff(t_rec))))))
             pad = np.concatenate([np.full(w // 2, v[0]), v, np.full(w - 1 - w // 2, v[-1])])
             v = np.convolve(pad, np.ones(w) / w, mode="valid")
         plan.speed_target[:] = np.interp(t, t_rec, v)
-        plan.speed_feedforward = True
+        if "motor_torque_nm" in table:
+            # the car's own motor torque as feedforward: the speed loop corrects, it does not lag
+            plan.motor_feedforward = np.interp(t, t_rec, series("motor_torque_nm"))
     else:
         plan.speed_mode[:] = SPEED_OPEN
         plan.motor_cmd[:] = np.interp(t, t_rec, series("motor_torque_nm"))

@@ -100,6 +100,28 @@ def test_signal_stats_recover_bias_gain_and_lag():
     assert st0["gain"] == pytest.approx(1.2) and st0["lag_s"] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_an_ensemble_merges_into_one_exact_network(tmp_path):
+    import warnings
+
+    from virtsensor.diagnose.calibrate import merge_ensemble
+    from virtsensor.onnx_model import OnnxModel, export_pipeline
+    from virtsensor.training import PAPER_PARAMS, make_pipeline
+
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(400, 5))
+    Y = np.column_stack([X[:, 0] ** 2, np.sin(X[:, 1])])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        members = [make_pipeline({**PAPER_PARAMS, "max_iter": 30, "hidden_layer_sizes": (16, 8)}, random_state=k)
+                   .fit(X, Y) for k in range(3)]
+    merged = merge_ensemble(members)
+    assert merged[-1].hidden_layer_sizes == (48, 24)
+    assert np.abs(merged.predict(X) - np.mean([m.predict(X) for m in members], axis=0)).max() < 1e-12
+    card = export_pipeline(merged, 5, tmp_path / "e.onnx", card_extra={"inputs": list("abcde")}, parity_X=X[:50])
+    assert card["parity_max_abs_nm"] < 1e-3
+    assert OnnxModel.load(tmp_path / "e.onnx").predict(X[:3]).shape == (3, 2)
+
+
 # ---------------------------------------------------------------------------------------- end to end
 @pytest.fixture(scope="module")
 def hidden_case(tmp_path_factory):
@@ -119,7 +141,7 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     assert h is not None
     names = [p.name for p in hidden_case.diagnosis + hidden_case.holdout]
     assert all(n.startswith("run") for n in names)  # nothing in the names gives it away
-    runs, hold = load_measured(hidden_case.diagnosis), load_measured(hidden_case.holdout)
+    runs, hold = load_measured(hidden_case.diagnosis, skipped=[]), load_measured(hidden_case.holdout, skipped=[])
     res, _ = diagnose(runs, hold, car_parameters(), preset="tiny", max_iter=300, n_jobs=2)
     assert res["cause"] == h.cause, (h, res["candidates"][:3])
     assert res["signal"] == h.signal

@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             case = make_case(seed, tmp, control=control)
             try:
-                runs, hold = load_measured(case.diagnosis), load_measured(case.holdout)
+                runs, hold = load_measured(case.diagnosis, skipped=[]), load_measured(case.holdout, skipped=[])
                 res, _ = diagnose(runs, hold, base, preset=args.preset, seed=args.seed, max_iter=args.max_iter,
                                   ensemble=args.ensemble, n_jobs=args.n_jobs, before=before)
             except Exception as exc:  # a failed case is a result of the study, not its end

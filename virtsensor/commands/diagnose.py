@@ -89,9 +89,10 @@ def run(args: argparse.Namespace) -> int:
     if args.max_iter is not None and args.max_iter < 1:
         raise UserError(f"--max-iter {args.max_iter}: must be >= 1")
     base = car_from_args(args)
-    runs = load_measured(args.measured)
+    skipped: list[tuple[str, str]] = []
+    runs = load_measured(args.measured, skipped=skipped)
     if args.holdout:
-        holdout = load_measured(args.holdout)
+        holdout = load_measured(args.holdout, skipped=skipped)
         clash = {r.path.resolve() for r in runs} & {r.path.resolve() for r in holdout}
         if clash:
             raise UserError(f"{sorted(clash)[0]}: given both as --measured and --holdout; a held-out run must "
@@ -106,11 +107,14 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(msg, file=sys.stderr)
 
+    for path, why in skipped:
+        log(f"left out {path}: {why}")
     if holdout and not args.holdout and not args.quiet:
         log(f"holding out {', '.join(r.name for r in holdout)} for the gain (give --holdout to choose)")
     res, art = diagnose(runs, holdout, base, mu=args.mu, preset=args.campaign, recipe=args.recipe, seed=args.seed,
                         max_iter=args.max_iter, ensemble=args.ensemble, n_jobs=args.n_jobs,
                         retrain=not args.no_retrain, log=log)
+    res["skipped_runs"] = [{"file": p, "reason": why} for p, why in skipped]
     if args.export_model:
         res["exported_model"] = _export(art["after"], res, args)
     print(_summary(res))

@@ -25,6 +25,9 @@ def markdown(res: Mapping[str, Any]) -> str:
     out.append(f"Measured runs for the diagnosis: {len(runs)} ("
                f"{sum(r['duration_s'] for r in runs):.0f} s); held out for the gain: {len(res['holdout_runs'])}. "
                f"{res['simulations']} re-simulation batches (hypotheses) in {res['seconds_identify']:.0f} s.")
+    for sk in res.get("skipped_runs", []):
+        out.append("")
+        out.append(f"Left out: {sk['file']}: {sk['reason']}")
     gaps = [(r["name"], g) for r in runs for g in r["gaps_s"]]
     if gaps:
         out.append("")

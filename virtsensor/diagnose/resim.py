@@ -9,7 +9,7 @@ update rate, quantisation and the hypothesis' sensor error kept), read as a
 receiver on the bus reads it (a held frame is on average half a cycle old).
 
 A sensor effect on a signal that drives the re-simulation (steering angle,
-speed) also corrects the drive: if the car's sensor reads ``y = g x(t - d) + o``,
+speed, motor torque) also corrects the drive: if the car's sensor reads ``y = g x(t - d) + o``,
 the re-simulation is driven by ``x(t) = (y(t + d) - o) / g``.
 
 All hypotheses' segments advance together in vectorised batches, spread over
@@ -100,8 +100,12 @@ def drive_table(seg: Mapping[str, np.ndarray], hyp: Hypothesis,
     t = seg["time_s"] - seg["time_s"][0]
     out = {"time_s": t}
     for name in DRIVE_SIGNALS:
+        if name not in seg:
+            continue
         y = np.asarray(seg[name], dtype=float)
         lead = measurement_age(params, name) if params is not None else 0.0
+        if name == "motor_torque_nm" and params is not None:
+            lead += params["powertrain"]["torque_time_constant_s"]  # the motor's own response
         out[name] = np.interp(t + lead, t, y) if lead > 0 else y
     if hyp.cause and hyp.cause.startswith("sensor_") and hyp.signal in DRIVE_SIGNALS:
         y = out[hyp.signal]
