@@ -159,7 +159,9 @@ def test_a_control_car_answers_none_through_the_cli(tmp_path, capsys):
     from virtsensor.cli import main
     from virtsensor.diagnose.hidden import make_case
 
-    case = make_case(7, tmp_path / "runs", control=True, holdout=())
+    # two of the diagnosis programme's runs (the shorter ones) keep the suite quick
+    case = make_case(7, tmp_path / "runs", control=True, holdout=(),
+                     programme=(("sine-with-dwell", 80.0), ("double-lane-change", 100.0)))
     out = tmp_path / "diag.json"
     rc = main(["diagnose", "--measured", *map(str, case.diagnosis), "--no-retrain", "--n-jobs", "2",
                "--json", str(out), "--report", str(tmp_path / "report"), "--quiet"])
