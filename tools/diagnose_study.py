@@ -32,6 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", type=int, default=20, help="random hidden-effect cases")
     ap.add_argument("--controls", type=int, default=4, help="cases with no effect")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--first", type=int, default=0, help="index of the first hidden case (to re-run some)")
     ap.add_argument("--out", type=Path, default=Path("study"))
     ap.add_argument("--preset", default="smoke", help="training campaign of the estimators")
     ap.add_argument("--max-iter", type=int, default=400, help="MLP epochs of the estimators")
@@ -55,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
                              ensemble=args.ensemble)
     print(f"nominal estimator trained in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     rows = []
-    plan = [(i, False) for i in range(args.cases)] + [(args.cases + i, True) for i in range(args.controls)]
+    plan = [(args.first + i, False) for i in range(args.cases)] + \
+        [(args.first + args.cases + i, True) for i in range(args.controls)]
     for i, control in plan:
         seed = args.seed * 1000 + i
         t1 = time.perf_counter()
