@@ -239,3 +239,19 @@ def test_numpy_forward_matches_sklearn(mlp2, activation):
     # the same from the JSON-able weights
     weights = json.loads(json.dumps(om.pipeline_weights(pipe)))
     np.testing.assert_allclose(om.numpy_forward(weights)(X), pipe.predict(X), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("scaler", ["robust", "standard", "minmax"])
+def test_numpy_forward_and_card_weights_for_every_scaler_the_grid_may_pick(scaler):
+    """The grid search may choose another scaler than the paper's; the card's weights and the
+    numpy back-end must follow (a StandardScaler winner once crashed `train --grid` at export)."""
+    from virtsensor.onnx_model import numpy_forward
+    from virtsensor.training import PAPER_PARAMS, make_pipeline
+
+    rng = np.random.default_rng(1)
+    X = rng.normal(size=(300, 4)) * [1.0, 5.0, 0.1, 20.0] + [0.0, 3.0, 1.0, -5.0]
+    Y = np.column_stack([X[:, 0] ** 2, np.sin(X[:, 1])])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        p = make_pipeline({**PAPER_PARAMS, "scaler": scaler, "max_iter": 20}).fit(X, Y)
+    assert np.abs(numpy_forward(p)(X) - p.predict(X)).max() < 1e-9

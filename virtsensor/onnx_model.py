@@ -493,7 +493,10 @@ _ACTIVATIONS = ("identity", "tanh", "relu", "logistic")
 
 
 def pipeline_weights(pipeline: Any) -> dict[str, Any]:
-    """The weights of a ``[RobustScaler] + MLPRegressor|LinearRegression`` pipeline as plain lists (JSON-able).
+    """The weights of a ``[scaler] + MLPRegressor|LinearRegression`` pipeline as plain lists (JSON-able).
+
+    The scaler (Robust, Standard or MinMax, as the grid search may pick) becomes
+    ``(x - center) / scale``.
 
     Keys: ``center``/``scale`` (feature units, or None when the scaler does not
     centre/scale or is absent), ``layers`` (list of ``{"W": (n_in, n_out), "b": (n_out,)}``),
@@ -502,17 +505,26 @@ def pipeline_weights(pipeline: Any) -> dict[str, Any]:
     from sklearn.linear_model import LinearRegression
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import Pipeline
-    from sklearn.preprocessing import RobustScaler
+    from sklearn.preprocessing import MinMaxScaler, RobustScaler, StandardScaler
 
     steps = [s for _, s in pipeline.steps] if isinstance(pipeline, Pipeline) else [pipeline]
     steps = [s for s in steps if s not in (None, "passthrough")]
     center = scale = None
+
+    def as_list(a):
+        return None if a is None else np.asarray(a, float).tolist()
+
     if len(steps) == 2 and isinstance(steps[0], RobustScaler):
-        sc = steps[0]
-        center = None if sc.center_ is None else np.asarray(sc.center_, float).tolist()
-        scale = None if sc.scale_ is None else np.asarray(sc.scale_, float).tolist()
+        center, scale = as_list(steps[0].center_), as_list(steps[0].scale_)
+    elif len(steps) == 2 and isinstance(steps[0], StandardScaler):
+        center, scale = as_list(steps[0].mean_), as_list(steps[0].scale_)
+    elif len(steps) == 2 and isinstance(steps[0], MinMaxScaler):
+        # x * scale_ + min_ == (x - (-min_ / scale_)) / (1 / scale_)
+        k = np.asarray(steps[0].scale_, float)
+        center, scale = (-np.asarray(steps[0].min_, float) / k).tolist(), (1.0 / k).tolist()
     elif len(steps) != 1:
-        raise TypeError(f"numpy forward supports [RobustScaler] + MLPRegressor|LinearRegression, got {steps}")
+        raise TypeError("numpy forward supports [Robust|Standard|MinMax scaler] + MLPRegressor|LinearRegression, "
+                        f"got {steps}")
     est = steps[-1]
     if isinstance(est, MLPRegressor):
         layers = [{"W": np.asarray(W, float).tolist(), "b": np.asarray(b, float).tolist()}
