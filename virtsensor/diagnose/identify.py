@@ -244,8 +244,9 @@ def _excited(data: Data, nominal, cand: Candidate) -> bool:
         return True
     p = data.stack(nominal, cand.signal)
     res = cat.SIGNALS[cand.signal].resolution
-    size = np.sqrt(np.mean(p * p)) if cand.cause == "sensor_gain" else np.std(np.diff(p)) * cat.TABLE_RATE_HZ
-    return bool(size > 10.0 * res * (1.0 if cand.cause == "sensor_gain" else cat.TABLE_RATE_HZ))
+    if cand.cause == "sensor_gain":
+        return bool(np.sqrt(np.mean(p * p)) > 10.0 * res)  # size, in resolution steps
+    return bool(np.std(np.diff(p)) > 10.0 * res)  # change from tick to tick, in resolution steps
 
 
 def _times(data: Data, r: int, s: int) -> np.ndarray:
