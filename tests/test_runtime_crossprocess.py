@@ -112,6 +112,9 @@ kill -TERM $D
 wait $D
 echo "daemon_rc=$?"
 kill -INT $L
+# python-can's logger has once hung on SIGINT after a clean run: give it 10 s, then end it
+for i in $(seq 1 100); do kill -0 $L 2>/dev/null || break; sleep 0.1; done
+if kill -0 $L 2>/dev/null; then echo "logger_stuck=1"; kill -TERM $L; sleep 1; kill -KILL $L 2>/dev/null; fi
 wait $L
 echo "logger_rc=$?"
 """)
@@ -119,7 +122,10 @@ echo "logger_rc=$?"
     logs = {n: (d / n).read_text() if (d / n).exists() else "" for n in ("daemon.log", "logger.out", "replay.out")}
     assert r.returncode == 0, (r.stdout, r.stderr, logs)
     rcs = dict(line.split("=") for line in r.stdout.split() if "_rc=" in line)
-    assert rcs == {"replay_rc": "0", "daemon_rc": "0", "logger_rc": "0"}, (r.stdout, r.stderr, logs)
+    # the daemon and the replayer are under test; the third-party logger only records (if it had
+    # to be ended, the frames it wrote are still checked below)
+    assert rcs["replay_rc"] == "0" and rcs["daemon_rc"] == "0", (r.stdout, r.stderr, logs)
+    assert rcs["logger_rc"] == "0" or rcs.get("logger_stuck") == "1", (r.stdout, r.stderr, logs)
     events = [json.loads(line) for line in logs["daemon.log"].splitlines()]  # JSON lines only
     down = next(e for e in events if e["event"] == "shutdown")
     out = _check_outputs(_sat_frames(d / "out.asc"))
