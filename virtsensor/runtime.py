@@ -374,6 +374,16 @@ def _bitmap_order(matrix: CanMatrix) -> dict[str, int]:
             if name in matrix.messages and int(bit) < 8}
 
 
+def _shutdown_bus(bus: Any) -> None:
+    """Shut a bus down (None: nothing to do); a failure is logged, never raised."""
+    if bus is None:
+        return
+    try:
+        bus.shutdown()
+    except Exception as exc:  # noqa: BLE001
+        _event(logging.WARNING, "bus_error", where="shutdown", error=f"{type(exc).__name__}: {exc}")
+
+
 class VirtualSensor:
     """The daemon. Build it with :meth:`from_config`, or directly from an open bus, model and matrix.
 
@@ -948,11 +958,7 @@ class VirtualSensor:
         if self._factory is not None:
             with self._io_lock:
                 old, self._bus = self._bus, None
-            if old is not None:
-                try:
-                    old.shutdown()
-                except Exception as exc:  # noqa: BLE001
-                    _event(logging.WARNING, "bus_error", where="shutdown", error=f"{type(exc).__name__}: {exc}")
+            _shutdown_bus(old)
         delay = self._backoff
         while not self._stop.is_set():
             if self._stop.wait(delay):
@@ -1003,11 +1009,7 @@ class VirtualSensor:
         joined_ns = time.monotonic_ns()
         with self._io_lock:
             bus, self._bus = self._bus, None
-        if bus is not None:
-            try:
-                bus.shutdown()
-            except Exception as exc:  # noqa: BLE001
-                _event(logging.WARNING, "bus_error", where="shutdown", error=f"{type(exc).__name__}: {exc}")
+        _shutdown_bus(bus)
         if self._frozen:
             gc.unfreeze()
             self._frozen = False

@@ -134,7 +134,7 @@ def _signature(fit, idn) -> dict[str, Any]:
 
 
 def _residual_signature(idn) -> dict[str, Any]:
-    """With no cause named: the signals that carry most of the residual, relative to their noise."""
+    """With no cause named: each signal's residual RMS against the nominal re-simulation (its unit)."""
     import numpy as np
 
     rel = {k: float(np.sqrt(idn.rss_nominal[k] / max(idn.n[k], 1))) for k in idn.names}

@@ -192,12 +192,7 @@ def _exact_fit(data: Data, nominal: Sequence[Sequence[Mapping[str, Any]]], cand:
     assert s is not None
 
     def pred_for(value: float):
-        if cand.cause == "sensor_offset":
-            return lambda item, r, g: item["pred"][s] + value
-        if cand.cause == "sensor_gain":
-            return lambda item, r, g: item["pred"][s] * value
-        return lambda item, r, g: _sample(item["t"], item["streams"][s], _times(data, r, g), s,
-                                          data.shift(s) + value)
+        return _sensor_prediction(data, cand, value)
 
     def m2ll_of(value: float) -> float:
         e = data.meas[s] - data.stack(nominal, s, pred_for(value))
@@ -247,6 +242,17 @@ def _excited(data: Data, nominal, cand: Candidate) -> bool:
     if cand.cause == "sensor_gain":
         return bool(np.sqrt(np.mean(p * p)) > 10.0 * res)  # size, in resolution steps
     return bool(np.std(np.diff(p)) > 10.0 * res)  # change from tick to tick, in resolution steps
+
+
+def _sensor_prediction(data: Data, cand: Candidate, value: float):
+    """``(item, run, segment) -> prediction`` of the candidate's signal with its sensor
+    fault at ``value``, from the nominal re-simulation's item (non-drive signals only)."""
+    s = cand.signal
+    if cand.cause == "sensor_offset":
+        return lambda item, r, g: item["pred"][s] + value
+    if cand.cause == "sensor_gain":
+        return lambda item, r, g: item["pred"][s] * value
+    return lambda item, r, g: _sample(item["t"], item["streams"][s], _times(data, r, g), s, data.shift(s) + value)
 
 
 def _times(data: Data, r: int, s: int) -> np.ndarray:
@@ -452,14 +458,7 @@ def _sims_for(fit: Fit, nominal, sims_of, data: Data):
     c = fit.candidate
     if not c.needs_sim:
         s = c.signal
-
-        def patched(item, r, g):
-            if c.cause == "sensor_offset":
-                return item["pred"][s] + fit.estimate
-            if c.cause == "sensor_gain":
-                return item["pred"][s] * fit.estimate
-            return _sample(item["t"], item["streams"][s], _times(data, r, g), s, data.shift(s) + fit.estimate)
-
+        patched = _sensor_prediction(data, c, fit.estimate)
         out = []
         for r, per_run in enumerate(nominal):
             row = []
