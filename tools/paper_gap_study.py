@@ -97,7 +97,7 @@ def _median(fits: list[dict[str, Any]]) -> dict[str, Any]:
         return float(np.median([f[part][key] for f in fits]))
 
     return {"train_r2": med("train", "r2"), "test_r2": med("test", "r2"), "test_mae_nm": med("test", "mae_nm"),
-            "test_r2_runs": [round(f["test"]["r2"], 4) for f in fits],
+            "test_r2_per_seed": [round(f["test"]["r2"], 4) for f in fits],
             "epochs": int(np.median([f["epochs"] for f in fits])),
             "fit_s": float(np.median([f["seconds"] for f in fits]))}
 
@@ -153,7 +153,7 @@ def _markdown(res: dict[str, Any]) -> str:
     for e in ex:
         m = e["result"]
         out.append(f"| {e['label']} | {e['inputs']} | {e['network']} | {m['train_r2']:.3f} | {m['test_r2']:.3f} | "
-                   f"{m['test_mae_nm']:.2f} | {', '.join(f'{v:.3f}' for v in m['test_r2_runs'])} | {m['epochs']} "
+                   f"{m['test_mae_nm']:.2f} | {', '.join(f'{v:.3f}' for v in m['test_r2_per_seed'])} | {m['epochs']} "
                    f"| {m['runs_r2']:.3f} / {m['runs_mae_nm']:.2f} |")
     base = ex[0]["result"]["test_r2"]
     gains = sorted(((e["result"]["test_r2"] - base, e["label"]) for e in ex[1:]), reverse=True)
