@@ -102,14 +102,10 @@ def _median(fits: list[dict[str, Any]]) -> dict[str, Any]:
             "fit_s": float(np.median([f["seconds"] for f in fits]))}
 
 
-def _r2(Y: np.ndarray, P: np.ndarray) -> float:
-    from sklearn.metrics import r2_score
-
-    return float(r2_score(Y, P)) if len(Y) > 1 else float("nan")
-
-
 def _anatomy(ds, test: np.ndarray, P: np.ndarray) -> dict[str, Any]:
     """Where the test error sits (squared error is what R2 counts)."""
+    from virtsensor.training import metrics
+
     Y = ds.Y[test]
     E = P - Y
     se = (E ** 2).sum(axis=1)
@@ -123,9 +119,9 @@ def _anatomy(ds, test: np.ndarray, P: np.ndarray) -> dict[str, Any]:
     meta_man = np.array([m.get("manoeuvre", "?") for m in ds.meta])[ds.groups[test]]
 
     def group(mask: np.ndarray) -> dict[str, Any]:
+        m = metrics(Y[mask], P[mask])
         return {"rows": int(mask.sum()), "row_share": float(mask.mean()), "sse_share": float(se[mask].sum() / sse),
-                "sat_std_nm": float(Y[mask].std(axis=0).mean()), "mae_nm": float(np.abs(E[mask]).mean()),
-                "r2": float(np.mean([_r2(Y[mask, j], P[mask, j]) for j in range(Y.shape[1])]))}
+                "sat_std_nm": float(Y[mask].std(axis=0).mean()), "mae_nm": m["mae_nm"], "r2": m["r2"]}
 
     return {
         "mae_nm": float(np.abs(E).mean()), "rmse_nm": float(np.sqrt((E ** 2).mean())),
@@ -228,18 +224,17 @@ def main(argv: list[str] | None = None) -> int:
     # longest fits first, so the short ones fill the workers at the end
     jobs.sort(key=lambda j: -sum(experiments[j[0]][3].get("hidden_layer_sizes", (32, 12))))
 
-    def run(i: int, s: int, split: str) -> tuple[int, int, str, dict[str, Any]]:
+    def task(i: int, s: int, split: str):
         _, key, cols, over = experiments[i]
-        d = data[key]
-        tr, te = splits[key][split]
-        return i, s, split, _fit(d.X[:, cols], d.Y, tr, te, {**PAPER_PARAMS, **over}, s)
+        # the arrays go to the workers as arguments, which joblib memory-maps, not inside a closure
+        return delayed(_fit)(data[key].X[:, cols], data[key].Y, *splits[key][split], {**PAPER_PARAMS, **over}, s)
 
     fits: dict[int, list[dict[str, Any]]] = {i: [] for i in range(len(experiments))}
     held_out: dict[int, dict[str, Any]] = {}
     preds: dict[int, np.ndarray] = {}
     with tqdm(total=len(jobs), desc="fits", unit="fit") as bar:
-        for i, s, split, f in Parallel(n_jobs=args.n_jobs, return_as="generator_unordered")(
-                delayed(run)(*job) for job in jobs):
+        results = Parallel(n_jobs=args.n_jobs, return_as="generator")(task(*job) for job in jobs)
+        for (i, s, split), f in zip(jobs, results, strict=True):
             pred = f.pop("pred")
             if split == "runs":
                 held_out[i] = f
@@ -255,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
         "experiments": [{"label": label, "data": key,
                          "inputs": "12 of Table II" + (" + steering rate, acceleration" if len(cols) > 12 else ""),
                          "network": str(tuple((PAPER_PARAMS | over)["hidden_layer_sizes"])),
-                         "params": {k: v for k, v in over.items()},
+                         "params": dict(over),
                          "result": {**_median(fits[i]), "runs_r2": held_out[i]["test"]["r2"],
                                     "runs_mae_nm": held_out[i]["test"]["mae_nm"]},
                          "fits": fits[i], "runs_held_out": held_out[i]}
