@@ -96,6 +96,9 @@ def simulate_batch(
 
     half = 0.5 * dt
     j = 0
+    # per run, the first recorded sample after which it is no longer a test; kept up to date
+    # sample by sample, so no step rescans the recorded history
+    aborted_at = np.full(B, n_rec)
     plan_end = np.array([p.n for p in plans])
     for k in range(n_ctl):
         x_prev = x
@@ -105,6 +108,7 @@ def simulate_batch(
             k1, aux = veh.derivatives(x, u)
             if s == 0 and k % rec_every == 0:
                 _record(rec, j, x, aux, u, drv, veh)
+                aborted_at = _update_abort(aborted_at, rec, j, n_rec)
                 j += 1
             veh.commit(aux)
             if k == n_ctl - 1:
@@ -117,18 +121,18 @@ def simulate_batch(
             bad = ~np.all(np.isfinite(x), axis=1)
             # a run that has already ended (spun, stopped, or past its own plan in a longer
             # batch) is no longer a test: its state is frozen; anywhere else it is an error
-            ended = (_abort_index(_head(rec, j), j) < j) | (k >= plan_end)
+            ended = (np.maximum(aborted_at, 1) < j) | (k >= plan_end)
             if np.any(bad & ~ended):
                 names = ", ".join(f"{plans[i].name}{plans[i].label}" for i in np.flatnonzero(bad & ~ended)[:3])
                 raise FloatingPointError(f"simulation diverged at t={k * CONTROL_DT:.2f} s in run(s) {names}")
             x = np.where(bad[:, None], x_prev, x)
         if progress is not None and (k % 100 == 0 or k == n_ctl - 1):
             progress(k + 1)
-        if k % 100 == 99 and _all_aborted(rec, j):
+        if k % 100 == 99 and np.all(np.maximum(aborted_at, 1) < j):
             break  # every run has ended (stopped or spun): nothing left to simulate
     time_s = np.arange(n_rec) * (rec_every * CONTROL_DT)
     n_valid = np.array([min(n_rec, (p.n - 1) // rec_every + 1) for p in plans])
-    n_valid = np.minimum(np.minimum(n_valid, j), _abort_index(_head(rec, j), j))
+    n_valid = np.minimum(np.minimum(n_valid, j), np.maximum(aborted_at, 1))
     return BatchResult(time_s, rec, n_valid, plans, params)
 
 
@@ -137,20 +141,15 @@ ABORT_SPEED_MPS = 3.0
 ABORT_SIDESLIP_RAD = np.deg2rad(30.0)
 
 
-def _abort_index(rec: Mapping[str, np.ndarray], n_rec: int) -> np.ndarray:
-    """Per run, the first recorded sample after which the run is no longer a test (stop or spin)."""
-    vx = rec["vx_true_mps"]
-    bad = (vx < ABORT_SPEED_MPS) | (np.abs(np.arctan2(rec["vy_mps"], np.abs(vx))) > ABORT_SIDESLIP_RAD)
-    first = np.where(bad.any(axis=1), bad.argmax(axis=1), n_rec)
-    return np.maximum(first, 1)
+def _update_abort(aborted_at: np.ndarray, rec: Mapping[str, np.ndarray], j: int, never: int) -> np.ndarray:
+    """``aborted_at`` with recorded sample ``j`` taken into account.
 
-
-def _all_aborted(rec: Mapping[str, np.ndarray], j: int) -> bool:
-    return bool(np.all(_abort_index(_head(rec, j), j) < j))
-
-
-def _head(rec: Mapping[str, np.ndarray], j: int) -> dict[str, np.ndarray]:
-    return {"vx_true_mps": rec["vx_true_mps"][:, :j], "vy_mps": rec["vy_mps"][:, :j]}
+    Per run, the first recorded sample at which the run is no longer a test (stopped or
+    spinning), or ``never``. Callers use ``max(aborted_at, 1)``: a run keeps its first sample.
+    """
+    vx, vy = rec["vx_true_mps"][:, j], rec["vy_mps"][:, j]
+    bad = (vx < ABORT_SPEED_MPS) | (np.abs(np.arctan2(vy, np.abs(vx))) > ABORT_SIDESLIP_RAD)
+    return np.where((aborted_at == never) & bad, j, aborted_at)
 
 
 def _record(rec: dict[str, np.ndarray], j: int, x: np.ndarray, aux: Mapping[str, np.ndarray],

@@ -162,3 +162,22 @@ def test_sat_peaks_before_lateral_force_and_falls_with_mu_in_the_car(car):
         assert -run["alpha_fr"][i_sat] < -run["alpha_fr"][i_fy]
         peaks.append(sat.max())
     assert peaks[1] < 0.8 * peaks[0]
+
+
+def test_abort_sample_is_the_first_stop_or_spin_and_stays():
+    """The engine keeps, per run, the first recorded sample at which the run stopped
+    (< 3 m/s) or spun (sideslip > 30 deg); later samples never move it."""
+    from sim.engine import _update_abort
+
+    n = 6
+    vx = np.array([[20.0, 20.0, 2.0, 20.0, 20.0, 20.0],   # stops at sample 2
+                   [20.0, 20.0, 20.0, 20.0, 20.0, 20.0],  # spins at sample 3 (vy = vx: 45 deg)
+                   [20.0, 20.0, 20.0, 20.0, 20.0, 20.0]])  # a test to the end
+    vy = np.zeros_like(vx)
+    vy[1, 3:] = 20.0
+    vy[2, :] = 5.0  # 14 deg: not a spin
+    rec = {"vx_true_mps": vx, "vy_mps": vy}
+    at = np.full(3, n)
+    for j in range(n):
+        at = _update_abort(at, rec, j, n)
+    assert at.tolist() == [2, 3, n]
