@@ -218,21 +218,22 @@ def _sensor(model: Any, matrix: Any, bus: Any, **kw: Any) -> Any:
     return VirtualSensor(bus, model, matrix, **kw)
 
 
-def _sync_rig(model: Any, matrix: Any) -> tuple[Any, Any, Any, int]:
-    """A sync-mode daemon on a fresh virtual channel, driven from this thread, and a listener
-    on the same channel: ``(daemon's bus, listener, daemon, SAT_FRONT id)``."""
+def _sync_rig(model: Any, matrix: Any) -> tuple[str, Any, Any, int]:
+    """A sync-mode daemon on a fresh virtual channel (driven from this thread, or started) and a listener
+    on the same channel: ``(channel, listener, daemon, SAT_FRONT id)``. The daemon owns its bus
+    (``stop()`` shuts it down); the channel lets a caller add its own buses."""
     import can
 
     ch = _virtual_channel()
     bus = can.Bus(interface="virtual", channel=ch)
     listener = can.Bus(interface="virtual", channel=ch)
     vs = _sensor(model, matrix, bus, sync_id=SYNC_ID)
-    return bus, listener, vs, vs.matrix.messages["SAT_FRONT"].frame_id
+    return ch, listener, vs, vs.matrix.messages["SAT_FRONT"].frame_id
 
 
 def measure_stages(model: Any, matrix: Any, inputs: Inputs, n_ticks: int) -> tuple[dict[str, Any], np.ndarray]:
     """Per-stage times (us) of a sync-mode daemon driven in this thread; also returns the feature vectors."""
-    bus, listener, vs, sat_id = _sync_rig(model, matrix)
+    _, listener, vs, sat_id = _sync_rig(model, matrix)
     pc = time.perf_counter_ns
     rec: dict[str, list[float]] = {"decode": [], "feature_vector": [], "inference": [], "encode": [], "send": []}
     xs: list[np.ndarray] = []
@@ -299,12 +300,8 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
     """Last input frame sent -> SAT_FRONT received, daemon started (receive thread) on the virtual bus."""
     import can
 
-    ch = _virtual_channel()
-    bus = can.Bus(interface="virtual", channel=ch)
+    ch, listener, vs, sat_id = _sync_rig(model, matrix)
     tx = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True)
-    listener = can.Bus(interface="virtual", channel=ch)
-    vs = _sensor(model, matrix, bus, sync_id=SYNC_ID)
-    sat_id = vs.matrix.messages["SAT_FRONT"].frame_id
     lat: list[float] = []
     lost = 0
     pc = time.perf_counter_ns
@@ -523,7 +520,7 @@ def run_soak(model: Any, matrix: Any, inputs: Inputs, n_ticks: int,
              progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """``n_ticks`` ticks as fast as possible (sync mode, this thread): compute of every tick, missed ticks,
     RSS every 1,000 ticks, ticks/s."""
-    bus, listener, vs, sat_id = _sync_rig(model, matrix)
+    _, listener, vs, sat_id = _sync_rig(model, matrix)
     ring = vs._cmp_us
     rn = ring.shape[0]
     compute = np.empty(n_ticks)

@@ -30,33 +30,40 @@ from virtsensor.e2e import _TABLE, CRC8_XOROUT, E2EReceiver, E2EStatus
 
 __all__ = ["compile_decoder", "compile_encoder", "compile_receiver", "crc_ok_expr", "raw_expr"]
 
+#: ``E2EStatus`` -> its counter name (``e2e_ok``...), for the generated receivers and the daemon's counters.
 _STATUS_KEYS = {s: f"e2e_{s.name.lower()}" for s in E2EStatus}
 
 
-def raw_expr(start: int, length: int, signed: bool, var: str = "v") -> str:
-    """Python expression of a signal's raw integer from the payload read as one little-endian int ``var``.
+def raw_expr(start: int, length: int, signed: bool) -> str:
+    """Python expression of a signal's raw integer from the payload read as one little-endian int ``v``.
 
     Signed raws use ``(u ^ s) - s`` with ``s`` the sign bit: two's complement without a branch.
     """
     if not 0 < length <= 64 or start < 0:
         raise ValueError(f"bad bit field start={start} length={length}")
     mask = (1 << length) - 1
-    u = f"({var} >> {start}) & {mask:#x}" if start else f"{var} & {mask:#x}"
+    u = f"(v >> {start}) & {mask:#x}" if start else f"v & {mask:#x}"
     if signed:
         sign = 1 << (length - 1)
         return f"((({u}) ^ {sign:#x}) - {sign:#x})"
     return f"({u})"
 
 
-def crc_ok_expr(seed: int, length: int, prefix: str = "b") -> str:
-    """Expression that is True when byte 0 (``{prefix}0``) is the CRC-8/SAE-J1850 of the message's data-ID
-    seed followed by bytes 1..length-1 (locals ``{prefix}1``...), one table look-up per byte, unrolled."""
-    if length < 2:
-        raise ValueError("an E2E-protected payload has at least 2 bytes")
+def _crc_chain(seed: int, length: int) -> str:
+    """The unrolled table-driven CRC-8/SAE-J1850 register over the data-ID ``seed`` then the locals
+    ``b1``..``b{length-1}`` (one look-up in ``T`` per byte), before the final XOR."""
     e = f"{seed:#04x}"
     for i in range(1, length):
-        e = f"T[{e} ^ {prefix}{i}]"
-    return f"({e} ^ {CRC8_XOROUT:#04x}) == {prefix}0"
+        e = f"T[{e} ^ b{i}]"
+    return e
+
+
+def crc_ok_expr(seed: int, length: int) -> str:
+    """Expression that is True when byte 0 (``b0``) is the CRC-8/SAE-J1850 of the message's data-ID
+    seed followed by bytes 1..length-1 (locals ``b1``...), one table look-up per byte, unrolled."""
+    if length < 2:
+        raise ValueError("an E2E-protected payload has at least 2 bytes")
+    return f"({_crc_chain(seed, length)} ^ {CRC8_XOROUT:#04x}) == b0"
 
 
 def _check_signal(message_name: str, s: Any) -> None:
@@ -133,9 +140,7 @@ def compile_encoder(message: Any) -> Callable[[Any, int], bytes]:
                   f"        r = {lo} if x <= {lo} else {hi} if x >= {hi} else round(x)",
                   f"    p |= (r & {s.mask:#x}) << {int(s.start)}"]
     lines.append(f"    {', '.join(f'b{i}' for i in range(1, L))}, = p.to_bytes({L}, 'little')[1:]")
-    crc = f"{int(message.seed):#04x}"
-    for i in range(1, L):
-        crc = f"T[{crc} ^ b{i}]"
+    crc = _crc_chain(int(message.seed), L)
     lines.append(f"    return bytes(({crc} ^ {CRC8_XOROUT:#04x}, {', '.join(f'b{i}' for i in range(1, L))}))")
     return _compile("\n".join(lines) + "\n", fn, {"T": _TABLE})
 
@@ -192,12 +197,11 @@ def compile_receiver(
         "    st = check(b1 & 15, True, t)",
         "    if st is OK:",
         "        counters['e2e_ok'] += 1",
-        "    elif st is INITIAL or st is OKSOMELOST:",
-        "        counters[KEYS[st]] += 1",
         "    else:",
         "        counters[KEYS[st]] += 1",
-        f"        errors[{j}] = True",
-        "        return",
+        "        if st is not INITIAL and st is not OKSOMELOST:",
+        f"            errors[{j}] = True",
+        "            return",
         f"    last_ok[{j}] = t",
     ]
     if slots:
@@ -223,6 +227,7 @@ def compile_receiver(
                   f"{ind}    flags[{i}] = True",
                   f"{ind}    counters['implausible_values'] += 1"]
     src = "\n".join(lines) + "\n"
+    # "inf": the repr of an unbounded range (a signal without a catalogue range) in the bounds above
     env = {"T": _TABLE, "check": receiver.check, "counters": counters, "errors": errors, "last_ok": last_ok,
            "values": values, "times": times, "flags": flags, "KEYS": _STATUS_KEYS, "OK": E2EStatus.OK,
            "INITIAL": E2EStatus.INITIAL, "OKSOMELOST": E2EStatus.OKSOMELOST, "inf": float("inf")}

@@ -17,9 +17,11 @@ catalogue's units.
 Two implementations:
 
 * :class:`SampleHoldStore` — the online store, updated per frame and sampled
-  per tick (:meth:`SampleHoldStore.sample`); the daemon keeps the same store
-  as plain lists written by its generated per-message receivers
-  (:func:`virtsensor.fastdecode.compile_receiver`, tested against this path);
+  per tick (:meth:`SampleHoldStore.sample`); the daemon keeps the same
+  sample-and-hold semantics in plain lists written by its generated per-message
+  receivers (:func:`virtsensor.fastdecode.compile_receiver`; ``tests/test_fastdecode.py``
+  checks those against a reference receive path built on ``CanMatrix.decode``,
+  not against this class);
 * :func:`to_table` — replays a whole log; the default vectorised path uses one
   ``np.searchsorted`` per signal, ``online=True`` drives the store frame by
   frame (the tests check both agree exactly).

@@ -52,8 +52,11 @@ or jumping counter) since the previous tick. Then per wheel:
 * ``VALID`` (0) otherwise.
 
 Real-time hygiene: every array and list the tick touches is allocated at start-up and
-reused (slice assignment, preallocated ``can.Message`` objects); after start-up
-the heap is ``gc.freeze()``-d and the cyclic GC is disabled during the tick;
+reused (slice assignment, preallocated ``can.Message`` objects), with one small exception:
+the snapshot ``self._vals[:] = self._rx_vals`` assigns the receivers' Python list of input
+values to a numpy array, so numpy converts that list (one float per input signal) into a
+temporary array each tick. After start-up the heap is ``gc.freeze()``-d and the cyclic GC
+is disabled during the tick;
 onnxruntime runs with one thread and no spinning. Optional CPU affinity
 (``os.sched_setaffinity``) and ``SCHED_FIFO`` (``os.sched_setscheduler``) are
 applied where permitted, logged and skipped otherwise.
@@ -85,7 +88,7 @@ from virtsensor import signals as cat
 from virtsensor.can_codec import CanMatrix
 from virtsensor.e2e import E2EStatus
 from virtsensor.errors import UserError
-from virtsensor.fastdecode import compile_encoder, compile_receiver
+from virtsensor.fastdecode import _STATUS_KEYS, compile_encoder, compile_receiver
 from virtsensor.features import TICK_S, FeatureBuilder, FeatureSpec
 
 __all__ = [
@@ -108,18 +111,19 @@ STATUS_NAMES = {VALID: "VALID", DEGRADED: "DEGRADED", INVALID: "INVALID", INIT: 
 
 #: Tick period (ns): the feature spec's 20 Hz.
 TICK_NS = round(TICK_S * 1e9)
-#: Sleep until this long before a deadline, then spin (s). 0: sleep to the deadline. A 1 ms spin gave a
-#: wake-up lateness p50 of ~0.05 us but cost 2 % of a core at 20 Hz; sleeping costs ~0.1 % and wakes ~0.1 ms
-#: late (timer slack plus the scheduler's wake-up latency), well inside the 50 ms period.
+#: Sleep until this long before a deadline, then spin (s). 0: sleep to the deadline. Spinning buys punctuality
+#: with CPU: it busy-waits SPIN_S of every 50 ms tick (by arithmetic, 1 ms would be 2 % of a core; the bench
+#: reports it as ``free_running.spin_budget_percent``), whereas a sleep wakes late only by the timer slack plus
+#: the scheduler's wake-up latency, which ``virtsensor bench`` measures as ``jitter_us``.
 SPIN_S = 0.0
 #: Timer slack of the tick thread (ns, Linux ``PR_SET_TIMERSLACK``; the default 50 us lets the kernel wake a
-#: sleeper up to 50 us late to batch timers). 1 ns halved the median wake-up lateness here (~160 -> ~80 us).
+#: sleeper up to 50 us late to batch timers). 1 ns asks the kernel for (next to) no such slack, so the wake-up
+#: lateness (``jitter_us`` of ``virtsensor bench``) is left with the scheduler's own latency.
 TIMER_SLACK_NS = 1
 #: ``bus.recv`` timeout of the receive thread (s): bounds the shutdown time.
 RECV_TIMEOUT_S = 0.02
 #: Catalogue output -> (estimate, status) signal of SAT_FRONT.
 OUTPUT_SIGNALS = {"sat_fl_nm": ("SAT_FL", "SAT_FL_Status"), "sat_fr_nm": ("SAT_FR", "SAT_FR_Status")}
-_STATUS_KEYS = {s: f"e2e_{s.name.lower()}" for s in E2EStatus}
 
 log = logging.getLogger("virtsensor.runtime")
 
@@ -342,7 +346,7 @@ class _Payload(bytearray):
     """The data of the daemon's preallocated output frames: a ``bytearray`` that deep-copies as one C call.
 
     python-can's ``virtual`` bus deep-copies every sent message once per receiving bus; a plain bytearray
-    goes through ``copy._reconstruct`` (~3.5 us). Other interfaces only read the bytes.
+    goes through the generic ``copy._reconstruct`` path. Other interfaces only read the bytes.
     """
 
     __slots__ = ()
@@ -526,7 +530,7 @@ class VirtualSensor:
         self._io_lock = threading.Lock()
         self._bus = bus
         # the sample-and-hold store (the semantics of frontend.SampleHoldStore) as plain lists, written per frame
-        # by the generated receivers (a list store costs ~20 ns, a numpy scalar store ~100 ns)
+        # by the generated receivers (a list item store avoids numpy's per-scalar conversion)
         self._rx_vals: list[float] = [math.nan] * n  # latest usable value per input signal
         self._rx_times: list[float] = [-math.inf] * n  # its receive time
         self._rx_flag: list[bool] = [False] * n  # SNA / implausible in the latest intact frame
@@ -554,7 +558,8 @@ class VirtualSensor:
         self._health_values: dict[str, float] = {"VS_TickOverruns": 0, "VS_TickLatency": 0,
                                                  "VS_InputStatus": 0, "VS_ModelId": self.model_id}
         sat_m, health_m = self.matrix.messages["SAT_FRONT"], self.matrix.messages["VS_Health"]
-        # generated encoders: byte for byte CanMatrix.encode, ~40 % cheaper
+        # generated encoders: byte for byte CanMatrix.encode (tests/test_fastdecode.py), with the
+        # message's layout unrolled instead of looked up per signal
         self._encode_sat = compile_encoder(sat_m)
         self._encode_health = compile_encoder(health_m)
         self._sat_msg = can.Message(arbitration_id=sat_m.frame_id, is_extended_id=False, dlc=sat_m.length,
