@@ -87,10 +87,6 @@ class Effect:
     tolerance: tuple[float, float]
     sign: int = 0
 
-    def overrides(self, value: float, params: Mapping[str, Any], signal: str | None = None) -> dict[str, Any]:
-        """Parameter overrides that give the car this effect at ``value``."""
-        return effect_overrides(self.cause, value, params, signal)
-
     def within_tolerance(self, estimate: float, truth: float) -> bool:
         """Whether ``estimate`` is within the stated tolerance of ``truth``."""
         a, r = self.tolerance

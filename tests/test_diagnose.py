@@ -216,3 +216,11 @@ def test_hidden_label_never_lands_next_to_the_runs(tmp_path):
     header = (tmp_path / "run01.csv").read_text().splitlines()[0].split(",")
     assert header == ["time_s", *cat.INPUTS, "sat_fl_nm", "sat_fr_nm"]
     assert case.hidden.cause == "sensor_offset"
+
+
+def test_sensor_effects_cover_exactly_the_catalogue_inputs():
+    """sim/ keeps its own list (it does not import virtsensor); it must stay the catalogue's 12 inputs."""
+    from sim.effects import SENSOR_SIGNALS
+    from virtsensor import signals as cat
+
+    assert SENSOR_SIGNALS == cat.INPUTS

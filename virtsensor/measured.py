@@ -35,8 +35,8 @@ from virtsensor.errors import UserError
 
 RATE_HZ = cat.TABLE_RATE_HZ
 TICK_S = 1.0 / RATE_HZ
-#: signals a measured run must carry: the 12 inputs and the reference SATs
-NEEDED: tuple[str, ...] = (*cat.INPUTS, *cat.OUTPUTS)
+#: signals a measured run must carry: the 12 inputs and the reference SATs (the canonical table but time_s)
+NEEDED: tuple[str, ...] = cat.TABLE_COLUMNS[1:]
 MDF_SUFFIXES = (".mf4", ".mdf")
 LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc")
 TABLE_SUFFIXES = (".csv",)
@@ -222,7 +222,8 @@ def _check_units(path: Path, table: Mapping[str, np.ndarray]) -> None:
 def _segments(path: Path, table: dict[str, np.ndarray], needed: Sequence[str]
               ) -> tuple[dict[str, np.ndarray], list[Segment], list[tuple[float, float]], list[str]]:
     """Put the run on a regular tick grid (missing ticks become NaN rows), find gaps
-    (any needed signal non-finite), cut segments between them."""
+    (any needed signal non-finite), cut segments between them (none: no stretch
+    long enough to re-simulate, the caller decides)."""
     t = table["time_s"]
     k = np.round((t - t[0]) / TICK_S).astype(np.int64)
     if np.any(np.diff(k) <= 0):
@@ -251,8 +252,6 @@ def _segments(path: Path, table: dict[str, np.ndarray], needed: Sequence[str]
     bad_edges = np.flatnonzero(np.diff(np.concatenate([[0], (~good).astype(np.int8), [0]])))
     for a, b in zip(bad_edges[::2], bad_edges[1::2], strict=True):
         gaps.append((float(full["time_s"][a]), float(full["time_s"][b - 1] + TICK_S)))
-    if not segs:
-        raise UserError(f"{path}: no stretch of at least {MIN_SEGMENT_S:g} s without gaps in the needed signals")
     return full, segs, gaps, notes
 
 
@@ -274,12 +273,12 @@ def load_measured(paths: Iterable[str | Path], needed: Sequence[str] = NEEDED,
         _check_rate(path, t)
         table = {k: np.asarray(v, dtype=float) for k, v in table.items()}
         _check_units(path, table)
-        try:
-            full, segs, gaps, notes = _segments(path, table, needed)
-        except UserError as exc:
-            if skipped is None or "no stretch" not in str(exc):
-                raise
-            skipped.append((str(path), str(exc).split(": ", 1)[1]))
+        full, segs, gaps, notes = _segments(path, table, needed)
+        if not segs:
+            why = f"no stretch of at least {MIN_SEGMENT_S:g} s without gaps in the needed signals"
+            if skipped is None:
+                raise UserError(f"{path}: {why}")
+            skipped.append((str(path), why))
             continue
         full["time_s"] = full["time_s"] - full["time_s"][0]
         runs.append(MeasuredRun(path.stem, path, full, segs, gaps, notes))

@@ -52,8 +52,9 @@ def diagnose(
 
     Returns:
         ``(result, artefacts)``: the JSON-able result (keys of issue 7) and the
-        objects the report draws (identification, comparison, estimators).
+        objects the report draws (comparison, estimators).
     """
+    from sim.effects import with_effect
     from virtsensor.diagnose import calibrate
     from virtsensor.diagnose.compare import compare
     from virtsensor.diagnose.identify import identify
@@ -72,7 +73,7 @@ def diagnose(
         "unit": _unit(best) if best else None,
         "nominal": best.candidate.nominal if best else None,
         "variance_explained": best.variance_explained if best else 0.0,
-        "signature": _signature(best, idn) if best else _residual_signature(idn),
+        "signature": _signature(best) if best else _residual_signature(idn),
         "candidates": [f.as_dict() for f in idn.fits],
         "n_eff_factor": idn.n_eff_factor,
         "message_shifts_s": idn.shifts,
@@ -83,9 +84,9 @@ def diagnose(
         "simulations": idn.simulations,
         "seconds_identify": t_id,
     }
-    comparison = compare(runs, idn, base, names)
+    comparison = compare(runs, idn, names)
     result["comparison"] = comparison.as_dict()
-    art: dict[str, Any] = {"identification": idn, "comparison": comparison, "names": names}
+    art: dict[str, Any] = {"comparison": comparison}
     if not retrain:
         return result, art
     if before is None:
@@ -95,7 +96,7 @@ def diagnose(
     after = before
     if best is not None:
         log(f"calibrating the simulator ({best.candidate.key} = {best.estimate:.4g}) and retraining")
-        cal = calibrate.calibrated_params(base, best.candidate.cause, best.estimate, best.candidate.signal)
+        cal = with_effect(base, best.candidate.cause, best.estimate, best.candidate.signal)
         after = calibrate.train(cal, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
                                 ensemble=ensemble)
     art.update(before=before, after=after)
@@ -107,7 +108,7 @@ def diagnose(
         "simulated": calibrate.score(before, _as_simulated(runs, idn.nominal_sims, names)),
     }
     if holdout:
-        sb, sa = calibrate.score(before, holdout), calibrate.score(after, holdout)
+        sb, sa = calibrate.scores([before, after], holdout)
         result.update(mae_before_nm=sb["mae_nm"], mae_after_nm=sa["mae_nm"], r2_before=sb["r2"], r2_after=sa["r2"],
                       holdout_before=sb, holdout_after=sa)
     else:
@@ -127,7 +128,7 @@ def _unit(fit) -> str:
     return EFFECTS[c.cause].unit
 
 
-def _signature(fit, idn) -> dict[str, Any]:
+def _signature(fit) -> dict[str, Any]:
     """Where the effect shows: the signals whose misfit it explains most."""
     top = sorted(fit.per_signal.items(), key=lambda kv: -kv[1])[:4]
     return {"explains": {k: round(v, 4) for k, v in top if v > 0.01}}

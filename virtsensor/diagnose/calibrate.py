@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 
-from sim.effects import with_effect
 from virtsensor import signals as cat
 from virtsensor.dataset import Run, build_dataset
 from virtsensor.features import SPECS
@@ -25,18 +24,13 @@ from virtsensor.measured import MeasuredRun
 from virtsensor.training import RECIPES, make_pipeline, metrics
 
 
-def _table(run) -> dict[str, np.ndarray]:
-    from virtsensor.commands.simulate import run_table
-
-    return run_table(run)
-
-
 def campaign_runs(params: Mapping[str, Any], preset: str, seed: int, n_jobs: int) -> list[Run]:
     """The canonical tables of a campaign preset simulated with ``params``."""
     from sim.campaign import PRESETS, run_campaign
+    from virtsensor.commands.simulate import run_table
 
     requests = PRESETS[preset](seed)
-    tables = run_campaign(requests, params, n_jobs=n_jobs, writer=_table, progress=False)
+    tables = run_campaign(requests, params, n_jobs=n_jobs, writer=run_table, progress=False)
     return [Run(f"{r.manoeuvre}-{r.speed_kmh:g}-{r.mu:g}-{r.seed}", t, {"manoeuvre": r.manoeuvre, "mu": r.mu})
             for r, t in zip(requests, tables, strict=True)]
 
@@ -127,28 +121,29 @@ def merge_ensemble(pipelines: Sequence[Any]) -> Any:
     return out
 
 
-def calibrated_params(base: Mapping[str, Any], cause: str, value: float, signal: str | None) -> dict[str, Any]:
-    """The simulator's car with the identified effect."""
-    return with_effect(base, cause, value, signal)
-
-
 def measured_matrix(runs: Sequence[MeasuredRun], spec_name: str) -> tuple[np.ndarray, np.ndarray]:
     """Feature vectors and reference SATs of measured runs, segment by segment (the
     history never spans a gap); rows that are not finite are dropped."""
-    spec = SPECS[spec_name]
-    xs, ys = [], []
-    for run in runs:
-        for seg in run.segments:
-            tab = run.segment_table(seg)
-            x = spec.transform(tab)
-            y = np.column_stack([tab[o] for o in cat.OUTPUTS])
-            ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
-            xs.append(x[ok])
-            ys.append(y[ok])
-    return np.concatenate(xs), np.concatenate(ys)
+    segments = [Run(f"{run.name}#{s}", run.segment_table(seg), path=run.path)
+                for run in runs for s, seg in enumerate(run.segments)]
+    ds = build_dataset(segments, SPECS[spec_name], cat.OUTPUTS)
+    return ds.X, ds.Y
 
 
 def score(est: Estimator, runs: Sequence[MeasuredRun]) -> dict[str, Any]:
     """R2 and MAE (Nm) of an estimator on measured runs (mean of both wheels, and per wheel)."""
-    X, Y = measured_matrix(runs, est.recipe["features"])
-    return metrics(Y, est.pipeline.predict(X))
+    return scores([est], runs)[0]
+
+
+def scores(ests: Sequence[Estimator], runs: Sequence[MeasuredRun]) -> list[dict[str, Any]]:
+    """:func:`score` of each estimator on the same runs; the feature matrix is built
+    once per distinct feature spec."""
+    matrices: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    out = []
+    for est in ests:
+        spec_name = est.recipe["features"]
+        if spec_name not in matrices:
+            matrices[spec_name] = measured_matrix(runs, spec_name)
+        X, Y = matrices[spec_name]
+        out.append(metrics(Y, est.pipeline.predict(X)))
+    return out

@@ -17,7 +17,7 @@ statistics are given for the calibrated simulator when a cause was named.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -202,7 +202,7 @@ def _series(runs: Sequence[MeasuredRun], nominal, best, names) -> list[dict[str,
     return out
 
 
-def compare(runs: Sequence[MeasuredRun], idn, base: Mapping[str, Any], names: Sequence[str]) -> Comparison:
+def compare(runs: Sequence[MeasuredRun], idn, names: Sequence[str]) -> Comparison:
     """Compare the measured runs with their nominal (and calibrated) re-simulation."""
     best = idn.best_sims if idn.best is not None else None
     return Comparison(

@@ -15,7 +15,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -40,10 +39,6 @@ class Case:
     hidden: Hidden | None
     diagnosis: list[Path]
     holdout: list[Path]
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"hidden": self.hidden.as_dict() if self.hidden else None,
-                "diagnosis": [str(p) for p in self.diagnosis], "holdout": [str(p) for p in self.holdout]}
 
 
 def make_case(seed: int, out_dir: str | Path, *, control: bool = False, causes: Sequence[str] = CAUSES,

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from sim.effects import DRIVE_SIGNALS, EFFECTS, OFFSET_RANGE, SENSOR_SIGNALS, offset_floor
+from sim.effects import CAUSES, DRIVE_SIGNALS, EFFECTS, OFFSET_RANGE, SENSOR_SIGNALS, offset_floor
 from virtsensor import signals as cat
 from virtsensor.diagnose.resim import (
     NOMINAL,
@@ -59,7 +59,8 @@ BIC_DECISIVE = 10.0
 #: sim-based candidates refined after screening, and refinement rounds
 REFINE_TOP = 3
 REFINE_ROUNDS = 4
-PHYSICAL = ("tyre_pressure", "vehicle_mass", "steering_friction", "road_friction", "relaxation_length")
+#: the physical causes (every cause but the sensor effects), in report order
+PHYSICAL = tuple(c for c in CAUSES if not c.startswith("sensor_"))
 
 
 @dataclass(frozen=True)
@@ -94,14 +95,13 @@ def candidates() -> list[Candidate]:
         step = 0.5 * (e.hidden[0] + e.hidden[1])
         log = cause == "relaxation_length"
         out.append(Candidate(cause, None, e.nominal, e.bounds, np.log(1.0 + step) if log else step, e.floor, log))
+    o, g, d = EFFECTS["sensor_offset"], EFFECTS["sensor_gain"], EFFECTS["sensor_delay"]
     for s in SENSOR_SIGNALS:
         lo, hi = OFFSET_RANGE[s]
         span = max(abs(lo), abs(hi))
-        out.append(Candidate("sensor_offset", s, 0.0, (-4 * span, 4 * span), 0.5 * (lo + hi), offset_floor(s)))
-        g = EFFECTS["sensor_gain"]
-        out.append(Candidate("sensor_gain", s, 1.0, g.bounds, 0.5 * sum(g.hidden), g.floor))
-        d = EFFECTS["sensor_delay"]
-        out.append(Candidate("sensor_delay", s, 0.0, d.bounds, 0.5 * sum(d.hidden), d.floor))
+        out.append(Candidate("sensor_offset", s, o.nominal, (-4 * span, 4 * span), 0.5 * (lo + hi), offset_floor(s)))
+        out.append(Candidate("sensor_gain", s, g.nominal, g.bounds, 0.5 * sum(g.hidden), g.floor))
+        out.append(Candidate("sensor_delay", s, d.nominal, d.bounds, 0.5 * sum(d.hidden), d.floor))
     return out
 
 
@@ -202,8 +202,7 @@ def _exact_fit(data: Data, nominal: Sequence[Sequence[Mapping[str, Any]]], cand:
 
     lo, hi = cand.bounds
     if cand.cause == "sensor_offset":
-        x = est = float(np.mean(data.meas[s] - data.stack(nominal, s)))
-        est = float(np.clip(x, lo, hi))
+        est = float(np.clip(float(np.mean(data.meas[s] - data.stack(nominal, s))), lo, hi))
     elif cand.cause == "sensor_gain":
         p = data.stack(nominal, s)
         est = float(np.clip(np.sum(data.meas[s] * p) / max(np.sum(p * p), 1e-300), lo, hi))
@@ -432,10 +431,13 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
             sims_of[(s.cand.key, h.value)] = sim
     for s in searches.values():
         v, c = s.estimate()
-        u_best, _ = s.best()
-        v_best = s.value(u_best)
-        sim = sims_of.get((s.cand.key, v)) or sims_of.get((s.cand.key, v_best)) or nominal
-        v_use = v if (s.cand.key, v) in sims_of else (v_best if (s.cand.key, v_best) in sims_of else s.cand.nominal)
+        # the estimate if it was simulated, else the best point evaluated, else the nominal car
+        for v_use in (v, s.value(s.best()[0])):
+            if (s.cand.key, v_use) in sims_of:
+                sim = sims_of[(s.cand.key, v_use)]
+                break
+        else:
+            v_use, sim = s.cand.nominal, nominal
         rss = data.rss(sim)
         fits.append(Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())]))
     # 5. scores

@@ -45,12 +45,6 @@ class Hypothesis:
     value: float = 0.0
     signal: str | None = None
 
-    def label(self) -> str:
-        if self.cause is None:
-            return "nominal"
-        on = f"[{self.signal}]" if self.signal else ""
-        return f"{self.cause}{on}={self.value:.6g}"
-
 
 NOMINAL = Hypothesis()
 
@@ -58,8 +52,8 @@ NOMINAL = Hypothesis()
 def compared_signals(runs: Sequence[MeasuredRun]) -> tuple[str, ...]:
     """Signals compared: the 12 inputs, the reference SATs and the TPMS pressures
     when every run carries them."""
-    extra = tuple(s for s in ("tyre_pressure_fl_pa", "tyre_pressure_fr_pa", "tyre_pressure_rl_pa",
-                              "tyre_pressure_rr_pa") if all(s in r.table for r in runs))
+    tpms = (n for n, s in cat.SIGNALS.items() if s.message == "TPMS_Pressures")
+    extra = tuple(s for s in tpms if all(s in r.table for r in runs))
     return (*cat.INPUTS, *cat.OUTPUTS, *extra)
 
 
