@@ -32,7 +32,7 @@ coalitions of the ``d`` features, each over the ``B`` background rows:
 ``n * 2**d * B`` model rows for ``n`` explained rows. ``shap.explainers.Exact``
 does precisely that (Gray-code order, one changed feature per step). For the
 paper's 12 features that is 500 * 4096 * 100 = 2e8 rows: about a minute with the
-single-threaded ONNX runtime (~6 M rows/s for the 12-32-12-2 network), so the
+single-threaded ONNX runtime (4-7 M rows/s for the 12-32-12-2 network, ``tools/microbench.py``), so the
 default (``method="auto"``) computes the **exact** values whenever
 ``n * 2**d * B <= EXACT_BUDGET_ROWS``. For 20-22 features (the ``history`` spec)
 it would be 256-1024 times more (hours): no model-agnostic method gives exact
