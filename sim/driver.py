@@ -124,8 +124,7 @@ class Driver:
         # a recorded speed is the ESC's: rear wheel spin times their radius at the start
         # (static load); with a recording, the loop compares like with like
         speed0 = np.array([p.speed0_mps for p in plans], dtype=float)
-        re0 = np.broadcast_to(vehicle.tyre.effective_rolling_radius(
-            vehicle.fz_static, speed0[:, None] / vehicle.R0, vehicle.pressure), (B, 4))
+        re0 = vehicle.static_rolling_radius(speed0)
         self.r_esc = 0.5 * (re0[:, 2] + re0[:, 3])
         self.motor_ff = _pad([p.motor_feedforward if p.motor_feedforward is not None else np.zeros(p.n)
                               for p in plans], self.n)

@@ -283,13 +283,16 @@ class Vehicle:
         ddelta = np.stack([(1.0 + dd) / self.ratio, (1.0 - dd) / self.ratio], axis=1)
         return delta, ddelta
 
+    def static_rolling_radius(self, speed: np.ndarray) -> np.ndarray:
+        """(B, 4) effective rolling radius (m) of each wheel at its static load, rolling at ``speed`` (m/s)."""
+        return self.tyre.effective_rolling_radius(self.fz_static, speed[:, None] / self.R0, self.pressure)
+
     def initial_state(self, speed: np.ndarray, heading: np.ndarray | float = 0.0) -> np.ndarray:
         """Straight-line steady driving at ``speed`` (m/s), springs at static height."""
         x = np.zeros((self.B, NSTATE))
         x[:, IVX] = speed
         x[:, IPSI] = heading
-        re = self.tyre.effective_rolling_radius(self.fz_static, speed[:, None] / self.R0, self.pressure)
-        x[:, IOM] = speed[:, None] / re
+        x[:, IOM] = speed[:, None] / self.static_rolling_radius(speed)
         self._fy_axle[:] = 0.0
         self._fx_total[:] = 0.0
         self._acc[:] = 0.0
