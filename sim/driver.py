@@ -212,14 +212,26 @@ class Driver:
             full = ((self.path[lost] - pos[lost, None, :]) ** 2).sum(axis=2)
             ahead = np.arange(self.path.shape[1])[None, :] < self.path_len[lost, None]
             self.idx[lost] = np.argmin(np.where(ahead, full, np.inf), axis=1)
-        near = self.path[rows, self.idx]
-        hd = self.path_heading[rows, self.idx]
-        err = -(pos[:, 0] - near[:, 0]) * np.sin(hd) + (pos[:, 1] - near[:, 1]) * np.cos(hd)
+        # the car's place along the path is continuous, not the nearest vertex: project it
+        # onto the segment before and the one after that vertex and keep the nearer foot
+        # (a vertex-quantised target jumps every path_ds / v seconds, 22 Hz at 40 km/h,
+        # and the robot passes each jump to the column as a torque kick)
+        last = self.path_len - 1
+        fwd = self._foot(pos, self.idx, np.minimum(self.idx + 1, last))
+        back = self._foot(pos, np.maximum(self.idx - 1, 0), self.idx)
+        use_fwd = fwd[2] <= back[2]
+        start = np.where(use_fwd, self.idx, np.maximum(self.idx - 1, 0))
+        frac = np.where(use_fwd, fwd[0], back[0])
+        foot = np.where(use_fwd[:, None], fwd[1], back[1])
+        hd = self.path_heading[rows, start]
+        err = -(pos[:, 0] - foot[:, 0]) * np.sin(hd) + (pos[:, 1] - foot[:, 1]) * np.cos(hd)
         self.lat_err = err  # + left of the path
         speed = np.maximum(x[:, IVX], 1.0)
         ld = np.maximum(self.preview_min, self.preview_time * speed)
-        ahead = np.minimum(self.idx + np.round(ld / self.path_ds).astype(int), self.path_len - 1)
-        tgt = self.path[rows, ahead]
+        s_tgt = np.minimum(start + frac + ld / self.path_ds, last)
+        j = np.clip(np.floor(s_tgt).astype(int), 0, np.maximum(last - 1, 0))
+        f = np.clip(s_tgt - j, 0.0, 1.0)[:, None]
+        tgt = (1.0 - f) * self.path[rows, j] + f * self.path[rows, np.minimum(j + 1, last)]
         psi = x[:, IPSI]
         dxg, dyg = tgt[:, 0] - pos[:, 0], tgt[:, 1] - pos[:, 1]
         y_local = -dxg * np.sin(psi) + dyg * np.cos(psi)
@@ -235,6 +247,14 @@ class Driver:
         delta = np.clip(delta, -limit, limit)
         vt = self.path_speed[rows, self.idx]
         return delta * v.ratio, vt
+
+    def _foot(self, pos: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Foot of ``pos`` on each run's path segment a->b: (fraction 0..1, point, squared distance)."""
+        pa, pb = self.path[self._rows, a], self.path[self._rows, b]
+        d = pb - pa
+        t = np.clip(((pos - pa) * d).sum(axis=1) / np.maximum((d * d).sum(axis=1), 1e-12), 0.0, 1.0)
+        q = pa + t[:, None] * d
+        return t, q, ((pos - q) ** 2).sum(axis=1)
 
     # ---- the control step -------------------------------------------------------------
     def update(self, k: int, x: np.ndarray) -> Inputs:

@@ -8,7 +8,7 @@ stages), the truth is recorded on the 100 Hz base grid.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -105,6 +105,8 @@ def simulate_batch(
         u = drv.update(k, x)
         for s in range(sub):
             veh.new_step()
+            t0 = s * dt - CONTROL_DT  # the robot's ramp: see Inputs.steer_lead_s
+            u = replace(u, steer_lead_s=t0)
             k1, aux = veh.derivatives(x, u)
             if s == 0 and k % rec_every == 0:
                 _record(rec, j, x, aux, u, drv, veh)
@@ -113,9 +115,10 @@ def simulate_batch(
             veh.commit(aux)
             if k == n_ctl - 1:
                 break
-            k2, _ = veh.derivatives(x + half * k1, u)
-            k3, _ = veh.derivatives(x + half * k2, u)
-            k4, _ = veh.derivatives(x + dt * k3, u)
+            u_half = replace(u, steer_lead_s=t0 + half)
+            k2, _ = veh.derivatives(x + half * k1, u_half)
+            k3, _ = veh.derivatives(x + half * k2, u_half)
+            k4, _ = veh.derivatives(x + dt * k3, replace(u, steer_lead_s=t0 + dt))
             x = x + (dt / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
         if not np.all(np.isfinite(x)):
             bad = ~np.all(np.isfinite(x), axis=1)
@@ -172,7 +175,7 @@ def _record(rec: dict[str, np.ndarray], j: int, x: np.ndarray, aux: Mapping[str,
     rec["assist_torque_true_nm"][:, j] = aux["t_assist"]
     rec["motor_torque_true_nm"][:, j] = drv.motor
     rec["road_mu"][:, j] = u.mu
-    rec["steer_angle_cmd_rad"][:, j] = u.steer_cmd
+    rec["steer_angle_cmd_rad"][:, j] = u.steer_cmd + u.steer_cmd_rate * u.steer_lead_s
     for w, src in (("alpha", "alpha"), ("kappa", "kappa"), ("fz", "fz"), ("fy", "fy"), ("fx", "fx"),
                    ("delta", "delta"), ("sat", "mz"), ("comp", "comp"), ("re", "re")):
         a = aux[src]

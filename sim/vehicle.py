@@ -70,7 +70,10 @@ MIRROR = -SIDE
 
 @dataclass
 class Inputs:
-    """Actuator inputs held constant over one integration step, shape (B,) or (B, 4).
+    """Actuator inputs of one control step, shape (B,) or (B, 4).
+
+    All are held over the step except the robot's steering reference, which
+    ramps at ``steer_cmd_rate`` (see ``steer_lead_s``).
 
     Attributes:
         steer_cmd: steering-wheel angle the robot/driver commands (rad).
@@ -79,6 +82,13 @@ class Inputs:
         drive_torque: wheel torque from the motor, per wheel (Nm, (B, 4)).
         brake_torque: brake torque magnitude per wheel (Nm, (B, 4), >= 0).
         mu: road friction coefficient under the car (B,).
+        steer_lead_s: time of the evaluation relative to the end of the control
+            step (s, -CONTROL_DT..0): the robot's reference is ``steer_cmd +
+            steer_cmd_rate * steer_lead_s``, a ramp from the previous command to
+            this one. A servo interpolates its set-points; a reference held
+            constant over the step, with the rate feed-forward saying it moves,
+            kicked the column with a 100 Hz saw-tooth (up to 190 Nm at the
+            fishhook's 720 deg/s).
     """
 
     steer_cmd: np.ndarray
@@ -87,6 +97,7 @@ class Inputs:
     drive_torque: np.ndarray
     brake_torque: np.ndarray
     mu: np.ndarray
+    steer_lead_s: float = 0.0
 
 
 @functools.lru_cache(maxsize=8)
@@ -411,8 +422,9 @@ class Vehicle:
 
         # --- steering: kingpin moments -> pinion torque ----------------------------------
         t_bar = self.k_tb * (sw - pn) + self.c_tb * (swd - pnd)
+        sw_ref = u.steer_cmd + u.steer_cmd_rate * u.steer_lead_s  # the robot's ramped reference
         t_drv = np.where(u.hands_off, 0.0,
-                         self.k_robot * (u.steer_cmd - sw) + self.c_robot * (u.steer_cmd_rate - swd))
+                         self.k_robot * (sw_ref - sw) + self.c_robot * (u.steer_cmd_rate - swd))
         drive_force = u.drive_torque[:, :2] / r_loaded[:, :2]
         side = SIDE[:2]
         m_kp = (mz[:, :2] - self.trail[:, None] * fy[:, :2]
