@@ -150,9 +150,9 @@ _COUNTERS = ("crc_errors", "dlc_errors", "sna_values", "implausible_values", *_K
 class _Reference:
     """The daemon's receive path before the generated receivers: ``CanMatrix.decode`` then bookkeeping."""
 
-    def __init__(self, name: str, slots: list[tuple[str, int]], n: int) -> None:
-        self.matrix = MATRIX.fresh()
-        self.fid = MATRIX.messages[name].frame_id
+    def __init__(self, name: str, slots: list[tuple[str, int]], n: int, matrix: CanMatrix = MATRIX) -> None:
+        self.matrix = matrix.fresh()
+        self.fid = matrix.messages[name].frame_id
         self.slots = slots
         self.values, self.times, self.flags = [math.nan] * n, [-math.inf] * n, [False] * n
         self.last_ok, self.errors = [-math.inf], [False]
@@ -248,12 +248,120 @@ def test_receiver_leaves_the_reference_state(name):
     assert math.isnan(values[0]) and times[0] == -math.inf and flags[0] is False  # untouched
 
 
-def test_receiver_source_has_the_constants_inlined():
+# A DBC that changes every constant the receivers inline: VehSpeed moved to bit 20 with another scale,
+# offset and SNA code; Pressure_FL in Pa (unit factor 1 instead of 1e-3) at another scale.
+_VEHSPEED = ' SG_ VehSpeed : 12|14@1+ (0.01,-20) [-20|90] "m/s" VSENS'
+_PRESSURE = ' SG_ Pressure_FL : 12|10@1+ (0.5,0) [0|510] "kPa" VSENS'
+_CHANGED = (
+    (_VEHSPEED, ' SG_ VehSpeed : 20|14@1+ (0.02,-30) [-20|90] "m/s" VSENS'),
+    ('VAL_ 257 VehSpeed 16383 "SNA" ;', 'VAL_ 257 VehSpeed 9000 "SNA" ;'),
+    (_PRESSURE, ' SG_ Pressure_FL : 12|10@1+ (250,0) [0|255000] "Pa" VSENS'),
+)
+_RESEEDED = (('BA_ "E2E_DataID" BO_ 257 4113;', 'BA_ "E2E_DataID" BO_ 257 4114;'),)
+
+
+def _dbc_variant(path, edits) -> CanMatrix:
+    text = DEFAULT_DBC.read_text()
+    for old, new in edits:
+        assert text.count(old) == 1, old  # the bundled DBC changed: update the edit
+        text = text.replace(old, new)
+    path.write_text(text)
+    return CanMatrix.load(path)
+
+
+def _frame(mc, body: int, counter: int) -> bytes:
+    """``mc``'s payload with the bits ``body`` (from bit 12), the alive counter and a good CRC."""
+    data = bytearray(((body << 12) | ((counter & 15) << 8)).to_bytes(mc.length, "little"))
+    data[0] = frame_crc(mc.seed, data)
+    return bytes(data)
+
+
+def _receive(matrix: CanMatrix, name: str, frames: list[bytes], msg_index: int = 2):
+    """Feed ``frames`` to the receiver compiled from ``matrix``'s ``name`` and to the reference (``decode`` of
+    the same matrix); both must leave the same state after every frame. Returns the slot values after each
+    frame (NaN: not written yet), the counters and the per-message lists."""
+    mc = matrix.messages[name]
+    slots = [(s.catalogue, k + 1) for k, s in enumerate(mc.signals) if s.catalogue]
+    n = len(slots) + 2
+    ref = _Reference(name, slots, n, matrix)
+    values, times, flags = [math.nan] * n, [-math.inf] * n, [False] * n
+    last_ok, errors = [-math.inf] * 4, [False] * 4
+    counters = dict.fromkeys(_COUNTERS, 0)
+    codec = {s.catalogue: s for s in mc.signals}
+    rx = compile_receiver(mc, matrix.fresh().receivers[name], msg_index, [(codec[c], i) for c, i in slots],
+                          values, times, flags, last_ok, errors, counters)
+    trace = []
+    for k, data in enumerate(frames):
+        t = 100.0 + k * mc.cycle_s
+        ref(data, t)
+        rx(data, t)
+        assert counters == ref.counters, (name, k, data.hex())
+        assert times == ref.times and flags == ref.flags, (name, k, data.hex())
+        assert all(a == b or (math.isnan(a) and math.isnan(b)) for a, b in zip(values, ref.values, strict=True)), (
+            name, k, data.hex(), values, ref.values)
+        assert last_ok[msg_index] == ref.last_ok[0] and errors[msg_index] == ref.errors[0], (name, k)
+        trace.append(list(values))
+    # the other messages' entries are untouched
+    assert all(x == -math.inf for i, x in enumerate(last_ok) if i != msg_index)
+    assert not any(e for i, e in enumerate(errors) if i != msg_index)
+    assert math.isnan(values[0]) and math.isnan(values[-1])
+    return trace, counters, last_ok, errors
+
+
+def test_receiver_decodes_with_the_dbc_constants(tmp_path):
+    """The receivers inline the DBC's constants: compiled from a DBC with other bit positions, scale,
+    offset, SNA code and unit factor, a receiver decodes as ``CanMatrix.decode`` of that DBC (and
+    differently from one compiled from the bundled DBC, on the very same frames)."""
+    changed = _dbc_variant(tmp_path / "changed.dbc", _CHANGED)
+    rng = random.Random(5)
+    for name in ("ESC_VehicleSpeed", "TPMS_Pressures"):
+        mc = MATRIX.messages[name]
+        assert changed.messages[name].seed == mc.seed  # same data ID: the frames pass both CRCs
+        frames = [_frame(mc, rng.getrandbits(52), k) for k in range(400)]
+        ours, c_ours, _, _ = _receive(changed, name, frames)
+        bundled, c_bundled, _, _ = _receive(MATRIX, name, frames)
+        assert c_ours["e2e_ok"] == c_bundled["e2e_ok"] == 399
+        # the same frames, other values (but raw 0 of the unsigned pressure, 0 Pa whatever the scale)
+        both = [(a[1], b[1]) for a, b in zip(ours, bundled, strict=True) if not math.isnan(a[1] + b[1])]
+        assert len(both) > 50 and all(a != b for a, b in both if a or b), name
+    # values worked out by hand from the changed DBC (slot 1 is the first signal)
     mc = MATRIX.messages["ESC_VehicleSpeed"]
-    s = mc.signals[0]
-    rx = compile_receiver(mc, MATRIX.fresh().receivers[mc.name], 3, [(s, 5)], [0.0] * 6, [0.0] * 6,
-                          [False] * 6, [0.0] * 4, [False] * 4, dict.fromkeys(_COUNTERS, 0))
-    src = rx.__source__
-    assert "values[5] = x" in src and "last_ok[3] = t" in src and f"r == {s.sna}" in src
-    assert "-20.0" in src  # the DBC offset of VehSpeed
-    assert "for " not in src  # no loop per frame
+    frames = [_frame(mc, 2000 << 8, 0),   # raw 2000 at bit 20: 2000 * 0.02 - 30 = 10 m/s
+              _frame(mc, 9000 << 8, 1),   # the changed SNA code
+              _frame(mc, 16383, 2),       # the bundled SNA code at bit 12; at bit 20 raw 63: -28.74 m/s, implausible
+              _frame(mc, 6000 << 8, 3)]   # 90 m/s: the top of the range
+    trace, counters, last_ok, _ = _receive(changed, "ESC_VehicleSpeed", frames)
+    assert [v[1] for v in trace] == pytest.approx([10.0, 10.0, 10.0, 90.0], abs=1e-12)
+    assert counters["sna_values"] == 1 and counters["implausible_values"] == 1
+    assert last_ok[2] == 100.0 + 3 * mc.cycle_s
+    trace, counters, _, _ = _receive(MATRIX, "ESC_VehicleSpeed", frames)
+    assert trace[0][1] == pytest.approx(4096 * 0.01 - 20) and counters["sna_values"] == 1  # the bundled code
+    mc = MATRIX.messages["TPMS_Pressures"]
+    trace, _, _, _ = _receive(changed, "TPMS_Pressures", [_frame(mc, 7, 0)])
+    assert trace[0][1] == pytest.approx(7 * 250.0)  # Pa: unit factor 1, not the bundled kPa's 1e-3
+    trace, _, _, _ = _receive(MATRIX, "TPMS_Pressures", [_frame(mc, 7, 0)])
+    assert trace[0][1] == pytest.approx(7 * 0.5 / 1e-3)
+
+
+def test_receiver_checks_the_crc_of_the_dbc_data_id(tmp_path):
+    """The CRC seed inlined is the DBC's data ID: frames protected with another data ID are CRC errors."""
+    reseeded = _dbc_variant(tmp_path / "reseeded.dbc", _RESEEDED)
+    name = "ESC_VehicleSpeed"
+    rng = random.Random(6)
+    bodies = [rng.getrandbits(52) for _ in range(50)]
+    for rx_matrix, tx_matrix in ((reseeded, MATRIX), (MATRIX, reseeded)):
+        good = [_frame(rx_matrix.messages[name], b, k) for k, b in enumerate(bodies)]
+        bad = [_frame(tx_matrix.messages[name], b, k) for k, b in enumerate(bodies)]
+        _, counters, last_ok, errors = _receive(rx_matrix, name, good)
+        assert counters["e2e_ok"] == 49 and counters["crc_errors"] == 0 and not errors[2]
+        _, counters, last_ok, errors = _receive(rx_matrix, name, bad)
+        assert counters["crc_errors"] >= 48 and errors[2]  # a random CRC byte matches 1 time in 256
+
+
+def test_receiver_has_no_loop_per_frame():
+    """What behaviour cannot show: the generated receiver is straight-line code (its reason to exist is
+    speed; the per-frame loop over signals is what ``CanMatrix.decode`` does)."""
+    mc = MATRIX.messages["ESC_WheelSpeeds_F"]
+    rx = compile_receiver(mc, MATRIX.fresh().receivers[mc.name], 0, [(s, k) for k, s in enumerate(mc.signals)],
+                          [0.0] * 4, [0.0] * 4, [False] * 4, [0.0], [False], dict.fromkeys(_COUNTERS, 0))
+    assert "for " not in rx.__source__ and "while " not in rx.__source__

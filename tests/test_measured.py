@@ -27,10 +27,16 @@ def _table(n: int = 400, dt: float = 0.05) -> dict[str, np.ndarray]:
 
 
 def test_a_good_table_loads_in_one_segment(tmp_path):
-    write_csv(tmp_path / "a.csv", _table())
+    tab = _table()
+    tab["time_s"] = tab["time_s"] + 1234.5  # a logger's clock: the run starts 1234.5 s in
+    write_csv(tmp_path / "a.csv", tab)
     (run,) = load_measured([tmp_path / "a.csv"])
     assert len(run.segments) == 1 and run.gaps == []
+    # time_s is re-zeroed at the first tick, on the same 20 Hz grid, rows unchanged
     assert run.table["time_s"][0] == 0.0
+    assert run.table["time_s"] == pytest.approx(np.arange(400) * 0.05, abs=1e-9)
+    assert run.duration_s == pytest.approx(399 * 0.05)
+    assert np.array_equal(run.table["steer_angle_rad"], tab["steer_angle_rad"])
 
 
 def test_missing_signal_is_named(tmp_path):
@@ -104,21 +110,41 @@ def test_unsupported_and_missing_files(tmp_path):
 
 
 def test_mdf4_channels_by_dbc_name_are_sampled_at_20hz(tmp_path):
+    """Each channel is sampled and held at the 20 Hz ticks ``t0 + k * 0.05`` (k = 1, 2...; t0: the
+    first sample of any channel), never interpolated; the table's time is re-zeroed at the first tick."""
     asammdf = pytest.importorskip("asammdf")
     tab = _table()
-    t100 = np.arange(0, tab["time_s"][-1] + 1e-9, 0.01)
+    t_start = 500.0  # the logger's clock
+    t100 = t_start + np.arange(0, tab["time_s"][-1] + 1e-9, 0.01)
     mdf = asammdf.MDF(version="4.10")
     sigs = []
     for name in NEEDED:
+        if name == "vx_mps":
+            continue
         s = cat.SIGNALS[name]
-        sigs.append(asammdf.Signal(np.interp(t100, tab["time_s"], tab[name]), t100, name=s.dbc_signal, unit=s.unit))
+        sigs.append(asammdf.Signal(np.interp(t100 - t_start, tab["time_s"], tab[name]), t100, name=s.dbc_signal,
+                                   unit=s.unit))
     mdf.append(sigs)
+    # the speed in its own group at 33.3 Hz, 13 ms after the others start (never on a tick: the nearest
+    # sample is >= 3 ms away), stepping by 0.2 m/s at every sample (19.0 ... 20.8 m/s, repeating)
+    dt_vx, lag_vx = 0.03, 0.013
+    n_vx = int((t100[-1] - t_start - lag_vx) / dt_vx) + 1
+    vx = 19.0 + 0.2 * (np.arange(n_vx) % 10)
+    mdf.append([asammdf.Signal(vx, t_start + lag_vx + dt_vx * np.arange(n_vx), name="VehSpeed", unit="m/s")])
     mdf.save(tmp_path / "m.mf4", overwrite=True)
     (run,) = load_measured([tmp_path / "m.mf4"])
     assert set(NEEDED) <= set(run.table)
-    assert np.median(np.diff(run.table["time_s"])) == pytest.approx(0.05)
-    k = len(run.table["time_s"]) // 2
-    assert run.table["vx_mps"][k] == pytest.approx(20.0)
+    t = run.table["time_s"]
+    assert t[0] == 0.0 and np.diff(t) == pytest.approx(0.05)
+    assert len(t) == int(round((t100[-1] - t_start) / 0.05))  # ticks 0.05 ... the last sample
+    # row i is the tick (i + 1) * 0.05 s after the first sample; it holds the last speed sample at or before it
+    ticks = (np.arange(len(t)) + 1) * 0.05
+    held = np.floor((ticks - lag_vx) / dt_vx).astype(int)
+    assert held.min() >= 0
+    assert np.array_equal(run.table["vx_mps"], vx[held])
+    # a 100 Hz channel has a sample at every tick: its value there
+    assert run.table["steer_angle_rad"] == pytest.approx(np.interp(ticks, tab["time_s"], tab["steer_angle_rad"]),
+                                                         abs=1e-12)
 
 
 def test_mdf4_unit_mismatch_is_named(tmp_path):
