@@ -87,12 +87,13 @@ def test_real_time_replay_timing(frames, channel):
     """p99 inter-frame timing error < 2 ms at the receiver, over 10 s of frames at rate 1.0.
 
     A shared (virtual) machine can stall a process for several milliseconds a
-    few times in 10 s regardless of the player; a run hit by such stalls is
-    repeated (at most 3 runs). Drift or a sleep-only player would fail every run.
+    few times in 10 s regardless of the player, and an overloaded one (CI beside
+    a training job) for longer; a run hit by such stalls is repeated (at most 3
+    runs). Drift or a sleep-only player would fail every run.
     """
     ts = np.array([f.timestamp for f in frames])
     assert ts[-1] - ts[0] > 9.9
-    p99s = []
+    runs: list[tuple[float, float]] = []
     for attempt in range(3):
         summary, got = _timed_run(frames, f"{channel}-{attempt}")
         assert summary.frames_sent == len(frames) == len(got)
@@ -101,12 +102,12 @@ def test_real_time_replay_timing(frames, channel):
         assert summary.duration_s == pytest.approx(ts[-1] - ts[0], abs=0.05)  # no accumulated drift
         rt = np.array([m.timestamp for m in got])  # stamped by the bus when the frame is sent
         err_ms = np.abs((rt - rt[0]) - (ts - ts[0])) * 1e3
-        assert np.percentile(err_ms, 50) < 0.5
-        p99s.append(float(np.percentile(err_ms, 99)))
-        if p99s[-1] < 2.0:
+        p50, p99 = float(np.percentile(err_ms, 50)), float(np.percentile(err_ms, 99))
+        runs.append((round(p50, 3), round(p99, 3)))
+        if p50 < 0.5 and p99 < 2.0:
             assert summary.timing_error_p50_ms < 0.5
             return
-    pytest.fail(f"receiver timing error p99 >= 2 ms in every run: {p99s}")
+    pytest.fail(f"receiver timing error (p50, p99) >= (0.5, 2) ms in every run: {runs}")
 
 
 def test_rate_max_sends_everything_unchanged(frames, channel):
