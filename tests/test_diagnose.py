@@ -150,6 +150,8 @@ def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch,
     those (not the raw-n one, 3x narrower at rho 0.8) and cover the true offset 95 % of the time."""
     from pathlib import Path
 
+    from scipy.signal import lfilter
+
     from virtsensor.diagnose import identify as idn
     from virtsensor.diagnose.resim import SETTLE_S
     from virtsensor.measured import MeasuredRun, Segment
@@ -165,11 +167,9 @@ def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch,
         rng = np.random.default_rng(seed)
         table = {"time_s": np.arange(n) * 0.05}
         for s in names:
-            e = rng.normal(size=n) * sigma[s]
-            e[1:] *= np.sqrt(1 - rho**2)
-            for i in range(1, n):
-                e[i] += rho * e[i - 1]
-            table[s] = e
+            w = rng.normal(size=n) * sigma[s]
+            w[1:] *= np.sqrt(1 - rho**2)
+            table[s] = lfilter([1.0], [1.0, -rho], w)  # e[i] = rho e[i-1] + w[i]
         table["ay_mps2"] = table["ay_mps2"] + true
         res = idn.identify([MeasuredRun("r", Path("r.csv"), table, [Segment(0, n)])], {}, names)
         assert res.cause == "sensor_offset" and res.best.candidate.signal == "ay_mps2", seed

@@ -11,11 +11,12 @@ import pytest
 
 from sim import profiles
 from sim.api import Request, simulate_many
+from sim.driver import CONTROL_DT, STEER_PATH, Driver, Plan
 from sim.engine import simulate_batch
 from sim.linear import linear_model
 from sim.manoeuvres import build_plan, constant_radius, sis_amplitude
 from sim.params import car_parameters
-from sim.vehicle import Vehicle
+from sim.vehicle import IPSI, ISW, ISWD, IX, IY, Inputs, Vehicle
 
 G = 9.81
 
@@ -195,8 +196,6 @@ def test_path_follower_command_is_continuous_along_the_path(car):
     small, even amount: the preview point slides along the path instead of jumping
     from vertex to vertex (a 0.5 m vertex spacing made it jump 22 times a second at
     40 km/h, and the robot passed every jump to the column)."""
-    from sim.driver import STEER_PATH, Driver, Plan
-
     ds = 0.5
     xs = np.arange(0.0, 200.0, ds)
     path = np.stack([xs, 3.0 * np.sin(xs / 15.0)], axis=1)  # curvature changes all along
@@ -209,8 +208,6 @@ def test_path_follower_command_is_continuous_along_the_path(car):
     veh = Vehicle([car])
     drv = Driver(veh, [plan], [car])
     x = veh.initial_state(np.array([11.0]))
-    from sim.vehicle import IPSI, IX, IY
-
     cmds = []
     for s in np.arange(20.0, 40.0, 0.01):  # along the path, on it, heading along it
         x[0, IX], x[0, IY] = s, 3.0 * np.sin(s / 15.0)
@@ -227,8 +224,6 @@ def test_steering_reference_ramps_through_each_control_step(car, monkeypatch):
     integration stage sees the ramp from the previous command to the new one, and a
     steering wheel that is on the ramp gets no corrective torque from the robot."""
     import sim.engine as engine
-    from sim.driver import CONTROL_DT
-    from sim.vehicle import ISW, ISWD, Inputs
 
     leads: list[float] = []
     original = Vehicle.derivatives
