@@ -282,6 +282,7 @@ def test_a_control_car_answers_none_through_the_cli(tmp_path, capsys):
     (["--measured", "x.csv", "--export-model", "m.txt"], "expected a .onnx"),
     (["--measured", "x.csv", "--json", "/no/such/dir/x.json"], "does not exist"),
     (["--measured", "x.csv", "--mu", "3"], "--mu 3"),
+    (["--measured", "x.csv", "--mu", "1.4"], "outside the simulator's 0.1-1.2"),  # the simulator's own bounds
 ])
 def test_bad_command_lines(tmp_path, monkeypatch, capsys, argv, msg):
     from virtsensor.cli import main

@@ -65,6 +65,7 @@ def _check_out(opt: str, path: str | None, is_dir: bool = False) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from sim.campaign import PRESETS
+    from sim.manoeuvres import MU_RANGE
     from virtsensor.commands._simargs import car_from_args
     from virtsensor.diagnose import diagnose
     from virtsensor.errors import UserError
@@ -82,8 +83,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--campaign {args.campaign!r}: one of {', '.join(PRESETS)}")
     if args.recipe not in RECIPES:
         raise UserError(f"--recipe {args.recipe!r}: one of {', '.join(RECIPES)}")
-    if not 0.05 <= args.mu <= 1.5:
-        raise UserError(f"--mu {args.mu:g}: outside 0.05-1.5")
+    if not MU_RANGE[0] <= args.mu <= MU_RANGE[1]:  # the simulator's own bounds (sim.manoeuvres)
+        raise UserError(f"--mu {args.mu:g}: outside the simulator's {MU_RANGE[0]:g}-{MU_RANGE[1]:g}")
     if not 1 <= args.ensemble <= 10:
         raise UserError(f"--ensemble {args.ensemble}: must be 1-10")
     if args.max_iter is not None and args.max_iter < 1:
