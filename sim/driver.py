@@ -240,13 +240,39 @@ class Driver:
         self.lat_int += err * CONTROL_DT
         delta = np.arctan(v.L * curvature) - self.k_lat_i * self.lat_int
         # a driver does not wind the wheels far past the tyres' grip: at most the
-        # kinematic angle of the sharpest curvature in the preview plus a slip margin
-        span = win[:, :: max(1, self.WINDOW // 8)]
-        k_ahead = np.abs(self.path_curv[rows[:, None], span]).max(axis=1)
+        # kinematic angle of the sharpest curvature over the search window ahead
+        s_car = start + frac
+        k_ahead = self._max_abs_along(self.path_curv, s_car, np.minimum(s_car + self.WINDOW - 1, last))
         limit = np.arctan(v.L * np.maximum(k_ahead, np.abs(curvature))) + self.slip_margin
         delta = np.clip(delta, -limit, limit)
-        vt = self.path_speed[rows, self.idx]
+        # the speed target at the car's place along the path, not at its nearest vertex
+        # (vertex by vertex it steps every path_ds / v seconds, and the speed loop's gain
+        # turns each step into a drive-torque kick)
+        nxt = np.minimum(start + 1, last)
+        vt = (1.0 - frac) * self.path_speed[rows, start] + frac * self.path_speed[rows, nxt]
         return delta * v.ratio, vt
+
+    def _max_abs_along(self, profile: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
+        """Largest |profile| between fractional path indices ``s0 <= s1`` (one pair per run).
+
+        The profile (B, M), given at the vertices, is taken as linear between them, so
+        the result is its largest vertex value inside the span or its value at either
+        end: it varies continuously as the span slides along the path (a max over whole
+        vertices would step each time a vertex enters or leaves the span).
+        """
+        rows = self._rows
+        last = self.path_len - 1
+
+        def at(s: np.ndarray) -> np.ndarray:
+            j = np.clip(np.floor(s).astype(int), 0, last)
+            f = np.clip(s - j, 0.0, 1.0)
+            return np.abs((1.0 - f) * profile[rows, j] + f * profile[rows, np.minimum(j + 1, last)])
+
+        j = np.floor(s0).astype(int)[:, None] + 1 + np.arange(self.WINDOW)[None, :]
+        inside = j < s1[:, None]
+        vals = np.abs(profile[rows[:, None], np.minimum(j, last[:, None])])
+        inner = np.where(inside, vals, 0.0).max(axis=1)
+        return np.maximum(inner, np.maximum(at(s0), at(s1)))
 
     def _foot(self, pos: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Foot of ``pos`` on each run's path segment a->b: (fraction 0..1, point, squared distance)."""
