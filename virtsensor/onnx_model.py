@@ -58,6 +58,9 @@ PARITY_TOL_NM = 1e-3
 TARGET_OPSET: dict[str, int] = {"": 17, "ai.onnx.ml": 3}
 INPUT_NAME = "features"
 OUTPUT_NAME = "sat"
+#: Name of the exported graph. skl2onnx names it with a random UUID unless told, which made two
+#: exports of the same fitted pipeline differ in their bytes (and in the card's sha256).
+GRAPH_NAME = "virtsensor_sat"
 #: Keys :func:`export_pipeline` computes; ``card_extra`` may not set them.
 COMPUTED_KEYS = (
     "onnx_file", "sha256", "onnx_input", "onnx_output", "input_dtype", "feature_names", "n_features",
@@ -139,7 +142,7 @@ def export_pipeline(
     opset = dict(TARGET_OPSET if target_opset is None else target_opset)
     tensor_type = FloatTensorType if precision == "float32" else DoubleTensorType
     model = convert_sklearn(pipeline, initial_types=[(INPUT_NAME, tensor_type([None, n_features]))],
-                            target_opset=opset)
+                            target_opset=opset, name=GRAPH_NAME)
     _fix_output(model, n_outputs)
     onnx_bytes = model.SerializeToString()
 
