@@ -230,8 +230,7 @@ class Driver:
         ld = np.maximum(self.preview_min, self.preview_time * speed)
         s_tgt = np.minimum(start + frac + ld / self.path_ds, last)
         j = np.clip(np.floor(s_tgt).astype(int), 0, np.maximum(last - 1, 0))
-        f = np.clip(s_tgt - j, 0.0, 1.0)[:, None]
-        tgt = (1.0 - f) * self.path[rows, j] + f * self.path[rows, np.minimum(j + 1, last)]
+        tgt = self._lerp(self.path, j, np.clip(s_tgt - j, 0.0, 1.0))
         psi = x[:, IPSI]
         dxg, dyg = tgt[:, 0] - pos[:, 0], tgt[:, 1] - pos[:, 1]
         y_local = -dxg * np.sin(psi) + dyg * np.cos(psi)
@@ -248,9 +247,15 @@ class Driver:
         # the speed target at the car's place along the path, not at its nearest vertex
         # (vertex by vertex it steps every path_ds / v seconds, and the speed loop's gain
         # turns each step into a drive-torque kick)
-        nxt = np.minimum(start + 1, last)
-        vt = (1.0 - frac) * self.path_speed[rows, start] + frac * self.path_speed[rows, nxt]
+        vt = self._lerp(self.path_speed, start, frac)
         return delta * v.ratio, vt
+
+    def _lerp(self, profile: np.ndarray, j: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """``profile`` (B, M, ...) given at the path vertices, per run at vertex ``j`` plus
+        the fraction ``f`` (0..1) of the segment to the next vertex (linear in between)."""
+        nxt = np.minimum(j + 1, self.path_len - 1)
+        f = f.reshape(f.shape + (1,) * (profile.ndim - 2))
+        return (1.0 - f) * profile[self._rows, j] + f * profile[self._rows, nxt]
 
     def _max_abs_along(self, profile: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
         """Largest |profile| between fractional path indices ``s0 <= s1`` (one pair per run).
@@ -260,17 +265,15 @@ class Driver:
         end: it varies continuously as the span slides along the path (a max over whole
         vertices would step each time a vertex enters or leaves the span).
         """
-        rows = self._rows
         last = self.path_len - 1
 
         def at(s: np.ndarray) -> np.ndarray:
             j = np.clip(np.floor(s).astype(int), 0, last)
-            f = np.clip(s - j, 0.0, 1.0)
-            return np.abs((1.0 - f) * profile[rows, j] + f * profile[rows, np.minimum(j + 1, last)])
+            return np.abs(self._lerp(profile, j, np.clip(s - j, 0.0, 1.0)))
 
         j = np.floor(s0).astype(int)[:, None] + 1 + np.arange(self.WINDOW)[None, :]
         inside = j < s1[:, None]
-        vals = np.abs(profile[rows[:, None], np.minimum(j, last[:, None])])
+        vals = np.abs(profile[self._rows[:, None], np.minimum(j, last[:, None])])
         inner = np.where(inside, vals, 0.0).max(axis=1)
         return np.maximum(inner, np.maximum(at(s0), at(s1)))
 

@@ -191,6 +191,21 @@ def _hf_rms(x: np.ndarray, fs: float = 100.0, cut_hz: float = 6.0) -> float:
     return float(np.std(x - sosfiltfilt(butter(4, cut_hz, fs=fs, output="sos"), x)))
 
 
+def _path_plan(path, ds, path_speed=None, duration_s=2.0, speed0_mps=11.0) -> Plan:
+    """A plan that follows ``path`` (and its speed profile, if given) for ``duration_s``."""
+    n = len(Plan.grid(duration_s))
+    return Plan(name="path", duration_s=duration_s, speed0_mps=speed0_mps,
+                steer_mode=np.full(n, STEER_PATH, np.int8), steer_sw=np.zeros(n),
+                speed_mode=np.zeros(n, np.int8), speed_target=np.full(n, speed0_mps),
+                motor_cmd=np.zeros(n), brake_cmd=np.zeros(n), mu_values=(1.0,), label={},
+                path=path, path_ds=ds, path_speed=path_speed)
+
+
+def _sliding_driver(car, path, ds, path_speed=None):
+    veh = Vehicle([car])
+    return veh, Driver(veh, [_path_plan(path, ds, path_speed)], [car])
+
+
 def test_path_follower_command_is_continuous_along_the_path(car):
     """Moving the car 1 cm along a curving path moves the steering command by a
     small, even amount: the preview point slides along the path instead of jumping
@@ -199,14 +214,7 @@ def test_path_follower_command_is_continuous_along_the_path(car):
     ds = 0.5
     xs = np.arange(0.0, 200.0, ds)
     path = np.stack([xs, 3.0 * np.sin(xs / 15.0)], axis=1)  # curvature changes all along
-    n = 200
-    plan = Plan(name="path", duration_s=n * 0.01, speed0_mps=11.0,
-                steer_mode=np.full(n, STEER_PATH, np.int8), steer_sw=np.zeros(n),
-                speed_mode=np.zeros(n, np.int8), speed_target=np.full(n, 11.0),
-                motor_cmd=np.zeros(n), brake_cmd=np.zeros(n), mu_values=(1.0,), label={},
-                path=path, path_ds=ds)
-    veh = Vehicle([car])
-    drv = Driver(veh, [plan], [car])
+    veh, drv = _sliding_driver(car, path, ds)
     x = veh.initial_state(np.array([11.0]))
     cmds = []
     for s in np.arange(20.0, 40.0, 0.01):  # along the path, on it, heading along it
@@ -217,17 +225,6 @@ def test_path_follower_command_is_continuous_along_the_path(car):
     steps = np.abs(np.diff(cmds))
     assert np.median(steps) > 0  # the command does follow the curvature
     assert steps.max() < 3.0 * np.median(steps)
-
-
-def _sliding_driver(car, path, ds, path_speed=None):
-    n = 200
-    plan = Plan(name="path", duration_s=n * 0.01, speed0_mps=11.0,
-                steer_mode=np.full(n, STEER_PATH, np.int8), steer_sw=np.zeros(n),
-                speed_mode=np.zeros(n, np.int8), speed_target=np.full(n, 11.0),
-                motor_cmd=np.zeros(n), brake_cmd=np.zeros(n), mu_values=(1.0,), label={},
-                path=path, path_ds=ds, path_speed=path_speed)
-    veh = Vehicle([car])
-    return veh, Driver(veh, [plan], [car])
 
 
 def test_path_speed_target_is_continuous_along_the_path(car):
@@ -256,17 +253,10 @@ def test_path_speed_puts_no_chatter_on_the_drive_torque(car):
     motor torque rises smoothly with the target. With the target read at the nearest
     vertex, its content above 6 Hz was 1.4 Nm RMS on this run (3.6 Nm on the
     Magny-Cours lap); now it is 0.06 Nm."""
-    from sim.driver import SPEED_TARGET
-
     ds = 2.0
     xs = np.arange(0.0, 600.0, ds)
     speed = np.clip(15.0 + (xs - 50.0) * 0.04, 15.0, 27.0)  # +0.08 m/s per vertex
-    n = len(Plan.grid(12.0))
-    plan = Plan(name="path-speed", duration_s=12.0, speed0_mps=15.0,
-                steer_mode=np.full(n, STEER_PATH, np.int8), steer_sw=np.zeros(n),
-                speed_mode=np.full(n, SPEED_TARGET, np.int8), speed_target=np.full(n, 15.0),
-                motor_cmd=np.zeros(n), brake_cmd=np.zeros(n), mu_values=(1.0,), label={},
-                path=np.stack([xs, np.zeros_like(xs)], axis=1), path_ds=ds, path_speed=speed)
+    plan = _path_plan(np.stack([xs, np.zeros_like(xs)], axis=1), ds, speed, duration_s=12.0, speed0_mps=15.0)
     run = simulate_batch([plan], [car]).run(0)
     assert run["vx_true_mps"][-1] > 20.0  # it did accelerate along the profile
     assert _hf_rms(run["motor_torque_true_nm"]) < 0.3

@@ -29,7 +29,7 @@ import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.dbcgen import UNIT_CONVERSIONS
-from virtsensor.e2e import _TABLE, CRC8_XOROUT, USABLE, E2EReceiver, E2EStatus, data_id_seed
+from virtsensor.e2e import CRC8_TABLE, CRC8_XOROUT, USABLE, E2EReceiver, E2EStatus, data_id_seed
 from virtsensor.errors import UserError
 
 __all__ = ["DEFAULT_DBC", "CanMatrix", "DecodedFrame", "MessageCodec", "SignalCodec"]
@@ -466,7 +466,7 @@ class CanMatrix:
                     raw = round(x)
             payload |= (raw & s.mask) << s.start
         data = bytearray(payload.to_bytes(m.length, "little"))  # type: ignore[union-attr]
-        t = _TABLE
+        t = CRC8_TABLE
         c = m.seed  # type: ignore[union-attr]
         for i in range(1, len(data)):
             c = t[c ^ data[i]]
@@ -500,7 +500,7 @@ class CanMatrix:
                 raw[bad] = sna
             payload |= (raw & s.mask).astype(np.uint64) << np.uint64(s.start)
         data = payload.astype("<u8").view(np.uint8).reshape(n, 8)[:, : m.length].copy()
-        table = np.frombuffer(_TABLE, dtype=np.uint8)
+        table = np.frombuffer(CRC8_TABLE, dtype=np.uint8)
         c = np.full(n, m.seed, dtype=np.uint8)
         for i in range(1, m.length):
             c = table[c ^ data[:, i]]
@@ -527,7 +527,7 @@ class CanMatrix:
         if len(data) != m.length:
             st = rx.check(0, False, timestamp)
             return DecodedFrame(m.name, frame_id, timestamp, -1, False, False, st, {}, {}, _EMPTY, _EMPTY)
-        t = _TABLE
+        t = CRC8_TABLE
         c = m.seed
         for i in range(1, m.length):
             c = t[c ^ data[i]]

@@ -30,6 +30,7 @@ from enum import IntEnum
 
 __all__ = [
     "CRC8_POLY",
+    "CRC8_TABLE",
     "CRC8_INIT",
     "CRC8_XOROUT",
     "crc8_sae_j1850",
@@ -57,12 +58,12 @@ def _make_table(poly: int) -> bytes:
 
 
 #: Byte-wise lookup table of the non-reflected CRC-8 with polynomial 0x1D.
-_TABLE: bytes = _make_table(CRC8_POLY)
+CRC8_TABLE: bytes = _make_table(CRC8_POLY)
 
 
 def crc8_update(state: int, data: bytes | bytearray | memoryview) -> int:
     """Feed ``data`` into a raw (not yet xor-ed out) CRC register and return the new register."""
-    t = _TABLE
+    t = CRC8_TABLE
     for b in data:
         state = t[state ^ b]
     return state
@@ -87,7 +88,7 @@ def frame_crc(seed: int, payload: bytes | bytearray | memoryview) -> int:
 
     Byte 0 of ``payload`` (the CRC position) is ignored.
     """
-    t = _TABLE
+    t = CRC8_TABLE
     s = seed
     for i in range(1, len(payload)):
         s = t[s ^ payload[i]]

@@ -26,12 +26,12 @@ from __future__ import annotations
 from collections.abc import Callable, MutableMapping, MutableSequence, Sequence
 from typing import Any
 
-from virtsensor.e2e import _TABLE, CRC8_XOROUT, E2EReceiver, E2EStatus
+from virtsensor.e2e import CRC8_TABLE, CRC8_XOROUT, E2EReceiver, E2EStatus
 
-__all__ = ["compile_decoder", "compile_encoder", "compile_receiver", "crc_ok_expr", "raw_expr"]
+__all__ = ["STATUS_KEYS", "compile_decoder", "compile_encoder", "compile_receiver", "crc_ok_expr", "raw_expr"]
 
 #: ``E2EStatus`` -> its counter name (``e2e_ok``...), for the generated receivers and the daemon's counters.
-_STATUS_KEYS = {s: f"e2e_{s.name.lower()}" for s in E2EStatus}
+STATUS_KEYS = {s: f"e2e_{s.name.lower()}" for s in E2EStatus}
 
 
 def raw_expr(start: int, length: int, signed: bool) -> str:
@@ -142,7 +142,7 @@ def compile_encoder(message: Any) -> Callable[[Any, int], bytes]:
     lines.append(f"    {', '.join(f'b{i}' for i in range(1, L))}, = p.to_bytes({L}, 'little')[1:]")
     crc = _crc_chain(int(message.seed), L)
     lines.append(f"    return bytes(({crc} ^ {CRC8_XOROUT:#04x}, {', '.join(f'b{i}' for i in range(1, L))}))")
-    return _compile("\n".join(lines) + "\n", fn, {"T": _TABLE})
+    return _compile("\n".join(lines) + "\n", fn, {"T": CRC8_TABLE})
 
 
 def compile_receiver(
@@ -228,7 +228,7 @@ def compile_receiver(
                   f"{ind}    counters['implausible_values'] += 1"]
     src = "\n".join(lines) + "\n"
     # "inf": the repr of an unbounded range (a signal without a catalogue range) in the bounds above
-    env = {"T": _TABLE, "check": receiver.check, "counters": counters, "errors": errors, "last_ok": last_ok,
-           "values": values, "times": times, "flags": flags, "KEYS": _STATUS_KEYS, "OK": E2EStatus.OK,
+    env = {"T": CRC8_TABLE, "check": receiver.check, "counters": counters, "errors": errors, "last_ok": last_ok,
+           "values": values, "times": times, "flags": flags, "KEYS": STATUS_KEYS, "OK": E2EStatus.OK,
            "INITIAL": E2EStatus.INITIAL, "OKSOMELOST": E2EStatus.OKSOMELOST, "inf": float("inf")}
     return _compile(src, fn, env)

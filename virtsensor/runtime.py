@@ -88,7 +88,7 @@ from virtsensor import signals as cat
 from virtsensor.can_codec import CanMatrix
 from virtsensor.e2e import E2EStatus
 from virtsensor.errors import UserError
-from virtsensor.fastdecode import _STATUS_KEYS, compile_encoder, compile_receiver
+from virtsensor.fastdecode import STATUS_KEYS, compile_encoder, compile_receiver
 from virtsensor.features import TICK_S, FeatureBuilder, FeatureSpec
 
 __all__ = [
@@ -580,7 +580,7 @@ class VirtualSensor:
         self.counters: dict[str, int] = dict.fromkeys((
             "frames", "input_frames", "other_frames", "unknown_ids", "error_frames", "remote_frames", "sync_frames",
             "crc_errors", "dlc_errors", "sna_values", "implausible_values",
-            *(_STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
+            *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
             "ticks", "overruns", "tick_errors", "sent", "send_errors", "unsent", "recv_errors", "reconnects",
             "reconnect_failures", "status_changes"), 0)
         #: frame id -> generated handler ``rx(data, t)`` (DLC, CRC, E2E, decode into the ``_rx_*`` lists)
