@@ -6,11 +6,11 @@ import os
 import subprocess
 import sys
 import textwrap
-import tomllib
 import zipfile
 from pathlib import Path
 
 import pytest
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("sklearn", "skl2onnx", "scipy", "sim", "joblib", "matplotlib", "shap", "tqdm")
