@@ -1,44 +1,79 @@
-"""The DBC codec shared by the simulator writer, the replay, the trainer and the runtime.
+"""The one CAN codec: DBC tables, and the generated per-message encoders and decoders behind them.
 
 Values cross this module's boundary in the catalogue's SI units under their
 catalogue names (``tyre_pressure_fl_pa`` in Pa); the DBC may carry another
 unit (kPa) and the conversion is done here, once (factors from
-:data:`virtsensor.dbcgen.UNIT_CONVERSIONS`). Frames are 8-byte classic CAN
-frames with E2E protection as described in :mod:`virtsensor.e2e`.
+:data:`virtsensor.canbus.dbcgen.UNIT_CONVERSIONS`). Frames are 8-byte classic
+CAN frames protected with AUTOSAR E2E Profile 11 as described in
+:mod:`virtsensor.canbus.e2e`.
 
-The DBC is read once with cantools and compiled into flat tuples so that
-:meth:`CanMatrix.encode` and :meth:`CanMatrix.decode` run in a few
-microseconds with plain integer bit operations (Intel byte order only).
+The DBC is read once with cantools and compiled into immutable tables
+(:class:`MessageCodec`, :class:`SignalCodec`). From those tables this module
+writes, once per message, small Python functions with every constant (byte
+count, CRC seed, bit positions, masks, sign bits, scale, offset, ranges, SNA
+codes) inlined, and compiles them with :func:`exec`: no per-frame attribute
+look-ups, loops over signals, or per-signal branches on the signal's kind.
+One generator (:func:`raw_expr`, the CRC chain, the per-signal decode) serves
+
+* :meth:`MessageCodec.encode` / :func:`compile_encoder` -- the senders
+  (simulator recordings, replay, the daemon's SAT_FRONT and VS_Health);
+* :meth:`CanMatrix.decode` -- one frame to a :class:`DecodedFrame`;
+* :func:`compile_receiver` -- the daemon's receive path: one frame straight
+  into its sample-and-hold lists.
+
+The E2E receiver state (:class:`~virtsensor.canbus.e2e.E2EReceiver`, one per
+message) lives in a :class:`CanMatrix` instance, apart from the tables, which
+instances share. Only Intel (little-endian) integer signals without
+multiplexing are supported.
 
 Where the DBC comes from (:meth:`CanMatrix.load` with ``path=None``): the
-file ``dbc/virtsensor.dbc`` of a source checkout; in an installed package
-(where the repository's ``dbc/`` directory is absent) the very same text is
-regenerated in memory from the catalogue by :func:`virtsensor.dbcgen.generate`
-(a test keeps the committed file identical to the generated text), so no
-copy of the DBC has to be kept in the package.
+file ``dbc/virtsensor.dbc`` of a source checkout (:data:`DEFAULT_DBC`); in an
+installed package (where the repository's ``dbc/`` directory is absent) the
+very same text is regenerated in memory from the catalogue by
+:func:`virtsensor.canbus.dbcgen.generate` (a test keeps the committed file
+identical to the generated text), so no copy of the DBC has to be kept in the
+package.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, MutableMapping, MutableSequence, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from virtsensor import signals as cat
-from virtsensor.dbcgen import UNIT_CONVERSIONS
-from virtsensor.e2e import CRC8_TABLE, CRC8_XOROUT, USABLE, E2EReceiver, E2EStatus, data_id_seed
+from virtsensor.canbus.dbcgen import UNIT_CONVERSIONS
+from virtsensor.canbus.e2e import (
+    COUNTER_MODULO,
+    CRC8_TABLE,
+    P11_CRC_XOROUT,
+    USABLE,
+    E2EReceiver,
+    E2EStatus,
+    crc8_register,
+    data_id_seed,
+)
 from virtsensor.errors import UserError
 
-__all__ = ["DEFAULT_DBC", "CanMatrix", "DecodedFrame", "MessageCodec", "SignalCodec"]
+__all__ = [
+    "DEFAULT_DBC",
+    "STATUS_KEYS",
+    "CanMatrix",
+    "DecodedFrame",
+    "MessageCodec",
+    "SignalCodec",
+    "compile_encoder",
+    "compile_receiver",
+    "crc_ok_expr",
+    "raw_expr",
+]
 
 #: The bundled DBC of a source checkout.
-DEFAULT_DBC = Path(__file__).resolve().parent.parent / "dbc" / "virtsensor.dbc"
-
-_EMPTY: tuple[str, ...] = ()
-
+DEFAULT_DBC = Path(__file__).resolve().parents[2] / "dbc" / "virtsensor.dbc"
 
 class SignalCodec:
     """Compiled facts of one DBC signal (Intel byte order).
@@ -116,7 +151,10 @@ class MessageCodec:
         name, frame_id, length (bytes), sender, cycle_s (``GenMsgCycleTime``/1000),
         data_id (E2E), seed (CRC register after the data ID),
         signals: the payload signals (without CRC and counter), in bit order;
-        catalogue_names: catalogue names of the signals that have one.
+        catalogue_names: catalogue names of the signals that have one;
+        encode: the generated ``encode(values, counter) -> bytes`` (:func:`compile_encoder`);
+        decode_frame: the generated ``decode_frame(data, t, check) -> DecodedFrame`` behind
+            :meth:`CanMatrix.decode` (``check`` is the message's :meth:`E2EReceiver.check`).
     """
 
     __slots__ = (
@@ -131,6 +169,8 @@ class MessageCodec:
         "catalogue_names",
         "_keys",
         "_by_key",
+        "encode",
+        "decode_frame",
     )
 
     def __init__(
@@ -154,6 +194,10 @@ class MessageCodec:
         self.catalogue_names = tuple(s.catalogue for s in signals if s.catalogue)
         self._keys = tuple((s.catalogue, s.name, s) for s in signals)
         self._by_key = {**{s.name: s for s in signals}, **{s.catalogue: s for s in signals if s.catalogue}}
+        self.encode: Callable[[Mapping[str, float], int], bytes] = compile_encoder(self)
+        self.decode_frame: Callable[[bytes | bytearray, float, Callable[..., E2EStatus]], DecodedFrame] = (
+            _compile_frame_decoder(self)
+        )
 
 
 class DecodedFrame:
@@ -163,7 +207,7 @@ class DecodedFrame:
         message: DBC message name; frame_id; timestamp: receive time (s).
         counter: received alive counter (-1 when the length was wrong).
         crc_ok: CRC matched; dlc_ok: payload length equals the DBC length.
-        status: :class:`~virtsensor.e2e.E2EStatus` from the message's receiver state machine.
+        status: :class:`~virtsensor.canbus.e2e.E2EStatus` of the message's Profile 11 check.
         values: catalogue name -> SI value, for intact frames only, without SNA and
             implausible (out of catalogue range) values.
         other: DBC name -> DBC physical value of the signals without a catalogue
@@ -213,7 +257,7 @@ class DecodedFrame:
 
     @property
     def usable(self) -> bool:
-        """The values are fresh and intact (E2E status OK, OKSOMELOST or INITIAL)."""
+        """The values are fresh and intact (E2E status OK or OKSOMELOST)."""
         return self.status in USABLE
 
     def __repr__(self) -> str:
@@ -224,6 +268,7 @@ class DecodedFrame:
 
 
 _CACHE: dict[tuple[str, float], tuple[object, dict[str, MessageCodec], str]] = {}
+_NP_TABLE = np.frombuffer(CRC8_TABLE, dtype=np.uint8)
 
 
 def _compile(db, source: str) -> dict[str, MessageCodec]:
@@ -325,7 +370,7 @@ def _load_db(path: Path | None):
         else:
             key = ("<generated>", 0.0)
             if key not in _CACHE:
-                from virtsensor import dbcgen
+                from virtsensor.canbus import dbcgen
 
                 db = cantools.database.load_string(dbcgen.generate(), database_format="dbc")
                 _CACHE[key] = (db, _compile(db, "<generated virtsensor DBC>"), "<generated virtsensor DBC>")
@@ -356,7 +401,7 @@ class CanMatrix:
         source: where the DBC came from (path or ``<generated ...>``).
         messages: message name -> :class:`MessageCodec`.
         by_id: frame id -> :class:`MessageCodec`.
-        receivers: message name -> :class:`~virtsensor.e2e.E2EReceiver`.
+        receivers: message name -> :class:`~virtsensor.canbus.e2e.E2EReceiver` (the mutable E2E state).
     """
 
     def __init__(
@@ -378,7 +423,7 @@ class CanMatrix:
             name: E2EReceiver(max_delta, timeout_cycles * m.cycle_s if m.cycle_s > 0 else math.inf)
             for name, m in messages.items()
         }
-        self._rx_by_id = {m.frame_id: (m, self.receivers[m.name]) for m in messages.values()}
+        self._rx_by_id = {m.frame_id: (m.decode_frame, self.receivers[m.name].check) for m in messages.values()}
         self._signal_message = {c: m.name for m in messages.values() for c in m.catalogue_names}
 
     @classmethod
@@ -389,8 +434,8 @@ class CanMatrix:
 
         Args:
             path: DBC file; None for the bundled matrix.
-            max_delta: largest counter delta still reported OKSOMELOST.
-            timeout_cycles: E2E reception timeout in message cycles (NODATA / resync).
+            max_delta: Profile 11 ``MaxDeltaCounter``, the largest counter delta still OKSOMELOST (1..14).
+            timeout_cycles: reception timeout in message cycles (:meth:`E2EReceiver.poll`: NONEWDATA).
 
         Raises:
             UserError: naming the file and the cantools message when the DBC is
@@ -431,7 +476,7 @@ class CanMatrix:
 
     # ---------------------------------------------------------------- encode
     def encode(self, message_name: str, values: Mapping[str, float], counter: int) -> bytes:
-        """Payload bytes of one frame.
+        """Payload bytes of one frame (the message's generated encoder, :func:`compile_encoder`).
 
         Args:
             message_name: DBC message name.
@@ -440,38 +485,16 @@ class CanMatrix:
                 Keys of other messages are ignored; a signal that is missing or
                 nan is sent as its SNA code (0 if it has none). Values are clipped
                 to the signal's range.
-            counter: alive counter (taken modulo 16).
+            counter: alive counter, 0..14 (taken modulo 15; see
+                :func:`~virtsensor.canbus.e2e.next_counter`).
 
         Returns:
             ``length`` bytes with CRC (byte 0) and counter (byte 1, bits 0..3) filled.
         """
         m = self.messages.get(message_name)
         if m is None:
-            self.message(message_name)
-        payload = (counter & 0xF) << 8
-        get = values.get
-        for cname, dname, s in m._keys:  # type: ignore[union-attr]
-            v = get(cname) if cname is not None else None
-            if v is None:
-                v = get(dname)
-            if v is None or v != v:
-                raw = s.sna if s.sna is not None else 0
-            else:
-                x = (v * s.si_factor - s.offset) / s.scale
-                if x <= s.raw_lo:
-                    raw = s.raw_lo
-                elif x >= s.raw_hi:
-                    raw = s.raw_hi
-                else:
-                    raw = round(x)
-            payload |= (raw & s.mask) << s.start
-        data = bytearray(payload.to_bytes(m.length, "little"))  # type: ignore[union-attr]
-        t = CRC8_TABLE
-        c = m.seed  # type: ignore[union-attr]
-        for i in range(1, len(data)):
-            c = t[c ^ data[i]]
-        data[0] = c ^ CRC8_XOROUT
-        return bytes(data)
+            m = self.message(message_name)
+        return m.encode(values, counter)
 
     def encode_many(
         self, message_name: str, columns: Mapping[str, np.ndarray], counters: np.ndarray
@@ -479,12 +502,13 @@ class CanMatrix:
         """Vectorised :meth:`encode` of ``n`` frames: returns an ``(n, length)`` uint8 array.
 
         ``columns`` maps names as in :meth:`encode` to arrays of length ``n``
-        (missing names and nan -> SNA); ``counters`` are the ``n`` alive counters.
+        (missing names and nan -> SNA); ``counters`` are the ``n`` alive counters
+        (taken modulo 15; :func:`~virtsensor.canbus.e2e.counter_sequence` makes them).
         """
         m = self.message(message_name)
         counters = np.asarray(counters, dtype=np.int64)
         n = counters.shape[0]
-        payload = (counters & 0xF).astype(np.uint64) << np.uint64(8)
+        payload = (counters % COUNTER_MODULO).astype(np.uint64) << np.uint64(8)
         for cname, dname, s in m._keys:
             col = columns.get(cname) if cname is not None else None
             if col is None:
@@ -500,18 +524,16 @@ class CanMatrix:
                 raw[bad] = sna
             payload |= (raw & s.mask).astype(np.uint64) << np.uint64(s.start)
         data = payload.astype("<u8").view(np.uint8).reshape(n, 8)[:, : m.length].copy()
-        table = np.frombuffer(CRC8_TABLE, dtype=np.uint8)
-        c = np.full(n, m.seed, dtype=np.uint8)
-        for i in range(1, m.length):
-            c = table[c ^ data[:, i]]
-        data[:, 0] = c ^ CRC8_XOROUT
+        seed = np.full(n, m.seed, dtype=np.uint8)
+        columns_1_on = (data[:, i] for i in range(1, m.length))
+        data[:, 0] = crc8_register(seed, columns_1_on, _NP_TABLE) ^ P11_CRC_XOROUT
         return data
 
     # ---------------------------------------------------------------- decode
     def decode(
         self, frame_id: int, data: bytes | bytearray, timestamp: float, is_extended: bool = False
     ) -> DecodedFrame | None:
-        """Decode one received frame and run its E2E check.
+        """Decode one received frame and run its E2E Profile 11 check.
 
         Args:
             frame_id: CAN identifier; data: payload; timestamp: receive time (s).
@@ -523,40 +545,7 @@ class CanMatrix:
         hit = self._rx_by_id.get(frame_id)
         if hit is None or is_extended:
             return None
-        m, rx = hit
-        if len(data) != m.length:
-            st = rx.check(0, False, timestamp)
-            return DecodedFrame(m.name, frame_id, timestamp, -1, False, False, st, {}, {}, _EMPTY, _EMPTY)
-        t = CRC8_TABLE
-        c = m.seed
-        for i in range(1, m.length):
-            c = t[c ^ data[i]]
-        crc_ok = (c ^ CRC8_XOROUT) == data[0]
-        counter = data[1] & 0xF
-        st = rx.check(counter, crc_ok, timestamp)
-        values: dict[str, float] = {}
-        other: dict[str, float] = {}
-        unavailable = implausible = _EMPTY
-        if crc_ok:
-            v = int.from_bytes(data, "little")
-            for s in m.signals:
-                raw = (v >> s.start) & s.mask
-                if s.signed and raw >> (s.length - 1):
-                    raw -= 1 << s.length
-                cname = s.catalogue
-                if cname is None:
-                    other[s.name] = math.nan if raw == s.sna else raw * s.scale + s.offset
-                elif raw == s.sna:
-                    unavailable = (*unavailable, cname)
-                else:
-                    x = (raw * s.scale + s.offset) / s.si_factor
-                    if s.lo_si - 1e-9 <= x <= s.hi_si + 1e-9:
-                        values[cname] = x
-                    else:
-                        implausible = (*implausible, cname)
-        return DecodedFrame(
-            m.name, frame_id, timestamp, counter, crc_ok, True, st, values, other, unavailable, implausible
-        )
+        return hit[0](data, timestamp, hit[1])
 
     def decode_all(self, frames: Iterable, counts: dict[str, int] | None = None):
         """Yield the :class:`DecodedFrame` of every python-can ``Message`` in ``frames``.
@@ -576,3 +565,206 @@ class CanMatrix:
                     counts["unknown"] = counts.get("unknown", 0) + 1
                 continue
             yield d
+
+
+# ==================================================================================== the code generator
+#: ``E2EStatus`` -> its counter name (``e2e_ok``...), for the generated receivers and the daemon's counters.
+STATUS_KEYS = {s: f"e2e_{s.name.lower()}" for s in E2EStatus}
+
+
+def raw_expr(start: int, length: int, signed: bool) -> str:
+    """Python expression of a signal's raw integer from the payload read as one little-endian int ``v``.
+
+    Signed raws use ``(u ^ s) - s`` with ``s`` the sign bit: two's complement without a branch.
+    Raises ValueError for a field outside 1..64 bits or a negative start.
+    """
+    if not 0 < length <= 64 or start < 0:
+        raise ValueError(f"bad bit field start={start} length={length}")
+    mask = (1 << length) - 1
+    u = f"(v >> {start}) & {mask:#x}" if start else f"v & {mask:#x}"
+    if signed:
+        sign = 1 << (length - 1)
+        return f"((({u}) ^ {sign:#x}) - {sign:#x})"
+    return f"({u})"
+
+
+def _crc_chain(seed: int, length: int) -> str:
+    """The unrolled table-driven Profile 11 CRC over the data-ID ``seed`` then the locals ``b1``..``b{length-1}``
+    (one look-up in ``T`` per byte), final XOR included."""
+    if length < 2:
+        raise ValueError("an E2E-protected payload has at least 2 bytes")
+    e = f"{seed:#04x}"
+    for i in range(1, length):
+        e = f"T[{e} ^ b{i}]"
+    return f"({e} ^ {P11_CRC_XOROUT:#04x})" if P11_CRC_XOROUT else e
+
+
+def crc_ok_expr(seed: int, length: int) -> str:
+    """Expression that is True when byte 0 (``b0``) is the Profile 11 CRC of the message's data-ID seed
+    followed by bytes 1..length-1 (locals ``b1``...), with the CRC table as ``T``."""
+    return f"{_crc_chain(seed, length)} == b0"
+
+
+def _unpack(length: int) -> str:
+    return f"{', '.join(f'b{i}' for i in range(length))}, = data"
+
+
+def _ident(name: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in name)
+
+
+def _exec_source(lines: list[str], name: str, env: dict[str, Any]) -> Callable[..., Any]:
+    """Compile the generated function ``name`` from ``lines`` in a namespace holding ``env``."""
+    src = "\n".join(lines) + "\n"
+    code = compile(src, f"<virtsensor.canbus.codec {name}>", "exec")
+    ns: dict[str, Any] = {"T": CRC8_TABLE, "inf": math.inf, "nan": math.nan, **env}
+    exec(code, ns)  # noqa: S102 - our own generated source, built from numbers and DBC names only
+    fn = ns[name]
+    fn.__source__ = src  # for the curious (and the tests)
+    return fn
+
+
+def _indent(ind: str, lines: Sequence[str]) -> list[str]:
+    return [ind + line for line in lines]
+
+
+def _decode_signal(
+    s: SignalCodec, ind: str, on_sna: Sequence[str], on_value: Sequence[str], on_implausible: Sequence[str]
+) -> list[str]:
+    """Lines decoding signal ``s`` from ``v``: raw -> ``on_sna`` for the SNA code, else
+    ``x = (raw * scale + offset) / si_factor`` (SI) -> ``on_value`` within the catalogue range (+-1e-9),
+    ``on_implausible`` outside it. The one decoder of the package."""
+    out = [f"{ind}r = {raw_expr(s.start, s.length, s.signed)}"]
+    if s.sna is not None:
+        out += [f"{ind}if r == {int(s.sna)}:", *_indent(ind + "    ", on_sna), f"{ind}else:"]
+        ind += "    "
+    x = f"r * {float(s.scale)!r}" + (f" + {float(s.offset)!r}" if s.offset else "")
+    out.append(f"{ind}x = {x}" if s.si_factor == 1.0 else f"{ind}x = ({x}) / {float(s.si_factor)!r}")
+    lo, hi = s.lo_si - 1e-9, s.hi_si + 1e-9
+    if math.isinf(lo) and math.isinf(hi):
+        return out + _indent(ind, on_value)
+    return out + [f"{ind}if {lo!r} <= x <= {hi!r}:", *_indent(ind + "    ", on_value),
+                  f"{ind}else:", *_indent(ind + "    ", on_implausible)]
+
+
+def compile_encoder(message: MessageCodec) -> Callable[[Mapping[str, float], int], bytes]:
+    """``encode(values, counter) -> bytes`` of a compiled :class:`MessageCodec` (see :meth:`CanMatrix.encode`
+    for the contract: catalogue names first, then DBC names; missing or nan -> SNA (0 without one); clipped to
+    the raw range; counter taken modulo 15; Profile 11 CRC and counter filled).
+    """
+    L = int(message.length)
+    fn = "encode_" + _ident(message.name)
+    lines = [f"def {fn}(values, counter):", "    get = values.get", f"    p = (counter % {COUNTER_MODULO}) << 8"]
+    for s in message.signals:
+        if s.catalogue is not None:
+            lines += [f"    v = get({s.catalogue!r})", "    if v is None:", f"        v = get({s.name!r})"]
+        else:
+            lines.append(f"    v = get({s.name!r})")
+        sna = int(s.sna) if s.sna is not None else 0
+        lo, hi = int(s.raw_lo), int(s.raw_hi)
+        lines += ["    if v is None or v != v:",
+                  f"        r = {sna}",
+                  "    else:",
+                  f"        x = (v * {float(s.si_factor)!r} - {float(s.offset)!r}) / {float(s.scale)!r}",
+                  f"        r = {lo} if x <= {lo} else {hi} if x >= {hi} else round(x)",
+                  f"    p |= (r & {s.mask:#x}) << {int(s.start)}"]
+    rest = ", ".join(f"b{i}" for i in range(1, L))
+    lines.append(f"    {rest}, = p.to_bytes({L}, 'little')[1:]")
+    lines.append(f"    return bytes(({_crc_chain(int(message.seed), L)}, {rest}))")
+    return _exec_source(lines, fn, {})
+
+
+def _compile_frame_decoder(message: MessageCodec) -> Callable[..., DecodedFrame]:
+    """``decode_frame(data, t, check) -> DecodedFrame`` of a compiled :class:`MessageCodec`: length, CRC,
+    ``check(counter, intact, t)`` (the message's E2E check), then every signal (see :class:`DecodedFrame`)."""
+    L, fid, name = int(message.length), int(message.frame_id), message.name
+    fn = "decode_" + _ident(name)
+    head = f"DF({name!r}, {fid}, t"
+    lines = [f"def {fn}(data, t, check):",
+             f"    if len(data) != {L}:",
+             f"        return {head}, -1, False, False, check(0, False, t), {{}}, {{}}, (), ())",
+             f"    {_unpack(L)}",
+             "    c = b1 & 15",
+             f"    if not {crc_ok_expr(int(message.seed), L)}:",
+             f"        return {head}, c, False, True, check(c, False, t), {{}}, {{}}, (), ())",
+             "    st = check(c, True, t)",
+             "    values = {}",
+             "    other = {}",
+             "    una = imp = ()"]
+    if message.signals:
+        lines.append("    v = int.from_bytes(data, 'little')")
+    for s in message.signals:
+        if s.catalogue is None:
+            key = f"other[{s.name!r}]"
+            lines += _decode_signal(s, "    ", [f"{key} = nan"], [f"{key} = x"], [f"{key} = x"])
+        else:
+            c = s.catalogue
+            lines += _decode_signal(s, "    ", [f"una += ({c!r},)"], [f"values[{c!r}] = x"], [f"imp += ({c!r},)"])
+    lines.append(f"    return {head}, c, True, True, st, values, other, una, imp)")
+    return _exec_source(lines, fn, {"DF": DecodedFrame})
+
+
+def compile_receiver(
+    message: MessageCodec,
+    receiver: E2EReceiver,
+    msg_index: int,
+    slots: Sequence[tuple[SignalCodec, int]],
+    values: MutableSequence[float],
+    times: MutableSequence[float],
+    flags: MutableSequence[bool],
+    last_ok: MutableSequence[float],
+    errors: MutableSequence[bool],
+    counters: MutableMapping[str, int],
+) -> Callable[[bytes | bytearray, float], None]:
+    """The daemon's handler ``rx(data, t)`` of one input message (a compiled :class:`MessageCodec`).
+
+    Per frame, with the semantics of :meth:`CanMatrix.decode` followed by the daemon's bookkeeping:
+
+    * wrong length -> ``receiver.check(0, False, t)`` (ERROR), ``errors[msg_index] = True``,
+      ``counters['e2e_error']`` and ``counters['dlc_errors']`` + 1;
+    * CRC mismatch -> the same with ``crc_errors``;
+    * else ``st = receiver.check(counter, True, t)``, ``counters['e2e_<st>']`` + 1; any status but OK and
+      OKSOMELOST (REPEATED, WRONGSEQUENCE, ERROR for the invalid counter 15) -> ``errors[msg_index] = True``;
+      OK or OKSOMELOST -> ``last_ok[msg_index] = t`` and for each ``(signal_codec, i)`` of ``slots``:
+      SNA -> ``flags[i] = True`` and ``sna_values`` + 1; ``(raw * scale + offset) / si_factor`` outside the
+      catalogue range (+-1e-9) -> ``flags[i] = True`` and ``implausible_values`` + 1; else ``values[i]``,
+      ``times[i] = value, t`` and ``flags[i] = False``.
+
+    The lists are captured by reference: mutate them in place, never rebind them.
+    """
+    L, j = int(message.length), int(msg_index)
+    fn = "rx_" + _ident(message.name)
+    lines = [f"def {fn}(data, t):",
+             f"    if len(data) != {L}:",
+             "        check(0, False, t)",
+             "        counters['e2e_error'] += 1",
+             "        counters['dlc_errors'] += 1",
+             f"        errors[{j}] = True",
+             "        return",
+             f"    {_unpack(L)}",
+             f"    if not {crc_ok_expr(int(message.seed), L)}:",
+             "        check(b1 & 15, False, t)",
+             "        counters['e2e_error'] += 1",
+             "        counters['crc_errors'] += 1",
+             f"        errors[{j}] = True",
+             "        return",
+             "    st = check(b1 & 15, True, t)",
+             "    if st is OK:",
+             "        counters['e2e_ok'] += 1",
+             "    else:",
+             "        counters[KEYS[st]] += 1",
+             "        if st is not OKSOMELOST:",
+             f"            errors[{j}] = True",
+             "            return",
+             f"    last_ok[{j}] = t"]
+    if slots:
+        lines.append("    v = int.from_bytes(data, 'little')")
+    for s, i in slots:
+        i = int(i)
+        lines += _decode_signal(s, "    ", [f"flags[{i}] = True", "counters['sna_values'] += 1"],
+                                [f"values[{i}] = x", f"times[{i}] = t", f"flags[{i}] = False"],
+                                [f"flags[{i}] = True", "counters['implausible_values'] += 1"])
+    env = {"check": receiver.check, "counters": counters, "errors": errors, "last_ok": last_ok, "values": values,
+           "times": times, "flags": flags, "KEYS": STATUS_KEYS, "OK": E2EStatus.OK,
+           "OKSOMELOST": E2EStatus.OKSOMELOST}
+    return _exec_source(lines, fn, env)
