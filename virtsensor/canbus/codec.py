@@ -271,6 +271,60 @@ _CACHE: dict[tuple[str, float], tuple[object, dict[str, MessageCodec], str]] = {
 _NP_TABLE = np.frombuffer(CRC8_TABLE, dtype=np.uint8)
 
 
+def _e2e_data_id(m, source: str) -> int:
+    """The E2E data ID of cantools message ``m``, after checking its Profile 11 header (CRC bits 0..7,
+    counter bits 8..11)."""
+    names = {s.name: s for s in m.signals}
+    crc, ctr = names.get(f"{m.name}_CRC"), names.get(f"{m.name}_Counter")
+    if crc is None or ctr is None or (crc.start, crc.length) != (0, 8) or (ctr.start, ctr.length) != (8, 4):
+        raise UserError(
+            f"{source}: message {m.name} lacks {m.name}_CRC at bits 0..7 and "
+            f"{m.name}_Counter at bits 8..11 (E2E layout)"
+        )
+    attr = m.dbc.attributes.get("E2E_DataID") if m.dbc is not None else None
+    if attr is not None:
+        return int(attr.value)
+    if m.name in cat.MESSAGES:
+        return cat.MESSAGES[m.name].data_id
+    raise UserError(f"{source}: message {m.name} has no E2E_DataID attribute and is not catalogued")
+
+
+def _signal_codec(m, s, cname: str | None, source: str) -> SignalCodec:
+    """The :class:`SignalCodec` of cantools signal ``s`` of message ``m`` carrying catalogue signal
+    ``cname`` (None: none), with the unit factor, raw clip range and SNA code checked."""
+    where = f"{source}: {m.name}.{s.name}"
+    if s.byte_order != "little_endian":
+        raise UserError(f"{where}: only Intel (little-endian) signals are supported")
+    if m.is_multiplexed() or s.multiplexer_ids:
+        raise UserError(f"{where}: multiplexed signals are not supported")
+    if getattr(s, "is_float", False):
+        raise UserError(f"{where}: float signals are not supported")
+    scale, offset = float(s.scale), float(s.offset)
+    unit = s.unit or ""
+    factor = 1.0
+    if cname is not None:
+        spec = cat.SIGNALS[cname]
+        if unit != spec.unit:
+            conv = UNIT_CONVERSIONS.get(spec.unit)
+            if conv is None or conv[0] != unit:
+                raise UserError(f"{where} has unit {unit!r} but the catalogue's {cname} is in {spec.unit!r}")
+            factor = conv[1]
+        lo_si, hi_si = spec.minimum, spec.maximum
+    else:
+        lo_si, hi_si = -math.inf, math.inf
+    lo = s.minimum if s.minimum is not None else -math.inf
+    hi = s.maximum if s.maximum is not None else math.inf
+    full_lo = -(1 << (s.length - 1)) if s.is_signed else 0
+    full_hi = (1 << (s.length - 1)) - 1 if s.is_signed else (1 << s.length) - 1
+    raw_lo = max(full_lo, math.ceil((lo - offset) / scale - 1e-6)) if math.isfinite(lo) else full_lo
+    raw_hi = min(full_hi, math.floor((hi - offset) / scale + 1e-6)) if math.isfinite(hi) else full_hi
+    sna = next((int(k) for k, v in (s.choices or {}).items() if str(v) == "SNA"), None)
+    if sna is not None and raw_lo <= sna <= raw_hi:
+        raise UserError(f"{where}: SNA code {sna} lies inside the signal range")
+    return SignalCodec(s.name, cname, s.start, s.length, bool(s.is_signed), scale, offset, factor,
+                       raw_lo, raw_hi, lo_si, hi_si, sna, unit)
+
+
 def _compile(db, source: str) -> dict[str, MessageCodec]:
     """Build the :class:`MessageCodec` of every message of a cantools database."""
     where: dict[tuple[str, str], str] = {
@@ -280,80 +334,12 @@ def _compile(db, source: str) -> dict[str, MessageCodec]:
     for m in db.messages:
         if m.is_extended_frame:
             raise UserError(f"{source}: message {m.name}: extended (29-bit) ids are not supported")
-        names = {s.name: s for s in m.signals}
-        crc, ctr = names.get(f"{m.name}_CRC"), names.get(f"{m.name}_Counter")
-        if (
-            crc is None
-            or ctr is None
-            or (crc.start, crc.length) != (0, 8)
-            or (ctr.start, ctr.length) != (8, 4)
-        ):
-            raise UserError(
-                f"{source}: message {m.name} lacks {m.name}_CRC at bits 0..7 and "
-                f"{m.name}_Counter at bits 8..11 (E2E layout)"
-            )
-        attr = m.dbc.attributes.get("E2E_DataID") if m.dbc is not None else None
-        if attr is not None:
-            data_id = int(attr.value)
-        elif m.name in cat.MESSAGES:
-            data_id = cat.MESSAGES[m.name].data_id
-        else:
-            raise UserError(f"{source}: message {m.name} has no E2E_DataID attribute and is not catalogued")
-        sigs: list[SignalCodec] = []
-        for s in m.signals:
-            if s is crc or s is ctr:
-                continue
-            if s.byte_order != "little_endian":
-                raise UserError(
-                    f"{source}: {m.name}.{s.name}: only Intel (little-endian) signals are supported"
-                )
-            if m.is_multiplexed() or s.multiplexer_ids:
-                raise UserError(f"{source}: {m.name}.{s.name}: multiplexed signals are not supported")
-            cname = where.get((m.name, s.name))
-            scale, offset = float(s.scale), float(s.offset)
-            unit = s.unit or ""
-            factor = 1.0
-            if cname is not None:
-                spec = cat.SIGNALS[cname]
-                if unit != spec.unit:
-                    conv = UNIT_CONVERSIONS.get(spec.unit)
-                    if conv is None or conv[0] != unit:
-                        raise UserError(
-                            f"{source}: {m.name}.{s.name} has unit {unit!r} but the catalogue's "
-                            f"{cname} is in {spec.unit!r}"
-                        )
-                    factor = conv[1]
-                lo_si, hi_si = spec.minimum, spec.maximum
-            else:
-                lo_si, hi_si = -math.inf, math.inf
-            lo = s.minimum if s.minimum is not None else -math.inf
-            hi = s.maximum if s.maximum is not None else math.inf
-            full_lo = -(1 << (s.length - 1)) if s.is_signed else 0
-            full_hi = (1 << (s.length - 1)) - 1 if s.is_signed else (1 << s.length) - 1
-            raw_lo = max(full_lo, math.ceil((lo - offset) / scale - 1e-6)) if math.isfinite(lo) else full_lo
-            raw_hi = min(full_hi, math.floor((hi - offset) / scale + 1e-6)) if math.isfinite(hi) else full_hi
-            sna = next((int(k) for k, v in (s.choices or {}).items() if str(v) == "SNA"), None)
-            if sna is not None and raw_lo <= sna <= raw_hi:
-                raise UserError(f"{source}: {m.name}.{s.name}: SNA code {sna} lies inside the signal range")
-            sigs.append(
-                SignalCodec(
-                    s.name,
-                    cname,
-                    s.start,
-                    s.length,
-                    bool(s.is_signed),
-                    scale,
-                    offset,
-                    factor,
-                    raw_lo,
-                    raw_hi,
-                    lo_si,
-                    hi_si,
-                    sna,
-                    unit,
-                )
-            )
-        sigs.sort(key=lambda x: x.start)
+        data_id = _e2e_data_id(m, source)
+        header = (f"{m.name}_CRC", f"{m.name}_Counter")
+        sigs = sorted(
+            (_signal_codec(m, s, where.get((m.name, s.name)), source) for s in m.signals if s.name not in header),
+            key=lambda x: x.start,
+        )
         sender = m.senders[0] if m.senders else ""
         cycle_s = (m.cycle_time or 0) / 1000.0
         out[m.name] = MessageCodec(m.name, m.frame_id, m.length, sender, cycle_s, data_id, tuple(sigs))

@@ -224,91 +224,102 @@ def _input_messages() -> tuple[str, ...]:
     return tuple(m.name for m in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id) if m.name in names)
 
 
-def _payload_vsens(msg: cat.Message, rx: tuple[str, ...]) -> list[SignalLayout]:
+def _payload_sat_front(rx: tuple[str, ...]) -> list[SignalLayout]:
     sigs: list[SignalLayout] = []
     bit = FREE_BIT
-    if msg.name == "SAT_FRONT":
-        for corner, cname in (("FL", "sat_fl_nm"), ("FR", "sat_fr_nm")):
-            spec = cat.SIGNALS[cname]
-            s = _physical(
-                f"SAT_{corner}",
-                None,
-                spec,
-                bit,
-                rx,
-                f"Estimated {'front-left' if corner == 'FL' else 'front-right'} self-aligning torque "
-                f"(tyre Mz at the contact centre, ISO-W, z up); negative in a left turn. Estimate of "
-                f"{cname}; SNA while the estimator is initialising.",
-            )
-            sigs.append(s)
-            bit += s.length
-        for corner in ("FL", "FR"):
-            sigs.append(
-                _integer(
-                    f"SAT_{corner}_Status",
-                    bit,
-                    2,
-                    "",
-                    rx,
-                    f"Validity of SAT_{corner}: 0 VALID, 1 DEGRADED (a non-critical input held or "
-                    f"substituted), 2 INVALID (a critical input missing or implausible), 3 INIT.",
-                    STATUS_CHOICES,
-                )
-            )
-            bit += 2
-    elif msg.name == "VS_Health":
-        inputs = _input_messages()
-        bitmap = ", ".join(f"bit {i} {m}" for i, m in enumerate(inputs))
+    for corner, cname in (("FL", "sat_fl_nm"), ("FR", "sat_fr_nm")):
+        spec = cat.SIGNALS[cname]
+        s = _physical(
+            f"SAT_{corner}",
+            None,
+            spec,
+            bit,
+            rx,
+            f"Estimated {'front-left' if corner == 'FL' else 'front-right'} self-aligning torque "
+            f"(tyre Mz at the contact centre, ISO-W, z up); negative in a left turn. Estimate of "
+            f"{cname}; SNA while the estimator is initialising.",
+        )
+        sigs.append(s)
+        bit += s.length
+    for corner in ("FL", "FR"):
         sigs.append(
             _integer(
-                "VS_TickOverruns",
+                f"SAT_{corner}_Status",
                 bit,
-                16,
+                2,
                 "",
                 rx,
-                "Number of estimator ticks that missed their deadline since start (saturates at 65535).",
+                f"Validity of SAT_{corner}: 0 VALID, 1 DEGRADED (a non-critical input held or "
+                f"substituted), 2 INVALID (a critical input missing or implausible), 3 INIT.",
+                STATUS_CHOICES,
             )
         )
-        bit += 16
-        sigs.append(
-            _integer(
-                "VS_TickLatency",
-                bit,
-                16,
-                "us",
-                rx,
-                "Latency of the last estimator tick, from tick start to SAT_FRONT "
-                "transmission, in microseconds (saturates at 65535).",
-            )
-        )
-        bit += 16
-        sigs.append(
-            _integer(
-                "VS_InputStatus",
-                bit,
-                8,
-                "",
-                rx,
-                "Input status bitmap, one bit per input message, 1 = received intact "
-                f"(E2E OK) within its timeout: {bitmap}; unused bits 0.",
-            )
-        )
-        bit += 8
-        sigs.append(
-            _integer(
-                "VS_ModelId",
-                bit,
-                8,
-                "",
-                rx,
-                "Identifier/version byte of the estimator model in use "
-                "(high nibble model id, low nibble version).",
-            )
-        )
-        bit += 8
-    else:  # pragma: no cover - catalogue grew a VSENS message this generator does not know
-        raise ValueError(f"dbcgen does not know the layout of VSENS message {msg.name}")
+        bit += 2
     return sigs
+
+
+def _payload_vs_health(rx: tuple[str, ...]) -> list[SignalLayout]:
+    sigs: list[SignalLayout] = []
+    bit = FREE_BIT
+    inputs = _input_messages()
+    bitmap = ", ".join(f"bit {i} {m}" for i, m in enumerate(inputs))
+    sigs.append(
+        _integer(
+            "VS_TickOverruns",
+            bit,
+            16,
+            "",
+            rx,
+            "Number of estimator ticks that missed their deadline since start (saturates at 65535).",
+        )
+    )
+    bit += 16
+    sigs.append(
+        _integer(
+            "VS_TickLatency",
+            bit,
+            16,
+            "us",
+            rx,
+            "Latency of the last estimator tick, from tick start to SAT_FRONT "
+            "transmission, in microseconds (saturates at 65535).",
+        )
+    )
+    bit += 16
+    sigs.append(
+        _integer(
+            "VS_InputStatus",
+            bit,
+            8,
+            "",
+            rx,
+            "Input status bitmap, one bit per input message, 1 = received intact "
+            f"(E2E OK) within its timeout: {bitmap}; unused bits 0.",
+        )
+    )
+    bit += 8
+    sigs.append(
+        _integer(
+            "VS_ModelId",
+            bit,
+            8,
+            "",
+            rx,
+            "Identifier/version byte of the estimator model in use "
+            "(high nibble model id, low nibble version).",
+        )
+    )
+    bit += 8
+    return sigs
+
+
+def _payload_vsens(msg: cat.Message, rx: tuple[str, ...]) -> list[SignalLayout]:
+    if msg.name == "SAT_FRONT":
+        return _payload_sat_front(rx)
+    if msg.name == "VS_Health":
+        return _payload_vs_health(rx)
+    # pragma: no cover - catalogue grew a VSENS message this generator does not know
+    raise ValueError(f"dbcgen does not know the layout of VSENS message {msg.name}")
 
 
 def layout() -> tuple[MessageLayout, ...]:
@@ -383,6 +394,39 @@ def _q(text: str) -> str:
     return '"' + text.replace("\\", "/").replace('"', "'") + '"'
 
 
+#: The DBC new-symbols section (``NS_``), as cantools and CANdb++ write it.
+_NS_KEYS = (
+    "NS_DESC_",
+    "CM_",
+    "BA_DEF_",
+    "BA_",
+    "VAL_",
+    "CAT_DEF_",
+    "CAT_",
+    "FILTER",
+    "BA_DEF_DEF_",
+    "EV_DATA_",
+    "ENVVAR_DATA_",
+    "SGTYPE_",
+    "SGTYPE_VAL_",
+    "BA_DEF_SGTYPE_",
+    "BA_SGTYPE_",
+    "SIG_TYPE_REF_",
+    "VAL_TABLE_",
+    "SIG_GROUP_",
+    "SIG_VALTYPE_",
+    "SIGTYPE_VALTYPE_",
+    "BO_TX_BU_",
+    "BA_DEF_REL_",
+    "BA_REL_",
+    "BA_DEF_DEF_REL_",
+    "BU_SG_REL_",
+    "BU_EV_REL_",
+    "BU_BO_REL_",
+    "SG_MUL_VAL_",
+)
+
+
 def generate() -> str:
     """The DBC file text (deterministic)."""
     msgs = layout()
@@ -391,39 +435,7 @@ def generate() -> str:
         "",
         "",
         "NS_ :",
-        *(
-            f"\t{k}"
-            for k in (
-                "NS_DESC_",
-                "CM_",
-                "BA_DEF_",
-                "BA_",
-                "VAL_",
-                "CAT_DEF_",
-                "CAT_",
-                "FILTER",
-                "BA_DEF_DEF_",
-                "EV_DATA_",
-                "ENVVAR_DATA_",
-                "SGTYPE_",
-                "SGTYPE_VAL_",
-                "BA_DEF_SGTYPE_",
-                "BA_SGTYPE_",
-                "SIG_TYPE_REF_",
-                "VAL_TABLE_",
-                "SIG_GROUP_",
-                "SIG_VALTYPE_",
-                "SIGTYPE_VALTYPE_",
-                "BO_TX_BU_",
-                "BA_DEF_REL_",
-                "BA_REL_",
-                "BA_DEF_DEF_REL_",
-                "BU_SG_REL_",
-                "BU_EV_REL_",
-                "BU_BO_REL_",
-                "SG_MUL_VAL_",
-            )
-        ),
+        *(f"\t{k}" for k in _NS_KEYS),
         "",
         "BS_:",
         "",

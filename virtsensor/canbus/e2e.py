@@ -163,6 +163,7 @@ _OKSOMELOST = E2EStatus.OKSOMELOST
 _WRONGSEQUENCE = E2EStatus.WRONGSEQUENCE
 _ERROR = E2EStatus.ERROR
 _NONEWDATA = E2EStatus.NONEWDATA
+assert (COUNTER_MAX, COUNTER_MODULO) == (14, 15)  # E2EReceiver.check spells them out
 
 
 class E2EReceiver:
@@ -215,12 +216,13 @@ class E2EReceiver:
             intact: CRC matched and the length is right.
             t: receive timestamp in seconds.
         """
-        if not intact or counter > COUNTER_MAX:
+        # literals: COUNTER_MAX (14) and COUNTER_MODULO (15), spelt out on this per-frame path
+        if not intact or counter > 14:
             self.status = _ERROR
             return _ERROR
         d = counter - self.counter
         if d < 0:
-            d += COUNTER_MODULO
+            d += 15
         if d == 1:
             st = _OK
         elif d == 0:
