@@ -32,9 +32,10 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from virtsensor import signals as cat
+from virtsensor.canbus.e2e import COUNTER_MAX
 
 #: catalogue SI unit -> (DBC unit, factor): DBC value = SI value * factor.
 UNIT_CONVERSIONS: dict[str, tuple[str, float]] = {"Pa": ("kPa", 1e-3)}
@@ -357,6 +358,7 @@ def layout() -> tuple[MessageLayout, ...]:
                 "to 0); 15 is invalid.",
             ),
         ]
+        sigs[1] = replace(sigs[1], maximum=float(COUNTER_MAX))  # 15 is not a counter value
         if msg.sender in _OUTPUT_SENDERS:
             sigs += _payload_vsens(msg, rx)
         else:
