@@ -66,7 +66,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sim.tir import TirError, read_tir, require_keys
+from sim.tir import TirError, TirFile, read_tir, require_keys
 
 __all__ = ["MagicFormula61", "TyreOutput", "REQUIRED_KEYS", "SCALING_FACTORS"]
 
@@ -297,10 +297,15 @@ class MagicFormula61:
     ) -> None:
         src = source or str(getattr(params, "path", "") or "coefficient set")
         given = {str(k).upper(): v for k, v in params.items()}
-        require_keys(given, REQUIRED_KEYS, src, "the MF 6.1 tyre model")
+        require_keys(params if isinstance(params, TirFile) else given, REQUIRED_KEYS, src, "the MF 6.1 tyre model")
+        lines = params.lines if isinstance(params, TirFile) else {}
+
+        def at(key: str) -> str:  # "<file>:<line>" of a key given in a file, else the source
+            return f"{src}:{lines[key]}" if key in lines else src
+
         fittyp = given.get("FITTYP")
         if fittyp is not None and fittyp not in (61, 62, 61.0, 62.0):
-            raise TirError(f"{src}: FITTYP = {fittyp!r}: only Magic Formula 6.1/6.2 files are supported")
+            raise TirError(f"{at('FITTYP')}: FITTYP = {fittyp!r}: only Magic Formula 6.1/6.2 files are supported")
 
         full: dict[str, float | str] = dict(given)
         for key in SCALING_FACTORS:
@@ -319,17 +324,17 @@ class MagicFormula61:
             value = full[key]
             ok = isinstance(value, int | float) and not isinstance(value, bool)
             if not ok or (not math.isfinite(float(value)) and key not in _RANGE_DEFAULTS):
-                raise TirError(f"{src}: coefficient {key} = {value!r} is not a finite number")
+                raise TirError(f"{at(key)}: coefficient {key} = {value!r} is not a finite number")
             full[key] = float(value)
         for key in ("FNOMIN", "UNLOADED_RADIUS", "LONGVL", "NOMPRES", "VERTICAL_STIFFNESS",
                     "LONGITUDINAL_STIFFNESS", "LATERAL_STIFFNESS", "VXLOW", "LFZO", "LMUX", "LMUY"):
             if full[key] <= 0.0:
-                raise TirError(f"{src}: coefficient {key} = {full[key]!r} must be > 0")
+                raise TirError(f"{at(key)}: coefficient {key} = {full[key]!r} must be > 0")
         for key in ("PKY2", "PCY1", "PCX1", "QCZ1"):
             if full[key] == 0.0:
-                raise TirError(f"{src}: coefficient {key} must not be 0")
+                raise TirError(f"{at(key)}: coefficient {key} must not be 0")
         if full["LMUV"] != 0.0:
-            raise TirError(f"{src}: LMUV (speed-decaying friction) is not supported; set it to 0")
+            raise TirError(f"{at('LMUV')}: LMUV (speed-decaying friction) is not supported; set it to 0")
 
         self.params = full
         self.use_alpha_star = bool(use_alpha_star)

@@ -570,7 +570,9 @@ def test_missing_needed_coefficient_is_named(tmp_path: Path) -> None:
     lines = [ln for ln in bundled_tir(MF61).read_text().splitlines() if not ln.startswith("QCZ1 ")]
     path = tmp_path / "short.tir"
     path.write_text("\n".join(lines) + "\n")
-    with pytest.raises(TirError, match=r"short\.tir: missing coefficient QCZ1"):
+    section_line = 1 + next(i for i, ln in enumerate(lines) if ln.startswith("[ALIGNING_COEFFICIENTS]"))
+    expected = rf"short\.tir:{section_line}: missing coefficient QCZ1 in \[ALIGNING_COEFFICIENTS\]"
+    with pytest.raises(TirError, match=expected):
         MagicFormula61.from_tir(path)
     with pytest.raises(TirError, match="FNOMIN"):
         MagicFormula61({"PCX1": 1.0})
@@ -586,6 +588,10 @@ def test_optional_coefficients_default_to_zero_and_scaling_to_one() -> None:
         MagicFormula61({**params, "FITTYP": 6})
     with pytest.raises(TirError, match="PDY2"):
         MagicFormula61({**params, "PDY2": "oops"})
+    tir = read_tir(bundled_tir(MF61))
+    tir["PDY2"] = "oops"  # a quoted string where a number belongs: the message gives the line
+    with pytest.raises(TirError, match=rf":{tir.lines['PDY2']}: coefficient PDY2 = 'oops' is not a finite number"):
+        MagicFormula61(tir, source="f.tir")
     with pytest.raises(TirError, match="unit LENGTH"):
         parse_tir("[UNITS]\nLENGTH = 'mm'\n", "mm.tir")
 
