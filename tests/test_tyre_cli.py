@@ -6,6 +6,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sim.tir import bundled_tir
@@ -153,3 +154,58 @@ def test_plot_without_matplotlib_names_the_extra(tmp_path: Path, capsys: pytest.
     msg = _refused(capsys, bundled_tir(MF61), "--plot", str(tmp_path / "c.png"))
     assert "virtsensor[plots]" in msg and "matplotlib" in msg
     assert list(tmp_path.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- --tyre on simulate / campaign
+def test_simulate_with_mfeval_tyre_follows_its_curves(tmp_path: Path) -> None:
+    """The SAT of a run with --tyre is the Mz of that file's curves, not the default tyre's."""
+    from sim.params import car_parameters
+    from sim.tyre import MagicFormula61
+    from sim.vehicle import tyre_for
+    from virtsensor.recording import read_csv
+
+    out = tmp_path / "dlc.csv"
+    assert main(["simulate", "double-lane-change", "--speed", "80", "--mu", "1", "--seed", "1",
+                 "--tyre", str(bundled_tir(MFEVAL)), "--out", str(out)]) == 0
+    t = read_csv(out)
+    car = car_parameters()
+    ty = car["tyres"]
+    # the right front tyre is a right-hand tyre (not mirrored); ground camber follows the body roll
+    camber = ty["static_camber_front_rad"] + car["suspension"]["camber_roll_factor_front"] * t["roll_rad"]
+    ops = (t["fz_fr_n"], t["kappa_fr_1"], t["alpha_fr_rad"], camber, t["vx_mps"], ty["pressure_front_pa"])
+    rms = {}
+    for name, model in (("mfeval", MagicFormula61.from_tir(bundled_tir(MFEVAL))), ("default", tyre_for(car))):
+        rms[name] = float(np.sqrt(np.mean((t["sat_fr_nm"] - model.steady_state(*ops).mz) ** 2)))
+    sat_rms = float(np.sqrt(np.mean(t["sat_fr_nm"] ** 2)))
+    assert rms["mfeval"] < 0.05 * sat_rms, rms  # only the 20 Hz sampling of a 100 Hz transducer is left
+    assert rms["default"] > 5.0 * rms["mfeval"], rms
+
+
+def test_bad_tyre_option_is_refused_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path, line = _broken(tmp_path, "PKY1 = abc")
+    out = tmp_path / "dlc.csv"
+    assert main(["simulate", "double-lane-change", "--speed", "80", "--mu", "1", "--tyre", str(path),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{path}:{line}: cannot parse value 'abc' for PKY1" in err[0], err
+    assert not out.exists()
+    assert main(["simulate", "double-lane-change", "--speed", "80", "--mu", "1", "--tyre", MFEVAL,
+                 "--set", f"tyres.file={bundled_tir(MF61)}", "--out", str(out)]) == 2
+    assert "--tyre and --set tyres.file" in capsys.readouterr().err
+    camp = tmp_path / "camp"
+    assert main(["campaign", "tiny", "--out", str(camp), "--tyre", str(tmp_path / "missing.tir")]) == 2
+    assert "no such tyre property file" in capsys.readouterr().err
+    assert not camp.exists()
+
+
+def test_tyre_option_is_the_set_path(tmp_path: Path) -> None:
+    """--tyre NAME gives the same parameter tree as --set tyres.file=<the bundled file>."""
+    import argparse
+
+    from virtsensor.commands._simargs import add_car_arguments, car_from_args
+
+    parser = argparse.ArgumentParser()
+    add_car_arguments(parser)
+    by_option = car_from_args(parser.parse_args(["--tyre", MFEVAL.removesuffix(".tir")]))
+    by_set = car_from_args(parser.parse_args(["--set", f"tyres.file={bundled_tir(MFEVAL).resolve()}"]))
+    assert by_option == by_set
