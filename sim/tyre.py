@@ -555,10 +555,11 @@ class MagicFormula61:
         t, mzr, s, mz, mz0 = self._aligning_moment(op, pc, pure, fx, fy, gyk, pure_slip_mz)
         my = self._rolling_resistance(op.ufz, fx, op.absvx, op.vmin if op.vmin > self.vxlow else None, op.gamma,
                                       op.pt, op.ukappa, op.sgn)
-        out = (fx, fy, mz, my, t, mzr, s, pure.kya, pure.kxk, pc[_R["MUX"]], pc[_R["MUY"]], pure.fx0, pure.fy0)
+        out = TyreOutput(fx, fy, mz, my, t, mzr, s, pure.kya, pure.kxk, pc[_R["MUX"]], pc[_R["MUY"]], pure.fx0,
+                         pure.fy0, mz0)
         if op.shape != (op.n,):
-            return TyreOutput(*(a.reshape(op.shape) for a in out), None if mz0 is None else mz0.reshape(op.shape))
-        return TyreOutput(*out, mz0)
+            return TyreOutput._make(None if a is None else a.reshape(op.shape) for a in out)
+        return out
 
     def _operating_point(
         self,

@@ -219,16 +219,16 @@ def format_report(figures: Mapping[str, Any]) -> str:
         lines.append(f"{label:30s}{unit:>6s}{cells}")
     lines += ["", "inflation pressure -10 % / +10 %: change of each figure", head]
     for label, _unit, key, _scale, _fmt in _ROWS:
-        cells = []
+        changes: list[str] = []
         for lf in LOAD_FACTORS:
             base = conds[(1.0, lf)][key]
             if key.endswith("_deg"):
-                cells.append("/".join(f"{conds[(pf, lf)][key] - base:+.2f}" for pf in (0.9, 1.1)))
+                changes.append("/".join(f"{conds[(pf, lf)][key] - base:+.2f}" for pf in (0.9, 1.1)))
             else:
-                cells.append("/".join(f"{100.0 * (conds[(pf, lf)][key] / base - 1.0):+.1f}%" if base else "n/a"
+                changes.append("/".join(f"{100.0 * (conds[(pf, lf)][key] / base - 1.0):+.1f}%" if base else "n/a"
                                       for pf in (0.9, 1.1)))
         unit = "deg" if key.endswith("_deg") else ""
-        lines.append(f"{label:30s}{unit:>6s}" + "".join(f"{c:>15s}" for c in cells))
+        lines.append(f"{label:30s}{unit:>6s}" + "".join(f"{c:>15s}" for c in changes))
     return "\n".join(lines)
 
 
@@ -262,7 +262,10 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
 def write_json(figures: Mapping[str, Any], path: Path) -> None:
     """The figures as indented JSON (atomically)."""
     text = json.dumps(figures, indent=2) + "\n"
-    _atomic_write(path, lambda tmp: tmp.write_text(text))
+    def write(tmp: Path) -> None:
+        tmp.write_text(text)
+
+    _atomic_write(path, write)
 
 
 def require_matplotlib() -> None:
