@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -148,12 +150,35 @@ def test_plot_and_json_files(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["curves.png", "figures.json"]  # no partial files
 
 
-def test_plot_without_matplotlib_names_the_extra(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(sys.modules, "matplotlib", None)
-    msg = _refused(capsys, bundled_tir(MF61), "--plot", str(tmp_path / "c.png"))
-    assert "virtsensor[plots]" in msg and "matplotlib" in msg
-    assert list(tmp_path.iterdir()) == []
+_WITHOUT_EXTRAS = textwrap.dedent("""
+    import importlib.abc, importlib.util, sys
+    BLOCKED = {"sklearn", "skl2onnx", "scipy", "joblib", "tqdm", "threadpoolctl", "shap", "matplotlib"}
+    class _NoExtras(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name.split('.')[0] in BLOCKED:
+                raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+            return None
+    sys.meta_path.insert(0, _NoExtras())
+    _find = importlib.util.find_spec
+    importlib.util.find_spec = lambda n, *a: None if n.split('.')[0] in BLOCKED else _find(n, *a)
+    from virtsensor.cli import main
+    sys.exit(main(sys.argv[1:]))
+""")
+
+
+def test_runs_on_the_base_install_and_plot_names_the_extra(tmp_path: Path) -> None:
+    """No optional extra is needed for the figures; --plot without matplotlib: one line naming 'plots'."""
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", _WITHOUT_EXTRAS, "tyre", MFEVAL, *args], capture_output=True,
+                              text=True, cwd=tmp_path, timeout=120)
+
+    ok = run("--json", "-")
+    assert ok.returncode == 0, ok.stderr
+    assert _at(json.loads(ok.stdout))["mz_max_nm"] == pytest.approx(117.5, abs=0.1)
+    refused = run("--plot", "c.png")
+    lines = refused.stderr.strip().splitlines()
+    assert refused.returncode == 2 and len(lines) == 1 and "virtsensor[plots]" in lines[0], refused.stderr
+    assert refused.stdout == "" and list(tmp_path.iterdir()) == []
 
 
 # ----------------------------------------------------------------------------- --tyre on simulate / campaign

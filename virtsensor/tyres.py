@@ -24,10 +24,8 @@ Peaks are located on a 0.01 deg grid, then on a 0.0001 deg grid around the best 
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import tempfile
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,15 +35,15 @@ import numpy as np
 
 from sim.tir import TirError, TirFile, bundled_tir, bundled_tyres, read_tir
 from sim.tyre import MagicFormula61
+from virtsensor import fileio, plotting
 from virtsensor.errors import UserError
 
-__all__ = ["CheckedTyre", "LOAD_FACTORS", "PRESSURE_FACTORS", "check_tyre_file", "format_report",
-           "parse_overrides", "plot_curves", "resolve_tyre_file", "tyre_figures", "write_json"]
+__all__ = ["CheckedTyre", "LOAD_FACTORS", "PRESSURE_FACTORS", "check_tyre_file", "check_writable", "format_report",
+           "parse_overrides", "plot_curves", "require_matplotlib", "resolve_tyre_file", "tyre_figures", "write_json"]
 
 LOAD_FACTORS = (0.5, 1.0, 1.5)  # x FNOMIN
 PRESSURE_FACTORS = (0.9, 1.0, 1.1)  # x INFLPRES
 _DEG = math.pi / 180.0
-_HINT_PLOTS = "pip install 'virtsensor[plots]'"
 
 
 @dataclass(frozen=True)
@@ -236,57 +234,38 @@ def format_report(figures: Mapping[str, Any]) -> str:
 # outputs
 # ---------------------------------------------------------------------------------------------------------------
 def check_writable(path: Path, option: str) -> None:
-    """Refuse (UserError) an output path whose directory does not exist or cannot be written; creates nothing."""
+    """Refuse (UserError) an output path that cannot be written, before any work; creates nothing.
+
+    Missing folders are fine (they are created on writing) when the nearest existing one is writable.
+    """
     if path.is_dir():
         raise UserError(f"{option}: {path} is a directory, give a file name")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UserError(f"{option}: cannot write {path}: {parent} is not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise UserError(f"{option}: cannot write {path}: {parent} is not writable")
-
-
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """``write(tmp)`` next to ``path``, then rename over it: no partial file is ever left at ``path``."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    folder = next(a for a in (path.parent, *path.parent.parents) if a.exists())  # "." or "/" at the latest
+    if not folder.is_dir():
+        raise UserError(f"{option}: cannot write {path}: {folder} is not a directory")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise UserError(f"{option}: cannot write {path}: {folder} is not writable")
 
 
 def write_json(figures: Mapping[str, Any], path: Path) -> None:
-    """The figures as indented JSON (atomically)."""
-    text = json.dumps(figures, indent=2) + "\n"
-    def write(tmp: Path) -> None:
-        tmp.write_text(text)
-
-    _atomic_write(path, write)
+    """The figures as indented JSON, atomically (folders created)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fileio.write_json(path, figures)
 
 
 def require_matplotlib() -> None:
-    """UserError naming the ``plots`` extra when matplotlib cannot be imported."""
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        raise UserError(f"--plot needs matplotlib, which is not installed: {_HINT_PLOTS}") from None
+    """:class:`~virtsensor.extras.MissingExtra` (a UserError naming the ``plots`` extra) without matplotlib."""
+    plotting.require("virtsensor tyre --plot")
 
 
 def plot_curves(tyre: CheckedTyre, path: Path) -> None:
     """PNG of Fy and Mz against slip angle and Fx against kappa, at 0.5/1/1.5 x FNOMIN, INFLPRES and +10 %."""
-    require_matplotlib()
-    from matplotlib.figure import Figure
-
     m = tyre.model
     p = m.params
     fz0, pres0, vx = float(p["FNOMIN"]), float(p["INFLPRES"]), float(p["LONGVL"])
     a_deg = np.linspace(-15.0, 15.0, 601)
     kappa = np.linspace(-0.3, 0.3, 601)
-    fig = Figure(figsize=(13, 4.2), layout="constrained")
+    fig = plotting.figure(13, 4.2, what="virtsensor tyre --plot")
     ax_fy, ax_mz, ax_fx = fig.subplots(1, 3)
     colours = ("tab:blue", "tab:orange", "tab:green")
     for lf, colour in zip(LOAD_FACTORS, colours, strict=True):
@@ -308,4 +287,4 @@ def plot_curves(tyre: CheckedTyre, path: Path) -> None:
     ax_fy.legend(fontsize=7)
     fig.suptitle(f"{tyre.path.name}: pure slip, zero camber, Vx {vx:g} m/s, ISO-W (solid {pres0 / 1e5:.2f} bar, "
                  "dashed +10 %)", fontsize=10)
-    _atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    plotting.save(fig, path)

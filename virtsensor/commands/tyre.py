@@ -55,9 +55,9 @@ def run(args: argparse.Namespace) -> int:
     tyre = check_tyre_file(args.file, overrides)
     figures = tyre_figures(tyre)
     if args.json_path == "-":
-        import json
+        from virtsensor.fileio import dumps
 
-        sys.stdout.write(json.dumps(figures, indent=2) + "\n")
+        sys.stdout.write(dumps(figures) + "\n")
     else:
         print(format_report(figures))
     if json_path is not None:
