@@ -692,3 +692,23 @@ def _plain_mf61(p: dict, fz: float, kappa: float, alpha: float, gamma: float, vx
         (fz / fz0) ** p["QSY7"] * (pres / p["NOMPRES"]) ** p["QSY8"])
     return {"fx": fx, "fy": fy, "mz": mz, "my": my, "t": t, "mzr": mzr, "s": s, "kya": kya, "kxk": kxk,
             "mu_x": mux, "mu_y": muy, "fx0": fx0, "fy0": fy0}
+
+
+# ------------------------------------------------------------- different tyres front and rear
+def test_axle_tyres_split_the_wheel_axis(mf61: MagicFormula61, cseg: MagicFormula61) -> None:
+    """AxleTyres gives FL, FR the front tyre's outputs and RL, RR the rear tyre's, as the vehicle calls it."""
+    from sim.vehicle import AxleTyres
+
+    ins = _random_inputs(np.random.default_rng(4), (6, 4))
+    pres, mu = np.full((6, 4), 2.4e5), np.linspace(0.4, 1.0, 6)[:, None]
+    both = AxleTyres(mf61, cseg)
+    out = both.steady_state(ins["fz"], ins["kappa"], ins["alpha"], ins["gamma"], ins["vx"], pres, mu)
+    for model, cols in ((mf61, slice(0, 2)), (cseg, slice(2, 4))):
+        ref = model.steady_state(*(v[:, cols] for v in ins.values()), pres[:, cols], mu)
+        for f in ("fx", "fy", "mz", "my", "kya"):
+            np.testing.assert_array_equal(getattr(out, f)[:, cols], getattr(ref, f), err_msg=f)
+        np.testing.assert_array_equal(both.effective_rolling_radius(ins["fz"], 50.0, pres)[:, cols],
+                                      model.effective_rolling_radius(ins["fz"][:, cols], 50.0, pres[:, cols]))
+        np.testing.assert_array_equal(both.relaxation_lengths(ins["fz"], pres)[1][:, cols],
+                                      model.relaxation_lengths(ins["fz"][:, cols], pres[:, cols])[1])
+    assert both.per_wheel("UNLOADED_RADIUS", 0.3).tolist() == [0.393581] * 2 + [0.3135] * 2

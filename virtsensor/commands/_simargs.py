@@ -22,9 +22,10 @@ def add_car_arguments(parser: argparse.ArgumentParser) -> None:
                         help="TOML file of parameter overrides, same shape as sim/data/car_c_segment.toml")
     parser.add_argument("--pressure-bar", type=float, default=None, metavar="P",
                         help="inflation pressure of all four tyres (gauge, bar)")
-    parser.add_argument("--tyre", default=None, metavar="FILE.tir",
-                        help="MF 6.1 tyre property file of all four wheels, or a bundled tyre's name (see "
-                             "'virtsensor tyre'); checked before any work; the same as --set tyres.file=FILE")
+    parser.add_argument("--tyre", dest="tyres", action="append", default=[], metavar="[front=|rear=]FILE.tir",
+                        help="MF 6.1 tyre property file, or a bundled tyre's name (see 'virtsensor tyre'), of all "
+                             "four wheels, or with front= / rear= of one axle (repeatable); checked before any "
+                             "work; the same as --set tyres.file=FILE (tyres.file_front, tyres.file_rear)")
 
 
 @contextmanager
@@ -47,8 +48,7 @@ def car_from_args(args: argparse.Namespace) -> dict[str, Any]:
     from sim.sensors import check_specs
     from sim.vehicle import tyre_for
 
-    tyre_file = _tyre_option(args)  # --tyre FILE is --set tyres.file=<its absolute path>
-    overrides = [*args.overrides, *([f"tyres.file={tyre_file}"] if tyre_file is not None else [])]
+    overrides = [*args.overrides, *_tyre_overrides(args)]  # --tyre [AXLE=]FILE is --set tyres.file...=FILE
     with sim_errors():
         params = car_parameters(overrides, args.param_files)
         try:
@@ -56,17 +56,31 @@ def car_from_args(args: argparse.Namespace) -> dict[str, Any]:
             check_specs(params)
         except ValueError as exc:
             raise ParamError(str(exc)) from None
-        tyre_for(params)  # a malformed or missing .tir is reported now, before any work
+        tyre_for(params), tyre_for(params, "rear")  # a malformed or missing .tir is reported now, before any work
     return params
 
 
-def _tyre_option(args: argparse.Namespace) -> str | None:
-    """The checked --tyre file as an absolute path (None without --tyre); UserError names what is wrong."""
-    name = getattr(args, "tyre", None)
-    if name is None:
-        return None
-    if any(o.split("=", 1)[0].strip() == "tyres.file" for o in args.overrides):
-        raise UserError("--tyre and --set tyres.file=... both name the tyre file; give one of them")
+#: --tyre prefix -> the car parameter it sets
+_TYRE_KEYS = {"": "tyres.file", "front": "tyres.file_front", "rear": "tyres.file_rear"}
+
+
+def _tyre_overrides(args: argparse.Namespace) -> list[str]:
+    """``tyres.file...=<absolute path>`` for each checked --tyre; UserError names what is wrong."""
     from virtsensor.tyres import check_tyre_file
 
-    return str(check_tyre_file(name).path.resolve())
+    out: dict[str, str] = {}
+    for value in getattr(args, "tyres", None) or []:
+        axle, sep, name = value.partition("=")
+        if not sep or axle not in ("front", "rear"):
+            axle, name = "", value
+        key = _TYRE_KEYS[axle]
+        if key in out:
+            raise UserError(f"--tyre {value}: {axle or 'all four wheels'} already given a tyre by another --tyre")
+        if any(o.split("=", 1)[0].strip() == key for o in args.overrides):
+            raise UserError(f"--tyre {value} and --set {key}=... both name that tyre file; give one of them")
+        out[key] = str(check_tyre_file(name).path.resolve())
+    if "tyres.file" in out:  # all four wheels: unless an axle is named otherwise, no axle keeps its own file
+        for key in ("tyres.file_front", "tyres.file_rear"):
+            if not any(o.split("=", 1)[0].strip() == key for o in args.overrides):
+                out.setdefault(key, "")
+    return [f"{key}={path}" for key, path in out.items()]
