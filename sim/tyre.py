@@ -267,14 +267,15 @@ class MagicFormula61:
     """MF 6.1 steady-state tyre (see the module docstring for frames and signs).
 
     Args:
-        params: coefficients KEY -> value as read from a ``.tir`` file (upper-case keys).
+        params: coefficients KEY -> value as read from a ``.tir`` file (upper-case keys);
+            a :class:`~sim.tir.TirFile` makes the error messages name the line.
         use_alpha_star: use alpha* = tan(alpha) sign(Vcx) and gamma* = sin(gamma)
             (book, MFeval useMode 121) instead of alpha and gamma (TNO, useMode 111).
         source: name used in error messages (the file path).
 
     Raises:
-        TirError: a required coefficient is missing, a value is not a number, or the
-            file is not an MF 6.1/6.2 file.
+        TirError: a required coefficient is missing (MF 6.1 gives it no default), a
+            value is not a finite number or out of its range, or FITTYP is not 61/62.
 
     Implementation: every coefficient that is a polynomial in dfz, gamma* and gamma
     (with the scaling factors, and the pressure and friction factors when they are
