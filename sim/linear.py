@@ -128,6 +128,7 @@ def linear_model(params: Mapping[str, Any], tyre: MagicFormula61 | None = None, 
     changes their side-force and camber stiffnesses (MF combined slip).
     """
     v, s, ty, st = params["vehicle"], params["suspension"], params["tyres"], params["steering"]
+    tyre_r = tyre or tyre_for(params, "rear")
     tyre = tyre or tyre_for(params)
     g = params["simulation"]["gravity_mps2"]
     m, L, frac = v["mass_kg"], v["wheelbase_m"], v["front_axle_load_fraction"]
@@ -139,7 +140,7 @@ def linear_model(params: Mapping[str, Any], tyre: MagicFormula61 | None = None, 
     kxk, *_ = tyre.stiffnesses(fz_f, ty["pressure_front_pa"], ty["static_camber_front_rad"])
     kappa_f = float(traction / 2.0 / kxk)
     cf, cgf, tf = _axle_properties(tyre, fz_f, ty["static_camber_front_rad"], ty["pressure_front_pa"], kappa_f)
-    cr, cgr, tr = _axle_properties(tyre, m * g * (1 - frac) / 2, ty["static_camber_rear_rad"],
+    cr, cgr, tr = _axle_properties(tyre_r, m * g * (1 - frac) / 2, ty["static_camber_rear_rad"],
                                    ty["pressure_rear_pa"])
     # roll gradient of the sprung mass about the roll axis
     mu_f, mu_r = v["unsprung_mass_front_kg"], v["unsprung_mass_rear_kg"]
@@ -167,7 +168,7 @@ def linear_model(params: Mapping[str, Any], tyre: MagicFormula61 | None = None, 
     lt_r = (k_r * roll_grad + fy_r * v["roll_centre_height_rear_m"] + 2 * mu_r * R0) / tr_w
     al_f = _alignment_load_sensitivity(tyre, fz_f, ty["toe_in_front_rad"], ty["static_camber_front_rad"],
                                        ty["pressure_front_pa"], kappa_f) * lt_f / 2.0
-    al_r = _alignment_load_sensitivity(tyre, m * g * (1 - frac) / 2, ty["toe_in_rear_rad"],
+    al_r = _alignment_load_sensitivity(tyre_r, m * g * (1 - frac) / 2, ty["toe_in_rear_rad"],
                                        ty["static_camber_rear_rad"], ty["pressure_rear_pa"]) * lt_r / 2.0
     f_rr = float(tyre.params.get("QSY1", 0.0))  # rolling resistance force / load
     rolling = f_rr * (tf_w * lt_f + tr_w * lt_r)

@@ -31,7 +31,8 @@ import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-__all__ = ["TirError", "TirFile", "read_tir", "parse_tir", "bundled_tir", "require_keys"]
+__all__ = ["TirError", "TirFile", "read_tir", "parse_tir", "bundled_tir", "bundled_tyres", "require_keys",
+           "standard_section"]
 
 #: Sub-directory of the ``sim`` package that holds the bundled property files.
 _BUNDLED_DIR = ("data", "tyres")
@@ -84,7 +85,8 @@ class TirFile(dict[str, float | str]):
     * ``sections``: KEY -> section it came from (upper-case, without brackets);
     * ``lines``: KEY -> 1-based line number it was read from;
     * ``units``: the ``[UNITS]`` entries (KEY -> str);
-    * ``tables``: section -> rows of numbers, for table sections such as ``[SHAPE]``.
+    * ``tables``: section -> rows of numbers, for table sections such as ``[SHAPE]``;
+    * ``section_lines``: section -> 1-based line of its (first) header.
     """
 
     def __init__(
@@ -95,6 +97,7 @@ class TirFile(dict[str, float | str]):
         lines: Mapping[str, int] | None = None,
         units: Mapping[str, str] | None = None,
         tables: Mapping[str, list[tuple[float, ...]]] | None = None,
+        section_lines: Mapping[str, int] | None = None,
     ) -> None:
         super().__init__(params)
         self.path = path
@@ -102,6 +105,7 @@ class TirFile(dict[str, float | str]):
         self.lines = dict(lines or {})
         self.units = dict(units or {})
         self.tables = dict(tables or {})
+        self.section_lines = dict(section_lines or {})
 
     @property
     def params(self) -> dict[str, float | str]:
@@ -150,6 +154,7 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
     units: dict[str, str] = {}
     unit_lines: dict[str, int] = {}
     tables: dict[str, list[tuple[float, ...]]] = {}
+    section_lines: dict[str, int] = {}
     seen_in_section: dict[tuple[str, str], int] = {}
     section = ""
     in_table = False
@@ -170,6 +175,7 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
             if m is None:
                 raise TirError(f"{name}:{lineno}: malformed section header {body!r}")
             section = m.group(1).upper().replace(" ", "_")
+            section_lines.setdefault(section, lineno)
             in_table = False
             continue
 
@@ -236,7 +242,8 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
                 f"(only SI files: {', '.join(sorted(allowed))})"
             )
 
-    return TirFile(path=name, params=params, sections=sections, lines=lines, units=units, tables=tables)
+    return TirFile(path=name, params=params, sections=sections, lines=lines, units=units, tables=tables,
+                   section_lines=section_lines)
 
 
 def read_tir(path: str | Path) -> TirFile:
@@ -261,14 +268,53 @@ def require_keys(
     source: str | None = None,
     what: str = "the tyre model",
 ) -> None:
-    """Raise :class:`TirError` naming the missing ones of ``keys`` (and the file)."""
+    """Raise :class:`TirError` naming the missing ones of ``keys`` (and the file).
+
+    For a :class:`TirFile` the message gives the line of the section the first
+    missing key belongs in (MF-Tyre layout), when the file has that section.
+    """
     values = params.params if isinstance(params, TirFile) else params
     if source is None:
         source = params.path if isinstance(params, TirFile) else "coefficient set"
     missing = [k for k in keys if k not in values]
     if missing:
         more = f" (also missing: {', '.join(missing[1:])})" if len(missing) > 1 else ""
-        raise TirError(f"{source}: missing coefficient {missing[0]} needed by {what}{more}")
+        where, section = source, standard_section(missing[0])
+        line = params.section_lines.get(section) if isinstance(params, TirFile) else None
+        if line is not None:
+            where = f"{source}:{line}"
+            more = f" in [{section}]{more}"
+        raise TirError(f"{where}: missing coefficient {missing[0]}{more}, needed by {what} (no default)")
+
+
+#: Section of the MF-Tyre layout that holds a key (keys not listed: by their prefix, see standard_section).
+_SECTION_OF: dict[str, str] = {
+    "FITTYP": "MODEL", "LONGVL": "MODEL", "VXLOW": "MODEL", "UNLOADED_RADIUS": "DIMENSION",
+    "INFLPRES": "OPERATING_CONDITIONS", "NOMPRES": "OPERATING_CONDITIONS", "FNOMIN": "VERTICAL",
+    "VERTICAL_STIFFNESS": "VERTICAL", "LONGITUDINAL_STIFFNESS": "STRUCTURAL", "LATERAL_STIFFNESS": "STRUCTURAL",
+}
+
+
+def standard_section(key: str) -> str:
+    """Section of an MF 6.1 file that holds ``key`` (e.g. ``PKY1`` -> ``LATERAL_COEFFICIENTS``); "" if unknown."""
+    key = key.upper()
+    if key in _SECTION_OF:
+        return _SECTION_OF[key]
+    if re.fullmatch(r"L[A-Z]+", key):
+        return "SCALING_COEFFICIENTS"
+    m = re.fullmatch(r"([PQRS])[A-Z]([XYZ])\d+", key)
+    if m is None:
+        return ""
+    kind, axis = m.groups()
+    if kind == "Q" and axis in "XY":
+        return "OVERTURNING_COEFFICIENTS" if axis == "X" else "ROLLING_COEFFICIENTS"
+    return {"X": "LONGITUDINAL_COEFFICIENTS", "Y": "LATERAL_COEFFICIENTS", "Z": "ALIGNING_COEFFICIENTS"}[axis]
+
+
+def bundled_tyres() -> list[str]:
+    """Names of the property files shipped in ``sim/data/tyres`` (sorted)."""
+    folder = importlib.resources.files("sim").joinpath(*_BUNDLED_DIR)
+    return sorted(p.name for p in folder.iterdir() if p.name.endswith(".tir"))
 
 
 def bundled_tir(name: str) -> Path:

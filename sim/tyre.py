@@ -50,12 +50,10 @@ smaller slip angle). Slip and cornering stiffnesses (Kxk, Kya) and the peak trai
 Dt are unchanged: at small slip the contact patch does not slide, so the road
 friction does not matter there.
 
-Performance: one :meth:`MagicFormula61.steady_state` call at shape (150, 4) takes
-about 0.45 ms on the development VM (2-core AMD EPYC, numpy 2.4) with scalar
-pressure and mu_scale, about 0.52 ms with per-wheel pressure and per-run mu_scale
-arrays (array pressures are cached by content). About half of it is the ~40
-transcendental functions per element that MF 6.1 needs (numpy has no SIMD float64
-atan/sin/tan on this CPU: ~10 ns per element each), the rest ~170 numpy calls.
+Cost: one call evaluates arrays of any shape in a fixed number of numpy calls
+(about 40 transcendental functions per element, which dominate at simulator batch
+sizes); array pressures are cached by content, scalar pressure and mu_scale are
+folded into the cached coefficient matrix.
 """
 
 from __future__ import annotations
@@ -68,7 +66,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sim.tir import TirError, read_tir, require_keys
+from sim.tir import TirError, TirFile, read_tir, require_keys
 
 __all__ = ["MagicFormula61", "TyreOutput", "REQUIRED_KEYS", "SCALING_FACTORS"]
 
@@ -173,8 +171,66 @@ _PRESSURE_ROWS = (("MUX", "mux"), ("MUY", "muy"), ("MUY0", "muy"), ("KXK", "kxk"
 _NROWS = len(_ROW_NAMES)
 _D, _E0, _E1, _SH, _SV, _K = (slice(_R[r], _R[r] + 3) for r in ("MUX", "EX0", "EX1", "SHX", "SVX", "KXK"))
 
-# Rows of the stacked Magic Formula curve block: 0-2 pure slip (sin), 3-8 cos.
-_C_FX0, _C_FY0, _C_FY0G0, _C_GXA, _C_GYK, _C_GXA0, _C_GYK0, _C_T, _C_T0 = range(9)
+_COS = 0.5 * math.pi  # phase that turns the Magic Formula sine into a cosine: cos x = sin(x + pi/2)
+
+
+def _magic_formula(b: FloatArray, x: FloatArray, e: FloatArray, c: FloatArray | float,
+                   phase: float | None = None) -> FloatArray:
+    """sin(C atan(B x - E (B x - atan(B x))) + phase), element-wise (4.E8 without D and SV).
+
+    Several curves are evaluated together as rows of ``b``, ``x``, ``e`` (``c`` a
+    column or a scalar). Overwrites ``b`` and ``x``; returns ``x``.
+    """
+    u = np.multiply(b, x, out=b)
+    v = np.arctan(u, out=x)
+    v -= u
+    v *= e
+    v += u
+    np.arctan(v, out=v)
+    v *= c
+    if phase is not None:
+        v += phase
+    np.sin(v, out=v)
+    return v
+
+
+class _OperatingPoint(NamedTuple):
+    """Flattened inputs after the input limits, low-speed and backwards-rolling handling."""
+
+    shape: tuple[int, ...]  # broadcast shape of the call
+    n: int  # number of elements
+    pt: _PressureTerms
+    pt_arr: bool  # pressure given per element
+    mu: FloatArray | float  # mu_scale (flattened when an array)
+    mu_arr: bool
+    kappa: FloatArray  # reduced at low speed, clipped to KPUMIN/KPUMAX
+    ukappa: FloatArray  # as given
+    gamma: FloatArray  # clipped to CAMMIN/CAMMAX
+    absvx: FloatArray  # |Vcx|
+    vmin: float  # min Vcx
+    ufz: FloatArray  # max(Fz, 0)
+    fzc: FloatArray  # ... clipped to FZMAX
+    fz_mz: FloatArray  # ... at least FZMIN where > 0 (the load of the Mz terms)
+    low: FloatArray | None  # 1 - W_vlow, only when some |Vcx| <= VXLOW
+    neg: FloatArray | None  # -1 where Vcx < 0, else 1 (only if some Vcx <= 0)
+    sgn: FloatArray | None  # sign(Vcx) (only if some Vcx <= 0)
+    a_s: FloatArray  # alpha* (4.E3) or alpha
+    cos_ap: FloatArray  # cos(alpha') (4.E6)
+
+
+class _PureSlip(NamedTuple):
+    """Results of the pure-slip step that the combined-slip and aligning-moment steps use."""
+
+    kxk: FloatArray  # Kxk, N
+    kya: FloatArray  # Kya, N/rad
+    kya_p: FloatArray  # Kya' = Kya + eps sign(Kya)
+    sh: FloatArray  # rows SHx, SHy, SHy0
+    sv: FloatArray  # rows SVx, SVy, SVy0, N
+    dd: FloatArray  # rows Dx, Dy, Dy0, N
+    by: FloatArray  # By
+    fx0: FloatArray
+    fy0: FloatArray
+    fy0_g0: FloatArray  # Fy0 at zero camber
 
 
 class TyreOutput(NamedTuple):
@@ -211,20 +267,22 @@ class MagicFormula61:
     """MF 6.1 steady-state tyre (see the module docstring for frames and signs).
 
     Args:
-        params: coefficients KEY -> value as read from a ``.tir`` file (upper-case keys).
+        params: coefficients KEY -> value as read from a ``.tir`` file (upper-case keys);
+            a :class:`~sim.tir.TirFile` makes the error messages name the line.
         use_alpha_star: use alpha* = tan(alpha) sign(Vcx) and gamma* = sin(gamma)
             (book, MFeval useMode 121) instead of alpha and gamma (TNO, useMode 111).
         source: name used in error messages (the file path).
 
     Raises:
-        TirError: a required coefficient is missing, a value is not a number, or the
-            file is not an MF 6.1/6.2 file.
+        TirError: a required coefficient is missing (MF 6.1 gives it no default), a
+            value is not a finite number or out of its range, or FITTYP is not 61/62.
 
     Implementation: every coefficient that is a polynomial in dfz, gamma* and gamma
     (with the scaling factors, and the pressure and friction factors when they are
-    scalars, folded in) is evaluated by one matrix product; the eight Magic Formula
-    curves (Fx0, Fy0, Fy0 at zero camber, Gxa and its normaliser, Gyk and its
-    normaliser, the trail) are evaluated as one stacked array. The coefficients do
+    scalars, folded in) is evaluated by one matrix product; each step then evaluates
+    its Magic Formula curves as rows of one array (pure slip: Fx0, Fy0, Fy0 at zero
+    camber; combined slip: Gxa, Gyk and their normalisers; aligning moment: the
+    trail, and the pure-slip trail on request). The coefficients do
     not change after construction; the small caches (pressure factors, weight
     matrices) are only ever added to, so an instance can be shared between threads.
     """
@@ -240,10 +298,15 @@ class MagicFormula61:
     ) -> None:
         src = source or str(getattr(params, "path", "") or "coefficient set")
         given = {str(k).upper(): v for k, v in params.items()}
-        require_keys(given, REQUIRED_KEYS, src, "the MF 6.1 tyre model")
+        require_keys(params if isinstance(params, TirFile) else given, REQUIRED_KEYS, src, "the MF 6.1 tyre model")
+        lines = params.lines if isinstance(params, TirFile) else {}
+
+        def at(key: str) -> str:  # "<file>:<line>" of a key given in a file, else the source
+            return f"{src}:{lines[key]}" if key in lines else src
+
         fittyp = given.get("FITTYP")
         if fittyp is not None and fittyp not in (61, 62, 61.0, 62.0):
-            raise TirError(f"{src}: FITTYP = {fittyp!r}: only Magic Formula 6.1/6.2 files are supported")
+            raise TirError(f"{at('FITTYP')}: FITTYP = {fittyp!r}: only Magic Formula 6.1/6.2 files are supported")
 
         full: dict[str, float | str] = dict(given)
         for key in SCALING_FACTORS:
@@ -262,17 +325,17 @@ class MagicFormula61:
             value = full[key]
             ok = isinstance(value, int | float) and not isinstance(value, bool)
             if not ok or (not math.isfinite(float(value)) and key not in _RANGE_DEFAULTS):
-                raise TirError(f"{src}: coefficient {key} = {value!r} is not a finite number")
+                raise TirError(f"{at(key)}: coefficient {key} = {value!r} is not a finite number")
             full[key] = float(value)
         for key in ("FNOMIN", "UNLOADED_RADIUS", "LONGVL", "NOMPRES", "VERTICAL_STIFFNESS",
                     "LONGITUDINAL_STIFFNESS", "LATERAL_STIFFNESS", "VXLOW", "LFZO", "LMUX", "LMUY"):
             if full[key] <= 0.0:
-                raise TirError(f"{src}: coefficient {key} = {full[key]!r} must be > 0")
+                raise TirError(f"{at(key)}: coefficient {key} = {full[key]!r} must be > 0")
         for key in ("PKY2", "PCY1", "PCX1", "QCZ1"):
             if full[key] == 0.0:
-                raise TirError(f"{src}: coefficient {key} must not be 0")
+                raise TirError(f"{at(key)}: coefficient {key} must not be 0")
         if full["LMUV"] != 0.0:
-            raise TirError(f"{src}: LMUV (speed-decaying friction) is not supported; set it to 0")
+            raise TirError(f"{at('LMUV')}: LMUV (speed-decaying friction) is not supported; set it to 0")
 
         self.params = full
         self.use_alpha_star = bool(use_alpha_star)
@@ -303,11 +366,9 @@ class MagicFormula61:
         self._kya_base = p["PKY1"] * self.fz0p * p["LKY"]
         self._kya_fast = p["PKY4"] == 2.0  # sin(2 atan q) = 2 q / (1 + q^2)
         self._rows = self._row_definitions(p)
-        # C of the stacked curves (rows _C_FX0 ... _C_T0) and phase: cos x = sin(x + pi/2)
-        self._c_col = np.array([self._cx, self._cy, self._cy, p["RCX1"], p["RCY1"], p["RCX1"], p["RCY1"],
-                                self._ct, self._ct])[:, None]
-        self._ph_col = np.array([0.0, 0.0, 0.0] + [0.5 * math.pi] * 6)[:, None]
-        self._c3 = self._c_col[:3].copy()
+        # C of the curves evaluated together: Fx0, Fy0, Fy0(gamma = 0); Gxa, Gyk and their normalisers
+        self._c3 = np.array([self._cx, self._cy, self._cy])[:, None]
+        self._c_comb = np.array([p["RCX1"], p["RCY1"], p["RCX1"], p["RCY1"]])[:, None]
         self._my_k = -self.r0 * self.fz0 * p["LMY"]
         self._s_fy = self.r0 * p["LS"] * p["SSZ2"] / self.fz0  # s = s0 + this * Fy (A56)
         self._svyk_on = (p["LVYKA"] != 0.0 and p["RVY5"] != 0.0
@@ -483,10 +544,36 @@ class MagicFormula61:
         All array inputs (pressure and mu_scale included) broadcast against each
         other, e.g. (B, 4) loads with a (B, 1) speed. Returns a :class:`TyreOutput`
         of arrays of the broadcast shape (0-d for scalar inputs).
+
+        Steps: operating point (input limits, low speed, backwards rolling),
+        coefficient polynomials, pure slip (Fx0, Fy0), combined slip (Fx, Fy),
+        aligning moment (Mz), rolling resistance (My).
         """
+        op = self._operating_point(fz, kappa, alpha, gamma, vx, pressure, mu_scale)
+        pc, dfz = self._coefficients(op)
+        pure = self._pure_slip(op, pc, dfz)
+        fx, fy, gyk = self._combined_slip(op, pc, pure)
+        t, mzr, s, mz, mz0 = self._aligning_moment(op, pc, pure, fx, fy, gyk, pure_slip_mz)
+        my = self._rolling_resistance(op.ufz, fx, op.absvx, op.vmin if op.vmin > self.vxlow else None, op.gamma,
+                                      op.pt, op.ukappa, op.sgn)
+        out = TyreOutput(fx, fy, mz, my, t, mzr, s, pure.kya, pure.kxk, pc[_R["MUX"]], pc[_R["MUY"]], pure.fx0,
+                         pure.fy0, mz0)
+        if op.shape != (op.n,):
+            return TyreOutput._make(None if a is None else a.reshape(op.shape) for a in out)
+        return out
+
+    def _operating_point(
+        self,
+        fz: ArrayLike,
+        kappa: ArrayLike,
+        alpha: ArrayLike,
+        gamma: ArrayLike,
+        vx: ArrayLike,
+        pressure: ArrayLike | None,
+        mu_scale: ArrayLike,
+    ) -> _OperatingPoint:
+        """Broadcast and flatten the inputs; input limits, low speed, backwards rolling (MFeval parseInputs)."""
         p = self._p
-        star = self.use_alpha_star
-        eps = _EPS
         pres = None if pressure is None else _as_float(pressure)
         pt_arr = isinstance(pres, np.ndarray)
         mu = _as_float(mu_scale)
@@ -494,7 +581,7 @@ class MagicFormula61:
         if not mu_arr and not mu > 0.0:
             raise ValueError(f"mu_scale must be > 0, got {mu_scale!r}")
 
-        # ---- broadcast and flatten the inputs (copy-free when they share one shape) --
+        # copy-free when the inputs share one shape
         ins = (_f64(fz), _f64(kappa), _f64(alpha), _f64(gamma), _f64(vx))
         shape = ins[0].shape
         if any(a.shape != shape for a in ins) or pt_arr or mu_arr:
@@ -505,10 +592,7 @@ class MagicFormula61:
         pt = self._pressure_terms(pres, shape)
         if mu_arr:
             mu = _flat(mu, shape)  # type: ignore[arg-type]
-        w, folded = self._weights(None if pt_arr else pt, None if mu_arr else mu)  # type: ignore[arg-type]
-        scale_p, scale_mu = pt_arr or not folded, mu_arr or not folded
 
-        # ---- input limits, low speed, backwards rolling (MFeval parseInputs) ---------
         ukappa = kappa
         ufz = np.maximum(fz, 0.0)
         vxlow = self.vxlow
@@ -537,28 +621,37 @@ class MagicFormula61:
         fzmin = p["FZMIN"]
         fz_mz = fzc if fzmin <= 0.0 else np.where(fzc <= 0.0, 0.0, np.maximum(fzc, fzmin))
 
-        # ---- basic variables (calculateBasic) -----------------------------------------
+        # basic variables (MFeval calculateBasic)
         tan_a = np.tan(alpha)
         cos_ap = np.multiply(tan_a, tan_a)
         cos_ap += 1.0
         np.sqrt(cos_ap, out=cos_ap)
         cos_ap *= absvx
-        cos_ap += eps
+        cos_ap += _EPS
         np.divide(vx, cos_ap, out=cos_ap)  # cos(alpha') = Vcx / (Vc + eps) (4.E6)
-        if star:
+        if self.use_alpha_star:
             a_s = tan_a if sgn is None else tan_a * sgn  # alpha* (4.E3)
         else:
             a_s = alpha
+        return _OperatingPoint(shape, n, pt, pt_arr, mu, mu_arr, kappa, ukappa, gamma, absvx, vmin, ufz, fzc,
+                               fz_mz, low, neg, sgn, a_s, cos_ap)
 
-        # ---- coefficient polynomials in (dfz, gamma*, gamma): one matrix product ------
+    def _coefficients(self, op: _OperatingPoint) -> tuple[FloatArray, FloatArray]:
+        """(rows of _ROW_NAMES, dfz): every coefficient polynomial in (dfz, gamma*, gamma) by one matrix product.
+
+        The scaling factors, and the pressure and friction factors, are folded in.
+        Row ``KYA0`` (zero) is filled by :meth:`_pure_slip`.
+        """
+        n, gamma = op.n, op.gamma
+        w, folded = self._weights(None if op.pt_arr else op.pt, None if op.mu_arr else op.mu)  # type: ignore[arg-type]
         x = np.empty((len(_MONOMIALS), n))
         x[0] = 1.0
         d = x[1]
-        np.multiply(fzc, self._inv_fz0p, out=d)
+        np.multiply(op.fzc, self._inv_fz0p, out=d)
         d -= 1.0  # dfz (4.E2a)
         d2 = np.multiply(d, d, out=x[2])
         g = x[3]
-        if star:
+        if self.use_alpha_star:
             np.sin(gamma, out=g)  # gamma* (4.E4)
         else:
             g[:] = gamma
@@ -579,30 +672,32 @@ class MagicFormula61:
         np.multiply(d, ac, out=x[17])
         np.multiply(d2, ac, out=x[18])
         pc = w @ x  # (rows, n), see _ROW_NAMES
-        if scale_p:
+        if op.pt_arr or not folded:
             for name, attr in _PRESSURE_ROWS:
-                pc[_R[name]] *= getattr(pt, attr)
-        if scale_mu:
+                pc[_R[name]] *= getattr(op.pt, attr)
+        if op.mu_arr or not folded:
+            mu = op.mu
             pc[_D] *= mu
             pc[_SV] *= mu
             for name in ("SVYG", "DRA", "DRB"):
                 pc[_R[name]] *= mu
             pc[_R["BT"]] /= mu
+        return pc, d
+
+    def _pure_slip(self, op: _OperatingPoint, pc: FloatArray, dfz: FloatArray) -> _PureSlip:
+        """Pure-slip Fx0 (4.E9-4.E18), Fy0 and Fy0 at zero camber (4.E19-4.E30), with their stiffnesses and shifts."""
+        p = self._p
+        eps = _EPS
+        pt, fzc = op.pt, op.fzc
         r_ = _R
-
-        # ---- stacked Magic Formula curves: B, x, E of each (rows _C_*) ---------------
-        ncurves = 9 if pure_slip_mz else 8
-        stack = np.empty((3, ncurves, n))
-        sb, sx, se = stack[0], stack[1], stack[2]
-
         # slip stiffnesses Kxk (4.E15), Kya (4.E25) and Kya at gamma = 0
         kxk = pc[r_["KXK"]]
         kxk *= fzc
         if p["PKX3"] != 0.0:
-            kxk *= np.exp(p["PKX3"] * d)
-        fz_n = d + 1.0
+            kxk *= np.exp(p["PKX3"] * dfz)
+        fz_n = dfz + 1.0
         kya, kya0 = pc[r_["KYA"]], pc[r_["KYA0"]]
-        if pt_arr:
+        if op.pt_arr:
             q0 = fz_n / (p["PKY2"] * pt.pky2)
         else:
             q0 = fz_n * (1.0 / (p["PKY2"] * pt.pky2))  # type: ignore[operator]
@@ -618,7 +713,7 @@ class MagicFormula61:
             np.divide(q0, kya0, out=kya0)
             kya0 *= 2.0
         else:
-            qq = np.empty((2, n))
+            qq = np.empty((2, op.n))
             np.divide(fz_n, pc[r_["KYAD"]], out=qq[0])
             qq[1] = q0
             np.arctan(qq, out=qq)
@@ -638,24 +733,40 @@ class MagicFormula61:
         shy += sh[2]
         sv = pc[_SV]  # rows SVx, SVy, SVy0
         sv *= fzc
-        if low is not None:
-            sh *= low
-            sv *= low
-        np.add(kappa, sh[0], out=sx[_C_FX0])
-        np.add(sh[1:], a_s, out=sx[_C_FY0:_C_FY0G0 + 1])
+        if op.low is not None:
+            sh *= op.low
+            sv *= op.low
+        x = np.empty((3, op.n))  # kappa_x, alpha_y, alpha_y(gamma = 0)
+        np.add(op.kappa, sh[0], out=x[0])
+        np.add(sh[1:], op.a_s, out=x[1:])
         # D, B = K / (C D + eps sign D), E = min(E0 + E1 sign(x), 1) of the three curves
         dd = np.multiply(pc[_D], fzc)  # Dx, Dy, Dy0 (4.E12, 4.E22)
         den = np.multiply(dd, self._c3)
         den += np.copysign(eps, dd)
-        np.divide(pc[_K], den, out=sb[:3])
-        br = np.multiply(sb[_C_FY0], p["QBZ10"] * self._cy)  # Br (4.E45), By is overwritten below
-        br += p["QBZ9"] * p["LKY"] / (p["LMUY"] * mu)
-        e3 = np.sign(sx[:3], out=se[:3])
-        e3 *= pc[_E1]
-        e3 += pc[_E0]
-        np.minimum(e3, 1.0, out=e3)
+        b = np.divide(pc[_K], den)
+        by = b[1].copy()
+        e = np.sign(x)
+        e *= pc[_E1]
+        e += pc[_E0]
+        np.minimum(e, 1.0, out=e)
 
-        # Gxa, Gyk and their normalisers (4.E51-4.E65)
+        f0 = _magic_formula(b, x, e, self._c3)
+        f0 *= dd
+        f0 += sv  # Fx0, Fy0, Fy0(gamma = 0) (4.E9, 4.E19)
+        if op.neg is not None:
+            if self.use_alpha_star:
+                f0 *= op.neg
+            else:
+                f0[0] *= op.neg
+        return _PureSlip(kxk, kya, kya_p, sh, sv, dd, by, f0[0], f0[1], f0[2])
+
+    def _combined_slip(
+        self, op: _OperatingPoint, pc: FloatArray, pure: _PureSlip
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(Fx, Fy, Gyk): combined-slip weighting functions Gxa, Gyk and kappa-induced SVyk (4.E50-4.E67)."""
+        p = self._p
+        r_ = _R
+        n, a_s, kappa = op.n, op.a_s, op.kappa
         rr = np.empty((2, n))
         np.multiply(kappa, p["RBX2"], out=rr[0])
         np.subtract(a_s, p["RBY3"], out=rr[1])
@@ -663,24 +774,59 @@ class MagicFormula61:
         rr *= rr
         rr += 1.0
         np.sqrt(rr, out=rr)
-        np.divide(pc[r_["BXA"]:r_["BYK"] + 1], rr, out=sb[_C_GXA:_C_GYK + 1])  # B cos(atan(...))
-        sb[_C_GXA0:_C_GYK0 + 1] = sb[_C_GXA:_C_GYK + 1]
+        # rows: Gxa and Gyk numerators, their normalisers (the curves at alpha* = 0, kappa = 0)
+        b = np.empty((4, n))
+        np.divide(pc[r_["BXA"]:r_["BYK"] + 1], rr, out=b[:2])  # B cos(atan(...))
+        b[2:] = b[:2]
         shyk = pc[r_["SHYK"]]
-        np.add(a_s, p["RHX1"], out=sx[_C_GXA])
-        np.add(kappa, shyk, out=sx[_C_GYK])
-        sx[_C_GXA0] = p["RHX1"]
-        sx[_C_GYK0] = shyk
-        np.minimum(pc[r_["EXA"]:r_["EYK"] + 1], 1.0, out=se[_C_GXA:_C_GYK + 1])
-        se[_C_GXA0:_C_GYK0 + 1] = se[_C_GXA:_C_GYK + 1]
+        x = np.empty((4, n))
+        np.add(a_s, p["RHX1"], out=x[0])
+        np.add(kappa, shyk, out=x[1])
+        x[2] = p["RHX1"]
+        x[3] = shyk
+        e = np.empty((4, n))
+        np.minimum(pc[r_["EXA"]:r_["EYK"] + 1], 1.0, out=e[:2])
+        e[2:] = e[:2]
+        v = _magic_formula(b, x, e, self._c_comb, _COS)
+        gg = np.divide(v[:2], v[2:])  # Gxa, Gyk (4.E51, 4.E59)
+        fx = np.multiply(gg[0], pure.fx0)  # (4.E50)
+        gyk = gg[1]
+        fy = np.multiply(gyk, pure.fy0)
+        if self._svyk_on:  # kappa-induced side force SVyk (4.E66/4.E67)
+            r = np.multiply(a_s, p["RVY4"])
+            r *= r
+            r += 1.0
+            np.sqrt(r, out=r)
+            svyk = np.multiply(pc[r_["DVYK"]], pure.dd[1])
+            svyk /= r
+            np.multiply(kappa, p["RVY6"], out=r)
+            np.arctan(r, out=r)
+            r *= p["RVY5"]
+            np.sin(r, out=r)
+            svyk *= r
+            if op.low is not None:
+                svyk *= op.low
+            fy += svyk  # (4.E58)
+        return fx, fy, gyk
 
-        # trail: alpha_t,eq and alpha_r,eq (A54/A55), Bt (A58), Et (4.E44)
+    def _aligning_moment(
+        self, op: _OperatingPoint, pc: FloatArray, pure: _PureSlip, fx: FloatArray, fy: FloatArray,
+        gyk: FloatArray, pure_slip_mz: bool,
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
+        """(t, Mzr, s, Mz, Mz0): Mz = -t Fy' + Mzr + s Fx (4.E31-4.E47, 4.E71-4.E75, A54-A60)."""
+        p = self._p
+        r_ = _R
+        n, a_s = op.n, op.a_s
+        br = np.multiply(pure.by, p["QBZ10"] * self._cy)  # Br (4.E45)
+        br += p["QBZ9"] * p["LKY"] / (p["LMUY"] * op.mu)
+        # alpha_t,eq and alpha_r,eq (A54/A55)
         ang = np.empty((2, n))
         alpha_t = np.add(a_s, pc[r_["SHT"]], out=ang[0])  # (4.E34)
-        alpha_r = np.divide(sv[1], kya_p, out=ang[1])
-        alpha_r += sh[1]
+        alpha_r = np.divide(pure.sv[1], pure.kya_p, out=ang[1])
+        alpha_r += pure.sh[1]
         alpha_r += a_s  # alpha_r = alpha* + SHy + SVy / Kya' (4.E37/4.E38)
-        ratio = np.divide(kxk, kya_p)
-        ratio *= kappa
+        ratio = np.divide(pure.kxk, pure.kya_p)
+        ratio *= op.kappa
         ratio *= ratio
         eq = np.tan(ang)
         eq *= eq
@@ -688,102 +834,57 @@ class MagicFormula61:
         np.sqrt(eq, out=eq)
         np.arctan(eq, out=eq)
         np.copysign(eq, ang, out=eq)
+        # trail curve at alpha_t,eq (and at alpha_t for Mz0): Bt (A58), Ct, Et (4.E44)
+        rows = 2 if pure_slip_mz else 1
+        b, x, e = np.empty((rows, n)), np.empty((rows, n)), np.empty((rows, n))
         bt = pc[r_["BT"]]
-        sb[_C_T] = bt
-        sx[_C_T] = eq[0]
-        et = np.multiply(bt, alpha_t, out=se[_C_T])
+        b[0] = bt
+        x[0] = eq[0]
+        et = np.multiply(bt, alpha_t, out=e[0])
         et *= self._ct
         np.arctan(et, out=et)
         et *= pc[r_["ET2"]]
         et += pc[r_["ET1"]]
         np.minimum(et, 1.0, out=et)
         if pure_slip_mz:
-            sb[_C_T0] = bt
-            sx[_C_T0] = alpha_t
-            se[_C_T0] = et
+            b[1] = bt
+            x[1] = alpha_t
+            e[1] = et
+        v = _magic_formula(b, x, e, self._ct, _COS)
 
-        # ---- the curves: sin(C atan(B x - E (B x - atan(B x))) + phase) ---------------
-        u = np.multiply(sb, sx, out=sb)
-        v = np.arctan(u, out=sx)
-        v -= u
-        v *= se
-        v += u
-        np.arctan(v, out=v)
-        v *= self._c_col[:ncurves]
-        v += self._ph_col[:ncurves]
-        np.sin(v, out=v)
-
-        f0 = np.multiply(dd, v[:3])
-        f0 += sv  # Fx0, Fy0, Fy0(gamma = 0) (4.E9, 4.E19)
-        if neg is not None:
-            if star:
-                f0 *= neg
-            else:
-                f0[0] *= neg
-        fx0, fy0, fy0_g0 = f0[0], f0[1], f0[2]
-        gg = np.divide(v[_C_GXA:_C_GYK + 1], v[_C_GXA0:_C_GYK0 + 1])  # Gxa, Gyk (4.E51, 4.E59)
-        fx = np.multiply(gg[0], fx0)  # (4.E50)
-        gyk = gg[1]
-        fy = np.multiply(gyk, fy0)
-        if self._svyk_on:  # kappa-induced side force SVyk (4.E66/4.E67)
-            r = np.multiply(a_s, p["RVY4"])
-            r *= r
-            r += 1.0
-            np.sqrt(r, out=r)
-            svyk = np.multiply(pc[r_["DVYK"]], dd[1])
-            svyk /= r
-            np.multiply(kappa, p["RVY6"], out=r)
-            np.arctan(r, out=r)
-            r *= p["RVY5"]
-            np.sin(r, out=r)
-            svyk *= r
-            if low is not None:
-                svyk *= low
-            fy += svyk  # (4.E58)
-
-        # ---- aligning torque Mz = -t Fy' + Mzr + s Fx (4.E71-4.E75) -------------------
         dt = pc[r_["DT"]]
-        dt *= fz_mz
-        t = np.multiply(v[_C_T], dt)
-        t *= cos_ap  # (4.E73), LFZO folded into the Dt row
+        dt *= op.fz_mz
+        t = np.multiply(v[0], dt)
+        t *= op.cos_ap  # (4.E73), LFZO folded into the Dt row
         dr = np.add(pc[r_["DRA"]], pc[r_["DRB"]])
-        dr *= fz_mz
+        dr *= op.fz_mz
         dr *= np.cos(a_s)
-        if sgn is not None:
-            dr *= sgn  # (4.E47)
+        if op.sgn is not None:
+            dr *= op.sgn  # (4.E47)
         mzr = np.multiply(br, eq[1])
         mzr *= mzr
         mzr += 1.0
         np.sqrt(mzr, out=mzr)
         np.divide(dr, mzr, out=mzr)  # Dr cos(atan(Br alpha_r,eq)), Cr = 1 (4.E75)
-        if low is not None:
-            t *= low
-            mzr *= low
+        if op.low is not None:
+            t *= op.low
+            mzr *= op.low
         s = np.multiply(fy, self._s_fy)
         s += pc[r_["S0"]]  # (A56)
         mz = np.multiply(t, gyk)
-        mz *= fy0_g0  # t Fy', Fy' = Gyk Fy0(gamma = 0) (4.E74)
+        mz *= pure.fy0_g0  # t Fy', Fy' = Gyk Fy0(gamma = 0) (4.E74)
         np.subtract(mzr, mz, out=mz)
         mz += s * fx
 
         mz0 = None
         if pure_slip_mz:  # (4.E31-4.E36)
-            t0 = v[_C_T0] * dt * cos_ap / p["LFZO"]
+            t0 = v[1] * dt * op.cos_ap / p["LFZO"]
             br *= alpha_r
             br *= br
             br += 1.0
             np.sqrt(br, out=br)
-            mz0 = dr * cos_ap / br - t0 * fy0_g0
-
-        my = self._rolling_resistance(ufz, fx, absvx, vmin if vmin > vxlow else None, gamma, pt, ukappa, sgn)
-
-        if shape != (n,):
-            return TyreOutput(fx.reshape(shape), fy.reshape(shape), mz.reshape(shape), my.reshape(shape),
-                              t.reshape(shape), mzr.reshape(shape), s.reshape(shape), kya.reshape(shape),
-                              kxk.reshape(shape), pc[r_["MUX"]].reshape(shape), pc[r_["MUY"]].reshape(shape),
-                              fx0.reshape(shape), fy0.reshape(shape),
-                              None if mz0 is None else mz0.reshape(shape))
-        return TyreOutput(fx, fy, mz, my, t, mzr, s, kya, kxk, pc[r_["MUX"]], pc[r_["MUY"]], fx0, fy0, mz0)
+            mz0 = dr * op.cos_ap / br - t0 * pure.fy0_g0
+        return t, mzr, s, mz, mz0
 
     def _rolling_resistance(
         self,

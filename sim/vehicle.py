@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from sim.params import resolve_data_file
-from sim.tyre import MagicFormula61
+from sim.tyre import MagicFormula61, TyreOutput
 
 # ---- state layout -----------------------------------------------------------------
 IX, IY, IPSI, IVX, IVY, IR = range(6)
@@ -105,14 +105,64 @@ def _load_tyre(path: str, mtime: float) -> MagicFormula61:
     return MagicFormula61.from_tir(path)
 
 
-def tyre_for(params: Mapping[str, Any]) -> MagicFormula61:
-    """The tyre model named by ``params['tyres']['file']`` (loaded once per file version)."""
-    path = resolve_data_file(params["tyres"]["file"])
+def tyre_files(params: Mapping[str, Any]) -> tuple[str, str]:
+    """(front, rear) tyre property files: ``tyres.file_front`` / ``tyres.file_rear``, "" or absent -> ``tyres.file``."""
+    ty = params["tyres"]
+    return ty.get("file_front") or ty["file"], ty.get("file_rear") or ty["file"]
+
+
+def tyre_for(params: Mapping[str, Any], axle: str = "front") -> MagicFormula61:
+    """The tyre model of one axle (``"front"`` or ``"rear"``, see :func:`tyre_files`; loaded once per file version)."""
+    path = resolve_data_file(tyre_files(params)[0 if axle == "front" else 1])
     try:
         mtime = path.stat().st_mtime
     except OSError:
         mtime = -1.0  # let the reader report the missing file with its own message
     return _load_tyre(str(path), mtime)
+
+
+class AxleTyres:
+    """Different tyres on the front and rear axles, with the interface of :class:`MagicFormula61`
+    for arrays whose last axis is the wheel (FL, FR, RL, RR).
+
+    Inputs with a last axis of 4 are split into front (FL, FR) and rear (RL, RR) columns;
+    other inputs (scalars, (B, 1) columns) go to both tyres. ``params`` are the front tyre's.
+    """
+
+    def __init__(self, front: MagicFormula61, rear: MagicFormula61) -> None:
+        self.front, self.rear = front, rear
+        self.params = front.params
+
+    def per_wheel(self, key: str, default: float) -> np.ndarray:
+        """(4,) value of a coefficient for FL, FR, RL, RR."""
+        f, r = (float(t.params.get(key, default)) for t in (self.front, self.rear))  # type: ignore[arg-type]
+        return np.array([f, f, r, r])
+
+    @staticmethod
+    def _split(args: Sequence[Any]) -> tuple[list[Any], list[Any]]:
+        def part(x: Any, sl: slice) -> Any:
+            return x[..., sl] if isinstance(x, np.ndarray) and x.ndim and x.shape[-1] == 4 else x
+
+        return [part(a, slice(0, 2)) for a in args], [part(a, slice(2, 4)) for a in args]
+
+    def steady_state(self, *args: Any, **kwargs: Any) -> TyreOutput:
+        """:meth:`MagicFormula61.steady_state` of each axle, joined along the wheel axis."""
+        fa, ra = self._split(args)
+        kf, kr = self._split(list(kwargs.values()))
+        f = self.front.steady_state(*fa, **dict(zip(kwargs, kf, strict=True)))
+        r = self.rear.steady_state(*ra, **dict(zip(kwargs, kr, strict=True)))
+        return TyreOutput._make(None if a is None else np.concatenate([a, b], axis=-1)
+                                for a, b in zip(f, r, strict=True))
+
+    def effective_rolling_radius(self, *args: Any) -> np.ndarray:
+        fa, ra = self._split(args)
+        return np.concatenate([self.front.effective_rolling_radius(*fa), self.rear.effective_rolling_radius(*ra)],
+                              axis=-1)
+
+    def relaxation_lengths(self, *args: Any) -> tuple[np.ndarray, np.ndarray]:
+        fa, ra = self._split(args)
+        f, r = self.front.relaxation_lengths(*fa), self.rear.relaxation_lengths(*ra)
+        return np.concatenate([f[0], r[0]], axis=-1), np.concatenate([f[1], r[1]], axis=-1)
 
 
 def _col(values: Sequence[float]) -> np.ndarray:
@@ -129,7 +179,11 @@ class Vehicle:
     Args:
         trees: one parameter tree per run (see :mod:`sim.params`). Trees may
             differ in any numeric value; they must share the tyre file.
-        tyre: an already-loaded tyre model (default: the trees' tyre file).
+        tyre: an already-loaded tyre model of all four wheels (default: the trees' tyre files).
+
+    Front and rear axles may carry different tyres (:func:`tyre_files`); the body geometry
+    (unsprung masses' centre height) then uses the front tyre's unloaded radius, the wheel
+    spin each axle's own.
     """
 
     SIGMA_MIN = 0.12  # m, floor of the relaxation lengths
@@ -137,10 +191,12 @@ class Vehicle:
     def __init__(self, trees: Sequence[Mapping[str, Any]], tyre: MagicFormula61 | None = None):
         if not trees:
             raise ValueError("need at least one parameter tree")
-        files = {t["tyres"]["file"] for t in trees}
+        files = {tyre_files(t) for t in trees}
         if len(files) != 1:
-            raise ValueError(f"runs of one batch must share a tyre file, got {sorted(files)}")
-        self.tyre = tyre if tyre is not None else tyre_for(trees[0])
+            raise ValueError(f"runs of one batch must share their tyre files, got {sorted(files)}")
+        front = tyre if tyre is not None else tyre_for(trees[0])
+        rear = tyre if tyre is not None else tyre_for(trees[0], "rear")
+        self.tyre: MagicFormula61 | AxleTyres = front if rear is front else AxleTyres(front, rear)
         self.B = len(trees)
         self._build(trees)
         self._fy_axle = np.zeros((self.B, 2))  # previous step's lateral force per axle (body y)
@@ -170,7 +226,12 @@ class Vehicle:
         muf, mur = p("vehicle", "unsprung_mass_front_kg"), p("vehicle", "unsprung_mass_rear_kg")
         self.mu_axle = np.stack([2 * muf, 2 * mur], axis=1)
         self.ms = self.m - 2 * muf - 2 * mur
-        self.R0 = float(self.tyre.params["UNLOADED_RADIUS"])
+        self.R0 = float(self.tyre.params["UNLOADED_RADIUS"])  # the front tyre's
+        # unloaded radius and vertical stiffness of each wheel (scalars when all four tyres are alike)
+        self._r0w, self._czw = (self.R0, float(self.tyre.params.get("VERTICAL_STIFFNESS", 2.0e5)))
+        if isinstance(self.tyre, AxleTyres):
+            self._r0w, self._czw = self.tyre.per_wheel("UNLOADED_RADIUS", 2.0e5), \
+                self.tyre.per_wheel("VERTICAL_STIFFNESS", 2.0e5)
         self.hs = (self.m * self.h - (2 * muf + 2 * mur) * self.R0) / self.ms
         self.hrc = np.stack([p("vehicle", "roll_centre_height_front_m"),
                              p("vehicle", "roll_centre_height_rear_m")], axis=1)
@@ -296,7 +357,7 @@ class Vehicle:
 
     def static_rolling_radius(self, speed: np.ndarray) -> np.ndarray:
         """(B, 4) effective rolling radius (m) of each wheel at its static load, rolling at ``speed`` (m/s)."""
-        return self.tyre.effective_rolling_radius(self.fz_static, speed[:, None] / self.R0, self.pressure)
+        return self.tyre.effective_rolling_radius(self.fz_static, speed[:, None] / self._r0w, self.pressure)
 
     def initial_state(self, speed: np.ndarray, heading: np.ndarray | float = 0.0) -> np.ndarray:
         """Straight-line steady driving at ``speed`` (m/s), springs at static height."""
@@ -414,7 +475,7 @@ class Vehicle:
         dx[:, IQ] = pitch_mom / self.Iys
 
         # --- wheel spin ----------------------------------------------------------------
-        r_loaded = self.R0 - fz / float(self.tyre.params.get("VERTICAL_STIFFNESS", 2.0e5))
+        r_loaded = self._r0w - fz / self._czw
         brake = u.brake_torque * np.tanh(omega / 8.0)  # smooth lock-up: no stiff sign switch
         dx[:, IOM] = (u.drive_torque - brake - r_loaded * fx - np.abs(my) * np.tanh(omega)) / self.Iw
         dx[:, IAL] = d_alpha

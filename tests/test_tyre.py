@@ -3,17 +3,34 @@
 Sign convention under test: ISO-W, positive alpha -> negative Fy, positive Mz
 (below the Mz peak); positive kappa -> positive Fx.
 
-The reference figures for the MF 6.1 example file (Mz peak ~117.5 Nm at ~2.3 deg,
-Fy peak near 6.5 deg, ~81.9 Nm at ~1.6 deg with LMUY = 0.7) come from an
-independent implementation that used the opposite slip-angle sign: they match the
-alpha < 0 branch here (Fy > 0, Mz < 0). The measured tyre is not symmetric: its
-residual torque (QDZ6 > 0, Mzr ~ +8 Nm near the peak) and the curve shifts add to
-|Mz| for alpha > 0 and subtract for alpha < 0, so the alpha > 0 peak is ~132.7 Nm.
-``test_asymmetry_comes_from_the_shift_terms`` checks that explanation.
+Two different 255/55 R20 MF 6.1 files circulate as ``MagicFormula61_Parameters.tir``;
+both are bundled: ``mf61_255_55R20.tir`` is the copy in Simscape Vehicle Templates'
+MFeval 4.0 folder, ``mf61_mfeval_255_55R20.tir`` MFeval's own example. They differ in
+144 of 262 keys (PKY1, QBZ9, SSZ1..4, ...), and so do their figures.
+
+``test_matches_independent_mfeval_port`` checks Fx, Fy, Mz of both files against
+``tests/data/mf61_reference.csv.gz`` (an independent port of MFeval's solver, derived
+by ``tools/derive_tyre_reference.py``) at 1e-9 of the largest magnitude of each output
+per condition. The figures of the figure tests come from that reference (pure side
+slip, zero camber, Fz = FNOMIN, nominal pressure):
+
+=====================  =====================  ======================  ======================
+file                   Mz max (alpha > 0)     Mz min (alpha < 0)      LMUY 0.7 max / min
+=====================  =====================  ======================  ======================
+mf61_255_55R20         132.7 Nm at 2.12 deg   -116.8 Nm at -2.41 deg  94.4 at 1.48 / -80.4 at -1.70
+mf61_mfeval_255_55R20  117.5 Nm at 2.31 deg   -129.3 Nm at -2.64 deg  81.9 at 1.58 / -90.9 at -1.88
+=====================  =====================  ======================  ======================
+
++10 % pressure: Mz max 118.7 Nm (Simscape copy), 103.4 Nm (MFeval's). Each tyre is
+asymmetric in its own way: the shift terms and the residual torque make one branch
+stronger than the other, and zeroing them makes Mz odd in alpha
+(``test_asymmetry_comes_from_the_shift_terms``).
 """
 
 from __future__ import annotations
 
+import csv
+import gzip
 import hashlib
 import math
 import time
@@ -26,12 +43,16 @@ import pytest
 from sim.tir import TirError, bundled_tir, parse_tir, read_tir
 from sim.tyre import MagicFormula61, TyreOutput
 
-MF61 = "mf61_255_55R20.tir"
+MF61 = "mf61_255_55R20.tir"  # Simscape Vehicle Templates' copy
+MFEVAL = "mf61_mfeval_255_55R20.tir"  # MFeval's own example
 CSEG = "c_segment_205_55R16.tir"
 DEG = math.pi / 180.0
 VX = 16.6
-#: sha256 of the MFeval 4.0 example file as distributed (the bundled copy adds 3 comment lines).
+#: sha256 of the two source files (each bundled copy adds 3 comment lines): the copy of MFeval 4.0's
+#: example that Simscape Vehicle Templates ships, and the example as MFeval distributes it.
 MF61_SHA256 = "dda3686d775a01bb9add4269104771c00383d4ad1e5bda16fc933fa866cb3b37"
+MFEVAL_SHA256 = "a7d1dbbb0a660f8a81ce69a492740aec5f25d1d5fa7390ca9ac13c3ae5b53bee"
+REFERENCE = Path(__file__).parent / "data" / "mf61_reference.csv.gz"
 
 
 @pytest.fixture(scope="module")
@@ -80,24 +101,94 @@ def test_iso_sign_convention(mf61: MagicFormula61, cseg: MagicFormula61) -> None
         assert m.steady_state(m.fz0, 0.0, 0.0, 0.0, VX).my < 0.0  # rolling resistance opposes rolling
 
 
+# ------------------------------------------------ independent reference (MFeval's solver equations)
+def _reference_rows() -> dict[str, np.ndarray]:
+    with gzip.open(REFERENCE, "rt", newline="") as fh:
+        rows = [r for r in csv.reader(fh) if r and not r[0].startswith("#")]
+    assert rows[0] == ["tyre", "fz_n", "pressure_pa", "camber_rad", "kappa", "alpha_deg", "fx_n", "fy_n", "mz_nm"]
+    names = np.array([r[0] for r in rows[1:]])
+    values = np.array([[float(v) for v in r[1:]] for r in rows[1:]])
+    return {"tyre": names, **{k: values[:, i] for i, k in enumerate(rows[0][1:])}}
+
+
+@pytest.fixture(scope="module")
+def reference() -> dict[str, np.ndarray]:
+    return _reference_rows()
+
+
+def _reference_error(model: MagicFormula61, ref: dict[str, np.ndarray], name: str) -> dict[str, float]:
+    """Largest |model - reference| of Fx, Fy, Mz, relative to the largest |reference| of its condition.
+
+    A condition is one (load, pressure, camber, kappa) of the grid; its rows sweep the slip angle.
+    """
+    sel = ref["tyre"] == name
+    r = {k: v[sel] for k, v in ref.items()}
+    alpha = r["alpha_deg"] * (math.pi / 180.0)
+    out = model.steady_state(r["fz_n"], r["kappa"], alpha, r["camber_rad"], 20.0, r["pressure_pa"])
+    cond = np.stack([r["fz_n"], r["pressure_pa"], r["camber_rad"], r["kappa"]], axis=1)
+    _, group = np.unique(cond, axis=0, return_inverse=True)
+    worst = {}
+    for key, col in (("fx", "fx_n"), ("fy", "fy_n"), ("mz", "mz_nm")):
+        scale = np.zeros(group.max() + 1)
+        np.maximum.at(scale, group, np.abs(r[col]))
+        worst[key] = float(np.max(np.abs(getattr(out, key) - r[col]) / scale[group]))
+    return worst
+
+
+@pytest.mark.parametrize("name", [MF61, MFEVAL])
+def test_matches_independent_mfeval_port(name: str, reference: dict[str, np.ndarray]) -> None:
+    """Every row of the reference (2232 per file: 4 loads x 3 pressures x 2 cambers x 3 kappas x 31 alphas)."""
+    assert int(np.sum(reference["tyre"] == name)) == 2232
+    worst = _reference_error(MagicFormula61.from_tir(bundled_tir(name)), reference, name)
+    assert max(worst.values()) < 1e-9, worst
+
+
+def test_reference_detects_a_one_percent_coefficient_change(reference: dict[str, np.ndarray]) -> None:
+    """The reference pins the equations: a 1 % change of one coefficient of Fx, Fy or Mz is far outside 1e-9."""
+    params = dict(read_tir(bundled_tir(MF61)).params)
+    for key, output in (("PKY1", "fy"), ("QDZ1", "mz"), ("SSZ1", "mz"), ("PCX1", "fx"), ("QBZ9", "mz")):
+        changed = MagicFormula61({**params, key: 1.01 * float(params[key])}, source=key)
+        assert _reference_error(changed, reference, MF61)[output] > 1e-6, key
+
+
 # ------------------------------------------------------------- reference figures
-def test_mf61_reference_mz_and_fy_peaks(mf61: MagicFormula61) -> None:
-    mz_pk, a_mz, _, a_fy = _peaks(mf61, 6752.0, side=-1)
-    assert mz_pk == pytest.approx(117.5, rel=0.03)
-    assert a_mz == pytest.approx(2.3, abs=0.2)
-    assert a_fy == pytest.approx(6.5, abs=0.3)
-    # the other branch (alpha > 0), this implementation's figures (regression guard)
-    mz_pk, a_mz, fy_pk, a_fy = _peaks(mf61, 6752.0, side=+1)
-    assert mz_pk == pytest.approx(132.7, rel=0.01)
-    assert a_mz == pytest.approx(2.12, abs=0.1)
+#: (file, LMUY) -> (Mz max Nm, its alpha deg, -Mz min Nm, its -alpha deg), see the module docstring
+MZ_FIGURES = {
+    (MF61, 1.0): (132.7, 2.12, 116.8, 2.41),
+    (MFEVAL, 1.0): (117.5, 2.31, 129.3, 2.64),
+    (MF61, 0.7): (94.4, 1.48, 80.4, 1.70),
+    (MFEVAL, 0.7): (81.9, 1.58, 90.9, 1.88),
+}
+
+
+@pytest.mark.parametrize(("name", "lmuy"), list(MZ_FIGURES))
+def test_mz_peaks_of_each_file(name: str, lmuy: float) -> None:
+    mz_max, a_max, mz_min, a_min = MZ_FIGURES[(name, lmuy)]
+    m = _model(name, LMUY=lmuy)
+    pk, a_pk, _, _ = _peaks(m, 6752.0, side=+1)
+    assert pk == pytest.approx(mz_max, abs=0.06) and a_pk == pytest.approx(a_max, abs=0.006)
+    pk, a_pk, _, _ = _peaks(m, 6752.0, side=-1)
+    assert pk == pytest.approx(mz_min, abs=0.06) and a_pk == pytest.approx(a_min, abs=0.006)
+
+
+@pytest.mark.parametrize(("name", "mz_high"), [(MF61, 118.7), (MFEVAL, 103.4)])
+def test_mz_peak_at_higher_pressure(name: str, mz_high: float) -> None:
+    m = _model(name)
+    assert _peaks(m, 6752.0, +1, pressure=1.1 * m.params["INFLPRES"])[0] == pytest.approx(mz_high, abs=0.06)
+
+
+def test_fy_peak_of_the_simscape_copy(mf61: MagicFormula61) -> None:
+    _, _, fy_pk, a_fy = _peaks(mf61, 6752.0, side=+1)
     assert fy_pk / 6752.0 == pytest.approx(1.017, rel=0.01)
+    assert a_fy == pytest.approx(6.5, abs=0.5)
 
 
-def test_asymmetry_comes_from_the_shift_terms() -> None:
+@pytest.mark.parametrize("name", [MF61, MFEVAL])
+def test_asymmetry_comes_from_the_shift_terms(name: str) -> None:
     """With the asymmetric coefficients zeroed the tyre is odd in alpha: Mz(-a) = -Mz(a)."""
     zero = ("QDZ6", "QDZ7", "PHY1", "PHY2", "PVY1", "PVY2", "QHZ1", "QHZ2", "PHX1", "PHX2", "PVX1", "PVX2",
             "PEY3", "QEZ4", "SSZ1", "RHX1", "RHY1", "RHY2", "RBY3")
-    sym = _model(MF61, **dict.fromkeys(zero, 0.0))
+    sym = _model(name, **dict.fromkeys(zero, 0.0))
     a = np.linspace(0.0, 15.0, 301) * DEG
     pos = sym.steady_state(6752.0, 0.0, a, 0.0, VX)
     neg = sym.steady_state(6752.0, 0.0, -a, 0.0, VX)
@@ -105,14 +196,12 @@ def test_asymmetry_comes_from_the_shift_terms() -> None:
     np.testing.assert_allclose(neg.fy, -pos.fy, atol=1e-7)
     sym_pk = _peaks(sym, 6752.0, +1)[0]
     assert _peaks(sym, 6752.0, -1)[0] == pytest.approx(sym_pk, rel=1e-9)
-    assert 117.5 < sym_pk < 132.7  # the real tyre's two branches straddle the symmetric one
+    branches = sorted(MZ_FIGURES[(name, 1.0)][::2])
+    assert branches[0] + 1.0 < sym_pk < branches[1] - 1.0  # the real tyre's two branches straddle the symmetric one
 
 
-def test_mf61_lmuy_0p7_reference(mf61: MagicFormula61) -> None:
+def test_lmuy_and_mu_scale_agree(mf61: MagicFormula61) -> None:
     m07 = _model(MF61, LMUY=0.7)
-    mz_pk, a_mz, _, _ = _peaks(m07, 6752.0, side=-1)
-    assert mz_pk == pytest.approx(81.9, rel=0.03)
-    assert a_mz == pytest.approx(1.6, abs=0.15)
     # mu_scale = 0.7 scales LMUX too: Fy and the trail are the same, Mz differs only by s*dFx
     a = np.linspace(-15.0, 15.0, 61) * DEG
     by_l = m07.steady_state(6752.0, 0.02, a, 0.01, VX)
@@ -317,12 +406,16 @@ def test_c_segment_tyre_is_plausible(cseg: MagicFormula61) -> None:
     assert 40.0 <= mz_pk <= 80.0
 
 
-def test_bundled_mf61_file_is_a_verbatim_copy() -> None:
-    lines = bundled_tir(MF61).read_bytes().split(b"\n")
+@pytest.mark.parametrize(("name", "sha256"), [(MF61, MF61_SHA256), (MFEVAL, MFEVAL_SHA256)])
+def test_bundled_mf61_files_are_verbatim_copies(name: str, sha256: str) -> None:
+    lines = bundled_tir(name).read_bytes().split(b"\n")
     header = [ln for ln in lines[:3]]
     assert all(ln.startswith(b"$") for ln in header)
     assert b"BSD-3-Clause" in b"\n".join(header) and b"Furlan" in b"\n".join(header)
-    assert hashlib.sha256(b"\n".join(lines[3:])).hexdigest() == MF61_SHA256
+    assert hashlib.sha256(b"\n".join(lines[3:])).hexdigest() == sha256
+
+
+def test_cseg_file_names_its_sources() -> None:
     text = bundled_tir(CSEG).read_text()
     assert "BSD-3-Clause" in text and "Table A3.1" in text
 
@@ -477,7 +570,9 @@ def test_missing_needed_coefficient_is_named(tmp_path: Path) -> None:
     lines = [ln for ln in bundled_tir(MF61).read_text().splitlines() if not ln.startswith("QCZ1 ")]
     path = tmp_path / "short.tir"
     path.write_text("\n".join(lines) + "\n")
-    with pytest.raises(TirError, match=r"short\.tir: missing coefficient QCZ1"):
+    section_line = 1 + next(i for i, ln in enumerate(lines) if ln.startswith("[ALIGNING_COEFFICIENTS]"))
+    expected = rf"short\.tir:{section_line}: missing coefficient QCZ1 in \[ALIGNING_COEFFICIENTS\]"
+    with pytest.raises(TirError, match=expected):
         MagicFormula61.from_tir(path)
     with pytest.raises(TirError, match="FNOMIN"):
         MagicFormula61({"PCX1": 1.0})
@@ -493,6 +588,10 @@ def test_optional_coefficients_default_to_zero_and_scaling_to_one() -> None:
         MagicFormula61({**params, "FITTYP": 6})
     with pytest.raises(TirError, match="PDY2"):
         MagicFormula61({**params, "PDY2": "oops"})
+    tir = read_tir(bundled_tir(MF61))
+    tir["PDY2"] = "oops"  # a quoted string where a number belongs: the message gives the line
+    with pytest.raises(TirError, match=rf":{tir.lines['PDY2']}: coefficient PDY2 = 'oops' is not a finite number"):
+        MagicFormula61(tir, source="f.tir")
     with pytest.raises(TirError, match="unit LENGTH"):
         parse_tir("[UNITS]\nLENGTH = 'mm'\n", "mm.tir")
 
@@ -593,3 +692,23 @@ def _plain_mf61(p: dict, fz: float, kappa: float, alpha: float, gamma: float, vx
         (fz / fz0) ** p["QSY7"] * (pres / p["NOMPRES"]) ** p["QSY8"])
     return {"fx": fx, "fy": fy, "mz": mz, "my": my, "t": t, "mzr": mzr, "s": s, "kya": kya, "kxk": kxk,
             "mu_x": mux, "mu_y": muy, "fx0": fx0, "fy0": fy0}
+
+
+# ------------------------------------------------------------- different tyres front and rear
+def test_axle_tyres_split_the_wheel_axis(mf61: MagicFormula61, cseg: MagicFormula61) -> None:
+    """AxleTyres gives FL, FR the front tyre's outputs and RL, RR the rear tyre's, as the vehicle calls it."""
+    from sim.vehicle import AxleTyres
+
+    ins = _random_inputs(np.random.default_rng(4), (6, 4))
+    pres, mu = np.full((6, 4), 2.4e5), np.linspace(0.4, 1.0, 6)[:, None]
+    both = AxleTyres(mf61, cseg)
+    out = both.steady_state(ins["fz"], ins["kappa"], ins["alpha"], ins["gamma"], ins["vx"], pres, mu)
+    for model, cols in ((mf61, slice(0, 2)), (cseg, slice(2, 4))):
+        ref = model.steady_state(*(v[:, cols] for v in ins.values()), pres[:, cols], mu)
+        for f in ("fx", "fy", "mz", "my", "kya"):
+            np.testing.assert_array_equal(getattr(out, f)[:, cols], getattr(ref, f), err_msg=f)
+        np.testing.assert_array_equal(both.effective_rolling_radius(ins["fz"], 50.0, pres)[:, cols],
+                                      model.effective_rolling_radius(ins["fz"][:, cols], 50.0, pres[:, cols]))
+        np.testing.assert_array_equal(both.relaxation_lengths(ins["fz"], pres)[1][:, cols],
+                                      model.relaxation_lengths(ins["fz"][:, cols], pres[:, cols])[1])
+    assert both.per_wheel("UNLOADED_RADIUS", 0.3).tolist() == [0.393581] * 2 + [0.3135] * 2

@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("run", "the real-time virtual-sensor daemon: CAN in, 20 Hz SAT_FRONT out"),
     "bench": ("bench", "measure the daemon: stage/end-to-end latency, jitter, CPU/RSS, max tick rate, soak"),
     "diagnose": ("diagnose", "sim-to-real: what the simulation gets wrong about measured runs, the cause, the gain"),
+    "tyre": ("tyre", "check a .tir tyre property file and print the figures an engineer checks first"),
     "demo": ("demo", "the daemon on a bundled wet-road run: estimated vs true SAT live, then MAE, R2, latency, plot"),
 }
 
