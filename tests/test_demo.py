@@ -86,7 +86,7 @@ def test_demo_figures_equal_the_offline_pipeline(demo):
     """The daemon's estimates on the bus, paired by the demo, score what the offline table and model score
     (up to SAT_FRONT's 0.02 Nm resolution): a tick paired with the wrong instant would show."""
     from virtsensor.features import FeatureSpec
-    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.model.onnx import OnnxModel
     from virtsensor.recording import read_log
 
     model = OnnxModel.load(default_model())

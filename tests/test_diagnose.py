@@ -104,7 +104,8 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     import warnings
 
     from virtsensor.diagnose.calibrate import merge_ensemble
-    from virtsensor.onnx_model import OnnxModel, export_pipeline
+    from virtsensor.model.export import export_pipeline
+    from virtsensor.model.onnx import OnnxModel
     from virtsensor.training import PAPER_PARAMS, make_pipeline
 
     rng = np.random.default_rng(0)

@@ -25,7 +25,7 @@ from virtsensor import cli
 from virtsensor.can_codec import CanMatrix
 from virtsensor.e2e import E2EStatus, frame_crc
 from virtsensor.features import FeatureSpec
-from virtsensor.onnx_model import OnnxModel, card_path_for
+from virtsensor.model import OnnxModel, card_path_for
 from virtsensor.recording import iter_frames, simulated_recording
 from virtsensor.replay import replay
 from virtsensor.runtime import DEGRADED, INIT, INVALID, VALID, VirtualSensor, load_config

@@ -168,32 +168,26 @@ def _jsonable(o):
 
 
 def _export(est, res, args) -> str:
-    from virtsensor.commands.train import _inputs_for_card
-    from virtsensor.errors import UserError
-    from virtsensor.features import SPECS
-    from virtsensor.onnx_model import export_pipeline, pipeline_weights
-
-    spec = SPECS[est.recipe["features"]]
     import numpy as np
 
+    from virtsensor.errors import UserError
+    from virtsensor.features import SPECS
+    from virtsensor.model import ModelCard
+    from virtsensor.model.export import export_pipeline, pipeline_weights
+
+    spec = SPECS[est.recipe["features"]]
     rng = np.random.default_rng(args.seed)
     mlp_scale = est.pipeline[0]
     parity = rng.normal(size=(500, len(spec.names))) * getattr(mlp_scale, "scale_", 1.0) + getattr(
         mlp_scale, "center_", 0.0)
+    extra = ModelCard.trainer_fields(
+        model=f"virtsensor-{args.recipe}-calibrated", spec=spec, recipe=est.recipe, seed=args.seed,
+        training_data={"fingerprint_sha256": est.fingerprint, "rows": est.samples, "campaign": args.campaign,
+                       "calibration": {k: res[k] for k in ("cause", "signal", "estimate", "ci95")}},
+        metrics={k: res.get(k) for k in ("mae_before_nm", "mae_after_nm", "r2_before", "r2_after")},
+        weights=pipeline_weights(est.pipeline))
     try:
-        card = export_pipeline(est.pipeline, len(spec.names), args.export_model, parity_X=parity, card_extra={
-            "model": f"virtsensor-{args.recipe}-calibrated",
-            "recipe": est.recipe,
-            "feature_spec": spec.to_json(),
-            "inputs": _inputs_for_card(spec),
-            "signals": list(spec.signals),
-            "training_data": {"fingerprint_sha256": est.fingerprint, "rows": est.samples,
-                              "campaign": args.campaign, "calibration": {
-                                  k: res[k] for k in ("cause", "signal", "estimate", "ci95")}},
-            "metrics": {k: res.get(k) for k in ("mae_before_nm", "mae_after_nm", "r2_before", "r2_after")},
-            "seed": args.seed,
-            "weights": pipeline_weights(est.pipeline),
-        })
+        card = export_pipeline(est.pipeline, len(spec.names), args.export_model, parity_X=parity, card_extra=extra)
     except ValueError as exc:
         raise UserError(f"{args.export_model}: export refused: {exc}") from None
     return f"{args.export_model} (sha256 {card['sha256'][:12]}...)"

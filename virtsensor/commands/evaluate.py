@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.evaluation import evaluate, markdown_table
     from virtsensor.features import SPECS, FeatureSpec
-    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.model.onnx import OnnxModel
     from virtsensor.training import RECIPES, metrics
 
     for opt in ("json", "markdown"):

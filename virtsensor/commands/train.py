@@ -30,21 +30,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
-def _inputs_for_card(spec) -> list[dict]:
-    from virtsensor import signals as cat
-
-    out = []
-    for f in spec.features:
-        s = cat.SIGNALS[f.signal]
-        scale = {"value": 1.0, "lag": 1.0, "rate": 1.0, "accel": 1.0}[f.op]
-        out.append({
-            "name": f.name, "signal": f.signal, "op": f.op, "lag": f.lag, "unit": f.unit,
-            "dbc_message": s.message, "dbc_signal": s.dbc_signal, "critical": s.critical,
-            "valid_range": [s.minimum * scale, s.maximum * scale] if f.op in ("value", "lag") else None,
-        })
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     import numpy as np
     from threadpoolctl import threadpool_limits
@@ -54,7 +39,6 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.evaluation import grouped_split
     from virtsensor.features import SPECS
-    from virtsensor.onnx_model import export_pipeline
     from virtsensor.training import RECIPES, grid_search, make_pipeline, metrics
 
     if args.recipe not in RECIPES:
@@ -103,28 +87,22 @@ def run(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     parity_rows = ds.X[rng.choice(len(ds.X), min(5000, len(ds.X)), replace=False)]
     try:
-        card = _export(export_pipeline, model, ds, out, parity_rows, args, recipe, spec, report)
+        card = _export(model, ds, out, parity_rows, args, recipe, spec, report)
     except ValueError as exc:  # parity beyond 1e-3 Nm: nothing was written
         raise UserError(f"{out}: export refused: {exc}") from None
     say(f"wrote {out} (sha256 {card['sha256'][:12]}..., ONNX/sklearn parity {card.get('parity_max_abs_nm', 0):.2e} Nm)")
     return 0
 
 
-def _export(export_pipeline, model, ds, out, parity_rows, args, recipe, spec, report) -> dict:
-    from virtsensor.onnx_model import pipeline_weights
+def _export(model, ds, out, parity_rows, args, recipe, spec, report):
+    from virtsensor.model import ModelCard
+    from virtsensor.model.export import export_pipeline, pipeline_weights
 
-    return export_pipeline(model, len(ds.feature_names), out, parity_X=parity_rows, card_extra={
-        "model": f"virtsensor-{args.recipe}",
-        "recipe": recipe,
-        "feature_spec": spec.to_json(),
-        "inputs": _inputs_for_card(spec),
-        "signals": list(spec.signals),
-        "training_data": {
+    return export_pipeline(model, len(ds.feature_names), out, parity_X=parity_rows, card_extra=ModelCard.trainer_fields(
+        model=f"virtsensor-{args.recipe}", spec=spec, recipe=recipe, seed=args.seed, metrics=report,
+        training_data={
             "fingerprint_sha256": ds.fingerprint(), "rows": int(len(ds.X)), "runs": len(ds.runs),
             "dropped_nonfinite": ds.dropped_nonfinite, "sources": [str(p) for p in args.data],
         },
-        "metrics": report,
-        "seed": args.seed,
         # the same weights as plain arrays: the numpy back-end and audits need no sklearn
-        "weights": pipeline_weights(model),
-    })
+        weights=pipeline_weights(model)))
