@@ -14,6 +14,8 @@ from virtsensor.errors import UserError
 
 HELP = "simulate a whole data-set preset (e.g. the paper's Table I campaign) in parallel"
 FORMATS = ("csv", "blf", "asc", "log")
+#: joblib backends the campaign may run on (ray and dask register themselves when installed).
+BACKENDS = ("loky", "threading", "multiprocessing", "sequential", "ray", "dask")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="parallel workers (1 to 1024, or -1: all cores, the default)")
     parser.add_argument("--batch-size", type=t.int_range(1, 10000), default=25, metavar="N",
                         help="runs per vectorised batch (1 to 10000; default 25)")
-    parser.add_argument("--backend", default=None, help="joblib backend (loky, threading, ray, dask...)")
+    parser.add_argument("--backend", default=None, choices=BACKENDS,
+                        help="joblib backend (default loky; ray and dask need their packages)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_car_arguments(parser)
 
