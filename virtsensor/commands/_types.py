@@ -162,7 +162,42 @@ def can_id() -> ArgType:
 
 # ---------------------------------------------------------------------------------------------------------------
 # paths
+#
+# A path's *kind* (exists, is a file or a directory, is writable) is checked after parsing, before the
+# command runs (:func:`check_paths`, called by :func:`virtsensor.cli.main`): at parse time only its
+# syntax (not empty, suffix), so that a documented command line parses on a machine without its files.
 # ---------------------------------------------------------------------------------------------------------------
+def _path_tag(check: Callable[[str], str], name: str, suffixes: Sequence[str], valid: Sequence[str],
+              invalid: Sequence[str]) -> ArgType:
+    def parse(text: str) -> str:
+        if not text:
+            raise argparse.ArgumentTypeError(f"empty {name} name")
+        _suffix_ok(Path(text), suffixes)
+        return text
+
+    parse.check_path = check  # type: ignore[attr-defined]
+    return _tag(parse, name, valid, invalid)
+
+
+def check_paths(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Check the kind of every path argument of ``parser`` parsed into ``args`` (defaults included).
+
+    Raises:
+        UserError: ``argument --opt: <path>: <what is wrong>`` for the first wrong one.
+    """
+    from virtsensor.errors import UserError
+
+    for action in parser._actions:
+        check = getattr(action.type, "check_path", None)
+        value = getattr(args, action.dest, None)
+        if check is None or value is None:
+            continue
+        for v in value if isinstance(value, list) else [value]:
+            try:
+                check(v)
+            except argparse.ArgumentTypeError as exc:
+                name = "/".join(action.option_strings) or action.metavar or action.dest
+                raise UserError(f"argument {name}: {exc}") from None
 def _suffix_ok(p: Path, suffixes: Sequence[str]) -> None:
     if suffixes and p.suffix.lower() not in suffixes:
         raise argparse.ArgumentTypeError(f"{p}: expected a {' or '.join(suffixes)} file")
@@ -171,7 +206,7 @@ def _suffix_ok(p: Path, suffixes: Sequence[str]) -> None:
 def existing_file(*suffixes: str) -> ArgType:
     """A path to an existing regular file (with one of ``suffixes`` when given); returns the text."""
 
-    def parse(text: str) -> str:
+    def check(text: str) -> str:
         p = Path(text)
         if not text:
             raise argparse.ArgumentTypeError("empty file name")
@@ -187,15 +222,16 @@ def existing_file(*suffixes: str) -> ArgType:
         return text
 
     valid = [f"{{tmp}}/file{suffixes[0]}" if suffixes else "{tmp}/file.txt"]
-    return _tag(parse, "file", valid, ["{tmp}/missing", "{tmp}/dir", "", "{tmp}/file.txt/x"])
+    invalid = ["{tmp}/missing", "{tmp}/dir", "", "{tmp}/file.txt/x", f"{{tmp}}/dir{suffixes[0] if suffixes else ''}"]
+    return _path_tag(check, "file", suffixes, valid, invalid)
 
 
 def text_file(*suffixes: str) -> ArgType:
     """An existing regular file holding UTF-8 text (no NUL byte in its first MiB): configuration files."""
     base = existing_file(*suffixes)
 
-    def parse(text: str) -> str:
-        base(text)
+    def check(text: str) -> str:
+        base.check_path(text)  # type: ignore[attr-defined]
         try:
             with open(text, "rb") as f:
                 head = f.read(TEXT_PROBE_BYTES)
@@ -211,13 +247,13 @@ def text_file(*suffixes: str) -> ArgType:
         return text
 
     valid = base.fuzz_valid  # type: ignore[attr-defined]
-    return _tag(parse, "text file", valid, [*base.fuzz_invalid, "{tmp}/binary.bin"])  # type: ignore[attr-defined]
+    return _path_tag(check, "text file", suffixes, valid, [*base.fuzz_invalid, "{tmp}/binary.bin"])  # type: ignore[attr-defined]
 
 
 def existing_dir() -> ArgType:
     """A path to an existing, readable directory; returns the text."""
 
-    def parse(text: str) -> str:
+    def check(text: str) -> str:
         p = Path(text)
         if not text:
             raise argparse.ArgumentTypeError("empty directory name")
@@ -229,13 +265,13 @@ def existing_dir() -> ArgType:
             raise argparse.ArgumentTypeError(f"{p}: directory not readable")
         return text
 
-    return _tag(parse, "directory", ["{tmp}/dir"], ["{tmp}/missing", "{tmp}/file.txt", ""])
+    return _path_tag(check, "directory", (), ["{tmp}/dir"], ["{tmp}/missing", "{tmp}/file.txt", ""])
 
 
 def existing_path() -> ArgType:
     """An existing regular file or directory (inputs given as files or directories of them)."""
 
-    def parse(text: str) -> str:
+    def check(text: str) -> str:
         p = Path(text)
         if not text:
             raise argparse.ArgumentTypeError("empty path")
@@ -247,7 +283,7 @@ def existing_path() -> ArgType:
             raise argparse.ArgumentTypeError(f"{p}: not readable")
         return text
 
-    return _tag(parse, "path", ["{tmp}/dir"], ["{tmp}/missing", "", "{tmp}/file.txt/x"])
+    return _path_tag(check, "path", (), ["{tmp}/dir"], ["{tmp}/missing", "", "{tmp}/file.txt/x"])
 
 
 def _writable_dir(d: Path, path: Path) -> None:
@@ -274,7 +310,7 @@ def output_file(*suffixes: str, mkdirs: bool = False) -> ArgType:
     directory must exist and be writable (``mkdirs``: the nearest existing ancestor instead, the
     command creating the rest). Nothing is created here."""
 
-    def parse(text: str) -> str:
+    def check(text: str) -> str:
         p = Path(text)
         if not text:
             raise argparse.ArgumentTypeError("empty file name")
@@ -289,19 +325,20 @@ def output_file(*suffixes: str, mkdirs: bool = False) -> ArgType:
         return text
 
     name = f"out{suffixes[0] if suffixes else '.txt'}"
-    invalid = ["{tmp}/dir", f"{{tmp}}/ro/{name}", f"{{tmp}}/file.txt/{name}", ""]
+    invalid = ["{tmp}/dir", f"{{tmp}}/dir{suffixes[0] if suffixes else ''}", f"{{tmp}}/ro/{name}",
+               f"{{tmp}}/file.txt/{name}", ""]
     if not mkdirs:
         invalid.append(f"{{tmp}}/missing/{name}")
     if suffixes:
         invalid.append("{tmp}/out.wrongsuffix")
-    return _tag(parse, "output file", [f"{{tmp}}/{name}"], invalid)
+    return _path_tag(check, "output file", suffixes, [f"{{tmp}}/{name}"], invalid)
 
 
 def output_dir(*, empty: bool = False) -> ArgType:
     """A directory the command will write into: an existing one must be a writable directory (and
     empty when ``empty``); a new one needs a writable nearest existing ancestor. Nothing is created here."""
 
-    def parse(text: str) -> str:
+    def check(text: str) -> str:
         p = Path(text)
         if not text:
             raise argparse.ArgumentTypeError("empty directory name")
@@ -313,5 +350,5 @@ def output_dir(*, empty: bool = False) -> ArgType:
             _writable_dir(_nearest_existing(p), p)
         return text
 
-    return _tag(parse, "output directory", ["{tmp}/newdir"],
+    return _path_tag(check, "output directory", (), ["{tmp}/newdir"],
                 ["{tmp}/file.txt", "{tmp}/ro", "{tmp}/ro/sub", "{tmp}/file.txt/sub", ""])
