@@ -123,23 +123,8 @@ def export_pipeline(
         parity["parity_inputs"] = rt.default_parity_inputs(card_extra.get("weights"), n_features)
 
     path = Path(path)
-    card: dict[str, Any] = dict(card_extra)
-    card.update(
-        onnx_file=path.name,
-        sha256=hashlib.sha256(onnx_bytes).hexdigest(),
-        onnx_input=INPUT_NAME,
-        onnx_output=OUTPUT_NAME,
-        input_dtype=precision,
-        feature_names=list(feature_names),
-        n_features=n_features,
-        outputs=outputs,
-        n_outputs=n_outputs,
-        opset={(d.domain or "ai.onnx"): int(d.version) for d in model.opset_import},
-        target_opset={(k or "ai.onnx"): int(v) for k, v in opset.items()},
-        created_utc=datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        tool_versions=tool_versions(),
-        **parity,
-    )
+    card = {**card_extra, **_computed_fields(model, onnx_bytes, path, precision, feature_names, outputs, opset),
+            **parity}
     sealed = ModelCard(card, path=card_path_for(path)).sealed()
     # the whole runtime check (graph metadata, weights on the parity rows) before anything touches the disk
     try:
@@ -149,6 +134,26 @@ def export_pipeline(
     atomic_write(path, onnx_bytes)
     sealed.write(card_path_for(path))
     return sealed
+
+
+def _computed_fields(model: Any, onnx_bytes: bytes, path: Path, precision: str, feature_names: Sequence[str],
+                     outputs: list[dict[str, Any]], opset: Mapping[str, int]) -> dict[str, Any]:
+    """The card keys export computes from the graph (see :data:`COMPUTED_KEYS`), parity apart."""
+    return {
+        "onnx_file": path.name,
+        "sha256": hashlib.sha256(onnx_bytes).hexdigest(),
+        "onnx_input": INPUT_NAME,
+        "onnx_output": OUTPUT_NAME,
+        "input_dtype": precision,
+        "feature_names": list(feature_names),
+        "n_features": len(feature_names),
+        "outputs": outputs,
+        "n_outputs": len(outputs),
+        "opset": {(d.domain or "ai.onnx"): int(d.version) for d in model.opset_import},
+        "target_opset": {(k or "ai.onnx"): int(v) for k, v in opset.items()},
+        "created_utc": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "tool_versions": tool_versions(),
+    }
 
 
 def _convert(pipeline: Any, n_features: int, n_outputs: int, precision: str, opset: Mapping[str, int],
