@@ -130,7 +130,7 @@ def test_demo_without_matplotlib_still_prints_its_figures(tmp_path, monkeypatch)
         (["--recording", "{tmp}/missing.blf"], ["missing.blf", "no such log file"]),
         (["--recording", "{tmp}/notalog.txt"], ["notalog.txt", "unsupported CAN log format"]),
         (["--model", "{tmp}/missing.onnx"], ["--model", "missing.onnx"]),
-        (["--model", "{tmp}/notalog.txt"], ["model card"]),
+        (["--model", "{tmp}/notalog.txt"], ["--model", "notalog.txt", "expected a .onnx file"]),
         (["--plot", "{tmp}/notalog.txt/demo.png"], ["--plot", "not a directory"]),
         (["--plot", "{tmp}"], ["--plot", "is a directory"]),
         (["--json", "{tmp}/notalog.txt/d.json"], ["--json", "not a directory"]),

@@ -164,15 +164,13 @@ def can_id() -> ArgType:
 # paths
 #
 # A path's *kind* (exists, is a file or a directory, is writable) is checked after parsing, before the
-# command runs (:func:`check_paths`, called by :func:`virtsensor.cli.main`): at parse time only its
-# syntax (not empty, suffix), so that a documented command line parses on a machine without its files.
+# command runs (:func:`check_paths`, called by :func:`virtsensor.cli.main`), then its suffix: at parse
+# time only that it is not empty, so that a documented command line parses on a machine without its files.
 # ---------------------------------------------------------------------------------------------------------------
-def _path_tag(check: Callable[[str], str], name: str, suffixes: Sequence[str], valid: Sequence[str],
-              invalid: Sequence[str]) -> ArgType:
+def _path_tag(check: Callable[[str], str], name: str, valid: Sequence[str], invalid: Sequence[str]) -> ArgType:
     def parse(text: str) -> str:
         if not text:
             raise argparse.ArgumentTypeError(f"empty {name} name")
-        _suffix_ok(Path(text), suffixes)
         return text
 
     parse.check_path = check  # type: ignore[attr-defined]
@@ -203,17 +201,20 @@ def _suffix_ok(p: Path, suffixes: Sequence[str]) -> None:
         raise argparse.ArgumentTypeError(f"{p}: expected a {' or '.join(suffixes)} file")
 
 
-def existing_file(*suffixes: str) -> ArgType:
-    """A path to an existing regular file (with one of ``suffixes`` when given); returns the text."""
+def existing_file(*suffixes: str, what: str = "file") -> ArgType:
+    """A path to an existing regular file (with one of ``suffixes`` when given); returns the text.
+
+    ``what`` names the kind in the messages, e.g. ``log file``: ``x.blf: no such log file``.
+    """
 
     def check(text: str) -> str:
         p = Path(text)
         if not text:
             raise argparse.ArgumentTypeError("empty file name")
         if p.is_dir():
-            raise argparse.ArgumentTypeError(f"{p}: is a directory, a file is expected")
+            raise argparse.ArgumentTypeError(f"{p}: is a directory, a {what} is expected")
         if not p.exists():
-            raise argparse.ArgumentTypeError(f"{p}: no such file")
+            raise argparse.ArgumentTypeError(f"{p}: no such {what}")
         if not p.is_file():
             raise argparse.ArgumentTypeError(f"{p}: not a regular file")
         if not os.access(p, os.R_OK):
@@ -223,7 +224,7 @@ def existing_file(*suffixes: str) -> ArgType:
 
     valid = [f"{{tmp}}/file{suffixes[0]}" if suffixes else "{tmp}/file.txt"]
     invalid = ["{tmp}/missing", "{tmp}/dir", "", "{tmp}/file.txt/x", f"{{tmp}}/dir{suffixes[0] if suffixes else ''}"]
-    return _path_tag(check, "file", suffixes, valid, invalid)
+    return _path_tag(check, "file", valid, invalid)
 
 
 def text_file(*suffixes: str) -> ArgType:
@@ -247,7 +248,7 @@ def text_file(*suffixes: str) -> ArgType:
         return text
 
     valid = base.fuzz_valid  # type: ignore[attr-defined]
-    return _path_tag(check, "text file", suffixes, valid, [*base.fuzz_invalid, "{tmp}/binary.bin"])  # type: ignore[attr-defined]
+    return _path_tag(check, "text file", valid, [*base.fuzz_invalid, "{tmp}/binary.bin"])  # type: ignore[attr-defined]
 
 
 def existing_dir() -> ArgType:
@@ -265,7 +266,7 @@ def existing_dir() -> ArgType:
             raise argparse.ArgumentTypeError(f"{p}: directory not readable")
         return text
 
-    return _path_tag(check, "directory", (), ["{tmp}/dir"], ["{tmp}/missing", "{tmp}/file.txt", ""])
+    return _path_tag(check, "directory", ["{tmp}/dir"], ["{tmp}/missing", "{tmp}/file.txt", ""])
 
 
 def existing_path() -> ArgType:
@@ -283,7 +284,7 @@ def existing_path() -> ArgType:
             raise argparse.ArgumentTypeError(f"{p}: not readable")
         return text
 
-    return _path_tag(check, "path", (), ["{tmp}/dir"], ["{tmp}/missing", "", "{tmp}/file.txt/x"])
+    return _path_tag(check, "path", ["{tmp}/dir"], ["{tmp}/missing", "", "{tmp}/file.txt/x"])
 
 
 def _writable_dir(d: Path, path: Path) -> None:
@@ -331,7 +332,7 @@ def output_file(*suffixes: str, mkdirs: bool = False) -> ArgType:
         invalid.append(f"{{tmp}}/missing/{name}")
     if suffixes:
         invalid.append("{tmp}/out.wrongsuffix")
-    return _path_tag(check, "output file", suffixes, [f"{{tmp}}/{name}"], invalid)
+    return _path_tag(check, "output file", [f"{{tmp}}/{name}"], invalid)
 
 
 def output_dir(*, empty: bool = False) -> ArgType:
@@ -350,5 +351,5 @@ def output_dir(*, empty: bool = False) -> ArgType:
             _writable_dir(_nearest_existing(p), p)
         return text
 
-    return _path_tag(check, "output directory", (), ["{tmp}/newdir"],
+    return _path_tag(check, "output directory", ["{tmp}/newdir"],
                 ["{tmp}/file.txt", "{tmp}/ro", "{tmp}/ro/sub", "{tmp}/file.txt/sub", ""])

@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--model", metavar="FILE.onnx", default=None, type=t.existing_file(".onnx"),
                         help="ONNX model, its .card.json beside it (default: the shipped models/improved.onnx)")
-    parser.add_argument("--recording", metavar="LOG", default=None, type=t.existing_file(),
+    parser.add_argument("--recording", metavar="LOG", default=None, type=t.existing_file(what="log file"),
                         help="CAN log to replay (.blf, .asc, .log, .csv, .trc; default: the bundled wet-road run)")
     parser.add_argument("--rate", default="1.0", type=t.rate(),
                         help="replay speed factor, 0.001 to 1000 (1.0 = real time, the default), or 'max' "

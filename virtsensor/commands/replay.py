@@ -30,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from virtsensor.commands import _types as t
 
     mu_lo, mu_hi = _mu_range()
-    parser.add_argument("file", nargs="?", type=t.existing_file(),
+    parser.add_argument("file", nargs="?", type=t.existing_file(what="log file"),
                         help="CAN log to play (.blf, .asc, .log, .csv, .trc)")
     parser.add_argument(
         "--interface", "-i", required=True, help="python-can interface, e.g. socketcan, virtual, pcan, vector"
