@@ -5,20 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sim.api import simulate
+from sim.params import car_parameters
 from virtsensor import signals as cat
-from virtsensor.cli import main
+from virtsensor.commands.simulate import write_run
 from virtsensor.recording import read_csv, read_log
 
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory):
+    """One simulated run, written as a table and as each CAN log format (simulated once)."""
     d = tmp_path_factory.mktemp("rec")
-    paths = {}
-    for suffix in (".csv", ".blf", ".asc", ".log"):
-        paths[suffix] = d / f"dlc{suffix}"
-        args = ["simulate", "double-lane-change", "--speed", "70", "--mu", "0.7", "--seed", "5",
-                "--out", str(paths[suffix])]
-        assert main(args) == 0
+    paths = {suffix: d / f"dlc{suffix}" for suffix in (".csv", ".blf", ".asc", ".log")}
+    sim_run = simulate("double-lane-change", 70.0, 0.7, 5, car_parameters())
+    for path in paths.values():
+        write_run(sim_run, path)
     return paths
 
 

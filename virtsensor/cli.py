@@ -19,6 +19,7 @@ from collections.abc import Sequence
 
 from virtsensor.commands._types import check_paths
 from virtsensor.errors import UserError
+from virtsensor.extras import as_user_error, require
 
 #: subcommand name -> module under virtsensor.commands, with its one-line help
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -32,6 +33,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("bench", "measure the daemon: stage/end-to-end latency, jitter, CPU/RSS, max tick rate, soak"),
     "diagnose": ("diagnose", "sim-to-real: what the simulation gets wrong about measured runs, the cause, the gain"),
     "demo": ("demo", "the daemon on a bundled wet-road run: estimated vs true SAT live, then MAE, R2, latency, plot"),
+}
+
+#: subcommand name -> the optional extra it needs (see virtsensor.extras); the others run on the base install
+COMMAND_EXTRAS: dict[str, str] = {
+    "simulate": "train",
+    "campaign": "train",
+    "train": "train",
+    "evaluate": "train",
+    "explain": "explain",
+    "diagnose": "train",
 }
 
 
@@ -64,6 +75,11 @@ def _load(module: str):
     return importlib.import_module(f"virtsensor.commands.{module}")
 
 
+def _fail(command: str, exc: UserError) -> int:
+    print(f"virtsensor {command}: error: {exc}", file=sys.stderr)
+    return exc.exit_code
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -71,7 +87,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     name = next((a for a in argv if not a.startswith("-")), None)
     sub_action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     if name in COMMANDS:
-        mod = _load(COMMANDS[name][0])
+        try:
+            if name in COMMAND_EXTRAS:
+                require(COMMAND_EXTRAS[name], f"virtsensor {name}")
+            mod = _load(COMMANDS[name][0])
+        except UserError as exc:
+            return _fail(name, exc)
         mod.add_arguments(sub_action.choices[name])
     try:
         args = parser.parse_args(argv)
@@ -83,8 +104,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_paths(sub_action.choices[args.command], args)
         return int(mod.run(args) or 0)
     except UserError as exc:
-        print(f"virtsensor {args.command}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return _fail(args.command, exc)
+    except ModuleNotFoundError as exc:  # an optional path of a base command (e.g. replaying a simulation)
+        missing = as_user_error(exc, f"virtsensor {args.command}")
+        if missing is None:
+            raise
+        return _fail(args.command, missing)
     except KeyboardInterrupt:
         print(f"virtsensor {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -41,6 +41,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
 from virtsensor.errors import UserError
 
 __all__ = [
@@ -71,7 +72,6 @@ PLAYER_SPIN_S = 0.0002
 #: After the last frame is sent, stop waiting for ``SAT_FRONT`` after this long without one (s).
 DRAIN_S = 2.0
 
-_ROOT = Path(__file__).resolve().parent.parent
 _STATUS = ("VALID", "DEGRADED", "INVALID", "INIT")
 _HINT_PLOTS = "pip install -e '.[plots]'"
 
@@ -86,18 +86,18 @@ def demo_recording_name(run: Sequence[Any] = DEMO_RUN) -> str:
 
 
 def recordings_dir() -> Path:
-    """``sim/data/recordings`` beside the package (the source tree, or site-packages when installed)."""
-    return _ROOT / "sim" / "data" / "recordings"
+    """The folder of the bundled recordings (package data of ``sim``: ``sim/data/recordings``)."""
+    return bundled_recordings_dir()
 
 
 def default_recording() -> Path:
-    return recordings_dir() / demo_recording_name()
+    """The bundled demo recording (:data:`DEMO_RUN`), whatever the working directory."""
+    return recording_path(demo_recording_name())
 
 
 def default_model() -> Path:
-    """The shipped ``models/improved.onnx`` of the source tree, else ``models/improved.onnx`` in the cwd."""
-    shipped = _ROOT / "models" / "improved.onnx"
-    return shipped if shipped.is_file() else Path("models") / "improved.onnx"
+    """The shipped default model (:func:`virtsensor.assets.model_path`), whatever the working directory."""
+    return model_path()
 
 
 def _shown(path: Path) -> str:

@@ -14,7 +14,7 @@ in their shortest round-trip form). Any edit of a loaded card (a flipped ``criti
 The ONNX side of the checks (sha256 of the graph, output names, the numpy weights against the graph)
 is in :class:`virtsensor.model.onnx.OnnxModel`.
 
-This module imports only the standard library, numpy-free: the daemon's install needs nothing else.
+This module needs nothing beyond the base install (the daemon imports it).
 """
 
 from __future__ import annotations
@@ -23,12 +23,12 @@ import hashlib
 import json
 import os
 import re
-import tempfile
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from virtsensor.errors import UserError
+from virtsensor.fileio import atomic_write_bytes
 
 #: Card key holding the digest of the card's canonical content.
 DIGEST_KEY = "card_sha256"
@@ -180,7 +180,7 @@ class ModelCard(Mapping[str, Any]):
     def write(self, path: str | os.PathLike[str]) -> None:
         """Write the card to ``path`` atomically (the card must be sealed and valid)."""
         self.verify()
-        atomic_write(Path(path), self.text().encode("utf-8"))
+        atomic_write_bytes(Path(path), self.text().encode("utf-8"))
         self.path = Path(path)
 
     @classmethod
@@ -276,28 +276,6 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"card value of type {type(obj).__name__} is not JSON-serialisable")
 
 
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old file or the new one, never half of one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.fchmod(fd, 0o644)  # mkstemp makes 0600; a model file is meant to be read by the daemon's user
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    if hasattr(os, "O_DIRECTORY"):  # make the rename itself durable (POSIX)
-        dfd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-
-
 def seal_file(path: str | os.PathLike[str], extra: Mapping[str, Any] | None = None) -> ModelCard:
     """Migration: add ``extra`` keys (only those the card lacks) and a fresh ``card_sha256`` to a card file.
 
@@ -311,8 +289,3 @@ def seal_file(path: str | os.PathLike[str], extra: Mapping[str, Any] | None = No
     sealed = ModelCard(data, path=path).sealed()
     sealed.write(path)
     return sealed
-
-
-def names_of(entries: Sequence[Any]) -> list[str]:
-    """Names of card ``outputs``/``inputs`` entries (strings or ``{'name': ...}`` dicts)."""
-    return [str(e["name"] if isinstance(e, Mapping) else e) for e in entries]

@@ -35,8 +35,9 @@ import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
+from virtsensor.fileio import atomic_write_bytes
 from virtsensor.model import onnx as rt
-from virtsensor.model.card import ModelCard, atomic_write, card_path_for
+from virtsensor.model.card import ModelCard, card_path_for
 from virtsensor.model.onnx import INPUT_NAME, META_FEATURES, META_OUTPUTS, N_PARITY_INPUTS, OUTPUT_NAME
 
 #: Default ONNX opsets asked of skl2onnx: opset 17 / ai.onnx.ml 3 run on every
@@ -131,7 +132,8 @@ def export_pipeline(
         rt.OnnxModel(onnx_bytes, sealed, path=path, card_path=card_path_for(path), use_iobinding=False)
     except UserError as exc:
         raise ValueError(f"exported model fails its own load checks: {exc}") from None
-    atomic_write(path, onnx_bytes)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, onnx_bytes)
     sealed.write(card_path_for(path))
     return sealed
 

@@ -1,0 +1,1 @@
+"""Package data: the shipped models, installed as ``virtsensor.assets.models`` (see virtsensor.assets)."""

@@ -1,0 +1,113 @@
+"""The package installs as a package: lean runtime imports, package data, extras named when missing."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+import zipfile
+from pathlib import Path
+
+import pytest
+import tomllib
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("sklearn", "skl2onnx", "scipy", "sim", "joblib", "matplotlib", "shap", "tqdm")
+#: the modules a daemon image imports to run: they must not pull in the training stack
+RUNTIME_MODULES = ("virtsensor.runtime", "virtsensor.model", "virtsensor.model.onnx", "virtsensor.model.card",
+                   "virtsensor.can_codec", "virtsensor.replay",
+                   "virtsensor.features", "virtsensor.frontend", "virtsensor.assets", "virtsensor.cli")
+
+
+def _pyproject() -> dict:
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())
+
+
+def test_every_package_of_the_tree_is_listed_and_data_folders_are_mapped():
+    tool = _pyproject()["tool"]["setuptools"]
+    listed = set(tool["packages"])
+    found = {".".join(p.parent.relative_to(ROOT).parts) for top in ("virtsensor", "sim")
+             for p in (ROOT / top).rglob("__init__.py") if "__pycache__" not in p.parts}
+    mapped = {name for name, folder in tool["package-dir"].items()}
+    assert found <= listed, f"packages missing from pyproject.toml: {sorted(found - listed)}"
+    assert listed - found == mapped, f"listed but not in the tree: {sorted(listed - found - mapped)}"
+    for name, folder in tool["package-dir"].items():
+        assert (ROOT / folder / "__init__.py").is_file(), name
+
+
+def test_base_dependencies_are_the_runtime_only():
+    deps = " ".join(_pyproject()["project"]["dependencies"]).lower()
+    for heavy in ("scikit-learn", "skl2onnx", "scipy", "joblib", "tqdm", "matplotlib"):
+        assert heavy not in deps, heavy
+
+
+def test_runtime_imports_no_training_stack():
+    code = textwrap.dedent(f"""
+        import importlib, sys
+        for m in {RUNTIME_MODULES!r}:
+            importlib.import_module(m)
+        print(",".join(sorted({{n.split('.')[0] for n in sys.modules}} & set({HEAVY!r}))))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == "", f"the runtime imports {out.stdout.strip()}"
+
+
+_BLOCK = textwrap.dedent("""
+    import importlib.abc, sys
+    class _NoExtras(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name.split('.')[0] in {blocked!r}:
+                raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+            return None
+    sys.meta_path.insert(0, _NoExtras())
+    import importlib.util
+    _find = importlib.util.find_spec
+    importlib.util.find_spec = lambda n, *a: None if n.split('.')[0] in {blocked!r} else _find(n, *a)
+    from virtsensor.cli import main
+    sys.exit(main(sys.argv[1:]))
+""")
+
+
+@pytest.mark.parametrize("argv, extra", [
+    (["train", "--data", "d", "--out", "m.onnx"], "train"),
+    (["simulate", "fishhook", "--speed", "60", "--mu", "1", "--out", "x.csv"], "train"),
+    (["explain", "--model", "m.onnx", "--data", "d", "--out", "f"], "explain"),
+])
+def test_a_command_whose_extra_is_missing_names_it_in_one_line(tmp_path, argv, extra):
+    code = _BLOCK.format(blocked=("sklearn", "skl2onnx", "scipy", "joblib", "tqdm", "threadpoolctl", "shap",
+                                  "matplotlib"))
+    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"virtsensor[{extra}]" in lines[0], r.stderr
+    assert "Traceback" not in r.stderr and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_the_built_wheel_runs_the_demo_and_the_daemon_from_an_empty_directory(tmp_path):
+    """pip wheel, install it apart from the source tree, then run from an empty directory."""
+    wheel_dir, site, empty = tmp_path / "wheel", tmp_path / "site", tmp_path / "empty"
+    empty.mkdir()
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w",
+                    str(wheel_dir), str(ROOT)], check=True, capture_output=True)
+    (wheel,) = wheel_dir.glob("virtsensor-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    for asset in ("virtsensor/assets/models/improved.onnx", "virtsensor/assets/models/improved.card.json",
+                  "virtsensor/assets/dbc/virtsensor.dbc"):
+        assert asset in names, asset
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)],
+                   check=True, capture_output=True)
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    probe = subprocess.run([sys.executable, "-c", "import virtsensor, sys; print(virtsensor.__file__)"],
+                           capture_output=True, text=True, cwd=empty, env=env, check=True)
+    assert probe.stdout.startswith(str(site)), probe.stdout  # the wheel, not the source tree
+    demo = subprocess.run([sys.executable, "-m", "virtsensor.cli", "demo", "--rate", "max", "--no-live",
+                           "--plot", "demo.png"], capture_output=True, text=True, cwd=empty, env=env, timeout=300)
+    assert demo.returncode == 0, demo.stderr
+    assert "MAE" in demo.stdout and "R2" in demo.stdout.replace("R²", "R2"), demo.stdout
+    run = subprocess.run([sys.executable, "-m", "virtsensor.cli", "run", "--interface", "virtual", "--channel",
+                          "pkgtest", "--duration", "0.5"], capture_output=True, text=True, cwd=empty, env=env,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert '"started"' in run.stderr, run.stderr

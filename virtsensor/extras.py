@@ -1,0 +1,69 @@
+"""Optional extras: which commands need which optional packages, and the one-line refusal when absent.
+
+The base install is the runtime (numpy, onnxruntime, python-can, cantools). Everything else comes with an
+extra of ``pyproject.toml``; :data:`EXTRAS` lists the importable top-level modules each one provides.
+A command that needs an extra calls :func:`require` before it starts work; a missing module found later
+(an optional path inside a command) is mapped back to its extra by :func:`extra_for_module`.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+from virtsensor.errors import UserError
+
+__all__ = ["EXTRAS", "MissingExtra", "as_user_error", "extra_for_module", "missing_modules", "require"]
+
+_TRAIN = ("scipy", "sklearn", "skl2onnx", "joblib", "threadpoolctl", "tqdm")
+
+#: extra name -> the top-level modules it makes importable (what ``import`` needs, not the PyPI names)
+EXTRAS: dict[str, tuple[str, ...]] = {
+    "train": _TRAIN,
+    "plots": ("matplotlib",),
+    "explain": (*_TRAIN, "matplotlib", "shap"),
+    "mdf": ("asammdf",),
+    "distributed": ("ray",),
+}
+
+
+class MissingExtra(UserError):
+    """An optional extra that the requested work needs is not installed (exit code 2)."""
+
+
+def missing_modules(extra: str) -> list[str]:
+    """The modules of ``extra`` that cannot be imported here (empty when the extra is installed)."""
+    return [m for m in EXTRAS[extra] if importlib.util.find_spec(m) is None]
+
+
+def _message(what: str, extra: str, missing: list[str]) -> str:
+    return (f"{what} needs the optional extra '{extra}' (missing: {', '.join(missing)}): "
+            f"pip install 'virtsensor[{extra}]'")
+
+
+def require(extra: str, what: str) -> None:
+    """Raise :class:`MissingExtra` naming ``extra`` and the install command when any of its modules is absent.
+
+    Args:
+        extra: a key of :data:`EXTRAS`.
+        what: what needs it, for the message (e.g. ``"virtsensor train"``).
+    """
+    absent = missing_modules(extra)
+    if absent:
+        raise MissingExtra(_message(what, extra, absent))
+
+
+def extra_for_module(module: str | None) -> str | None:
+    """The smallest extra that provides top-level module ``module`` (``"sklearn.pipeline"`` -> ``train``)."""
+    if not module:
+        return None
+    top = module.split(".", 1)[0]
+    for name in ("train", "plots", "mdf", "distributed", "explain"):
+        if top in EXTRAS[name]:
+            return name
+    return None
+
+
+def as_user_error(exc: ModuleNotFoundError, what: str) -> MissingExtra | None:
+    """The :class:`MissingExtra` for an import that failed on an optional module, None for any other."""
+    extra = extra_for_module(exc.name)
+    return None if extra is None else MissingExtra(_message(what, extra, [str(exc.name).split(".", 1)[0]]))

@@ -1,0 +1,92 @@
+"""Writing files safely and JSON the way every command writes it.
+
+Contracts:
+* :func:`atomic_write` / :func:`atomic_write_bytes`: a reader sees the old file or the new one, never half
+  of one; on any failure no partial file is left (the temporary name starts with ``.partial-``, which no
+  reader of recordings ever takes for a run). The file is made readable by all (0644) and the rename is
+  made durable (``fsync`` of the file and its folder, POSIX).
+* :func:`json_safe`: the same object with non-finite floats as ``None`` (JSON has no NaN/inf), numpy
+  scalars and arrays as Python numbers and lists, paths as strings, mapping keys as strings.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "dumps", "json_safe", "write_json"]
+
+#: Prefix of the temporary file of an atomic write (readers of recordings skip such files).
+PARTIAL_PREFIX = ".partial-"
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` made JSON-serialisable without loss of meaning (see the module contract)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Mapping):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, np.generic):
+        return json_safe(obj.item())
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    return obj
+
+
+def dumps(obj: Any, *, indent: int | None = 2, compact: bool = False) -> str:
+    """``json.dumps`` of :func:`json_safe` (``compact``: no spaces, one line, for logs)."""
+    if compact:
+        return json.dumps(json_safe(obj), separators=(",", ":"), allow_nan=False)
+    return json.dumps(json_safe(obj), indent=indent, allow_nan=False)
+
+
+def _fsync_dir(folder: Path) -> None:
+    if hasattr(os, "O_DIRECTORY"):
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], None]) -> None:
+    """Call ``write(tmp)`` to fill a temporary file beside ``path`` (same suffix), then rename it over ``path``.
+
+    The temporary file keeps ``path``'s suffix, so writers that choose the format by suffix (python-can's
+    loggers) write the right one. Raises whatever ``write`` or the file system raises; nothing is left behind.
+    """
+    path = Path(path)
+    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f"{PARTIAL_PREFIX}{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_write`)."""
+    atomic_write(path, lambda tmp: tmp.write_bytes(data))
+
+
+def write_json(path: str | os.PathLike[str], obj: Any) -> None:
+    """Write ``obj`` as indented JSON (:func:`json_safe`) with a final newline, atomically."""
+    atomic_write_bytes(path, (dumps(obj) + "\n").encode())
