@@ -1,4 +1,4 @@
-"""The generated DBC (virtsensor.dbcgen, dbc/virtsensor.dbc) and the codec (virtsensor.can_codec)."""
+"""The generated DBC (virtsensor.canbus.dbcgen, dbc/virtsensor.dbc) and the codec (virtsensor.canbus.codec)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,15 @@ import time
 from pathlib import Path
 
 import cantools
+import e2e
 import numpy as np
 import pytest
 
-from virtsensor import can_codec, dbcgen
 from virtsensor import signals as cat
-from virtsensor.can_codec import CanMatrix
-from virtsensor.e2e import E2EStatus, crc8_sae_j1850
+from virtsensor.canbus import codec as codec_module
+from virtsensor.canbus import dbcgen
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.canbus.e2e import E2EStatus
 from virtsensor.errors import UserError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,13 +36,13 @@ def matrix():
 
 def test_committed_dbc_equals_generated():
     assert DBC.read_text() == dbcgen.generate(), (
-        "regenerate: python -m virtsensor.dbcgen > dbc/virtsensor.dbc"
+        "regenerate: python -m virtsensor.canbus.dbcgen > dbc/virtsensor.dbc"
     )
 
 
 def test_module_entry_point_prints_the_dbc():
     out = subprocess.run(
-        [sys.executable, "-m", "virtsensor.dbcgen"], capture_output=True, text=True, cwd=REPO, check=True
+        [sys.executable, "-m", "virtsensor.canbus.dbcgen"], capture_output=True, text=True, cwd=REPO, check=True
     ).stdout
     assert out == DBC.read_text()
 
@@ -188,10 +190,10 @@ def test_encode_decode_min_max_and_one_step(name, matrix):
     for value in (spec.minimum, spec.maximum, spec.minimum + res, spec.maximum - res, 0.0):
         values = _mid_values(spec.message)
         values[name] = value
-        data = matrix.encode(spec.message, values, counter=3)
+        data = matrix.encode(spec.message, values, counter=0)
         d = matrix.fresh().decode(cat.MESSAGES[spec.message].frame_id, data, 0.0)
-        assert d is not None and d.crc_ok and d.status is E2EStatus.INITIAL
-        assert d.counter == 3
+        assert d is not None and d.crc_ok and d.status is E2EStatus.OK  # 0 follows the check's initial 14
+        assert d.counter == 0
         assert abs(d.values[name] - value) <= 0.5 * res + 1e-9, (name, value, d.values[name])
 
 
@@ -200,7 +202,7 @@ def test_codec_matches_cantools(db, matrix):
     for mname in cat.MESSAGES:
         cmsg = db.get_message_by_name(mname)
         codec = matrix.message(mname)
-        for counter in range(16):
+        for counter in range(15):
             dbc_vals = {}
             si = {}
             for s in codec.signals:
@@ -221,7 +223,7 @@ def test_codec_matches_cantools(db, matrix):
             )
             assert bytes(ours[1:]) == bytes(theirs[1:]), mname
             did = cat.MESSAGES[mname].data_id
-            assert ours[0] == crc8_sae_j1850(bytes((did & 0xFF, did >> 8)) + bytes(ours[1:]))
+            assert e2e.p11.e2e_p11_check(bytearray(ours), did)  # autosar-e2e: Profile 11, data ID mode BOTH
             decoded = cmsg.decode(ours, decode_choices=False)
             assert decoded[f"{mname}_Counter"] == counter
             ours_dec = matrix.fresh().decode(cmsg.frame_id, ours, 0.0)
@@ -259,7 +261,7 @@ def test_implausible_raw_value_is_rejected(matrix):
     data = bytearray(matrix.encode("IMU_Motion", {"ax_mps2": 0.0, "ay_mps2": 0.0, "yaw_rate_radps": 0.0}, 1))
     v = int.from_bytes(data, "little") | ((2047 & s.mask) << s.start)  # 20.47 m/s^2 > 20
     data = bytearray(v.to_bytes(8, "little"))
-    from virtsensor.e2e import data_id_seed, frame_crc
+    from virtsensor.canbus.e2e import data_id_seed, frame_crc
 
     data[0] = frame_crc(data_id_seed(codec.data_id), data)
     d = matrix.decode(0x080, bytes(data), 0.0)
@@ -335,7 +337,7 @@ def test_dbc_without_e2e_layout_is_rejected(tmp_path):
 
 
 def test_installed_fallback_regenerates_the_same_matrix(monkeypatch, tmp_path):
-    monkeypatch.setattr(can_codec, "DEFAULT_DBC", tmp_path / "absent.dbc")
+    monkeypatch.setattr(codec_module, "DEFAULT_DBC", tmp_path / "absent.dbc")
     m = CanMatrix.load()
     assert m.source.startswith("<generated")
     ref = CanMatrix.load(DBC)

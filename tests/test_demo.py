@@ -173,7 +173,7 @@ def _write_log(path, frames):
 
 
 def test_demo_on_a_recording_without_reference_gives_estimates_only(tmp_path):
-    from virtsensor.can_codec import CanMatrix
+    from virtsensor.canbus.codec import CanMatrix
     from virtsensor.demo import run_demo
     from virtsensor.recording import iter_log
 
@@ -188,7 +188,7 @@ def test_demo_on_a_recording_without_reference_gives_estimates_only(tmp_path):
 
 
 def test_demo_refuses_a_recording_without_the_models_inputs(tmp_path, capsys):
-    from virtsensor.can_codec import CanMatrix
+    from virtsensor.canbus.codec import CanMatrix
     from virtsensor.recording import iter_log
 
     te = CanMatrix.load().messages["TE_WheelForceTransducer"].frame_id

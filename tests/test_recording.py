@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from virtsensor import signals as cat
-from virtsensor.can_codec import CanMatrix
-from virtsensor.e2e import E2EStatus
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.canbus.e2e import E2EStatus
 from virtsensor.errors import UserError
 from virtsensor.frontend import SampleHoldStore, to_table
 from virtsensor.recording import (
@@ -67,7 +67,7 @@ def test_round_trip_equals_sample_and_hold_of_the_input(tmp_path, run, suffix):
     rec = read_log(path, signals=list(sig), t0=0.005)
     assert rec.frames == summary.frames and rec.unknown_frames == 0
     assert rec.e2e_errors == 0
-    assert rec.count("INITIAL") == len(summary.per_message)
+    assert rec.count("OK") == rec.frames  # counters start at 0: even each message's first frame is OK
     assert rec.dropped_ticks == 0
     tt = rec.table["time_s"]
     assert list(rec.table)[0] == "time_s"
@@ -115,7 +115,8 @@ def test_frame_schedule_counters_and_phases(run):
         times = np.array([f.timestamp for f in fs])
         np.testing.assert_allclose(times, np.arange(len(fs)) * m.cycle_s + ranks.index(fid) * PHASE_STEP_S)
         counters = np.array([f.data[1] & 0xF for f in fs])
-        assert np.all(np.diff(counters) % 16 == 1)
+        assert counters[0] == 0 and counters.max() == 14  # Profile 11: 0..14
+        assert np.all(np.diff(counters) % 15 == 1)
         assert all(len(f.data) == 8 and not f.is_extended_id for f in fs)
 
 
@@ -195,9 +196,12 @@ def test_front_end_drops_ticks_until_every_signal_is_seen(run):
     m = MATRIX.fresh()
     decoded = [m.decode(f.arbitration_id, f.data, f.timestamp) for f in frames]
     b = to_table(decoded, ["ax_mps2", "tyre_pressure_fl_pa"], 20.0, 0.0)
-    # TPMS (100 ms, phase 2 ms) is first seen at 0.502 s: ticks 0.00 .. 0.50 are dropped
-    assert b.dropped_ticks == 11
-    assert b.table["time_s"][0] == pytest.approx(0.55)
+    # TPMS (100 ms, phase 2 ms) is first seen at 0.502 s with counter 5: 6 steps after the Profile 11
+    # check's initial counter 14, more than MaxDeltaCounter 3, so WRONGSEQUENCE and not used; its next
+    # frame (0.602 s) is OK: ticks 0.00 .. 0.60 are dropped
+    assert [d.status for d in decoded if d.frame_id == 0x3A0][:2] == [E2EStatus.WRONGSEQUENCE, E2EStatus.OK]
+    assert b.dropped_ticks == 13
+    assert b.table["time_s"][0] == pytest.approx(0.65)
     assert b.ticks == b.dropped_ticks + b.table["time_s"].size
 
 

@@ -15,7 +15,7 @@ import pytest
 
 from virtsensor import cli
 from virtsensor import signals as cat
-from virtsensor.can_codec import CanMatrix
+from virtsensor.canbus.codec import CanMatrix
 from virtsensor.errors import UserError
 from virtsensor.recording import iter_frames, write_log
 from virtsensor.replay import parse_rate, replay

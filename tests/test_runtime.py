@@ -22,8 +22,8 @@ from hypothesis import strategies as st
 from runtime_support import SYNC_ID, train_model, with_sync
 
 from virtsensor import cli
-from virtsensor.can_codec import CanMatrix
-from virtsensor.e2e import E2EStatus, frame_crc
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.canbus.e2e import COUNTER_MAX, USABLE, E2EStatus, frame_crc, next_counter
 from virtsensor.features import FeatureSpec
 from virtsensor.model import OnnxModel, card_path_for
 from virtsensor.recording import iter_frames, simulated_recording
@@ -135,8 +135,8 @@ def test_sync_replay_equals_offline_and_tracks_truth(model, test_frames):
     sat, health, stats = drive_sync(model, merged, len(ticks))
     assert len(sat) == len(ticks) == len(health)
     est, sts, e2e = _decode_outputs(sat)
-    # our own frames: counter +1 mod 16 per frame and good CRC
-    assert e2e[0] is E2EStatus.INITIAL and all(s is E2EStatus.OK for s in e2e[1:])
+    # our own frames: Profile 11 counter from 0, +1 mod 15 per frame, and good CRC: OK from the first frame
+    assert all(s is E2EStatus.OK for s in e2e)
 
     spec = FeatureSpec.from_json(model.card["feature_spec"])
     X = spec.transform(rec.table)
@@ -181,7 +181,14 @@ def test_withheld_message_status(model, test_frames, message, expected):
     t0 = frames[0].timestamp
     gap = (t0 + 2.0, t0 + 3.0)
     kept = [f for f in frames if not (f.arbitration_id == fid and gap[0] <= f.timestamp < gap[1])]
-    back = next(f.timestamp for f in kept if f.arbitration_id == fid and f.timestamp >= gap[1])
+    # the first frame back is judged against the counter before the gap (Profile 11 has no re-init):
+    # unless 50 missing frames happen to be a delta of 1..3 modulo 15, it is WRONGSEQUENCE (flagging its
+    # tick window as an E2E error) and the message is back with the next one
+    rx = MATRIX.fresh()
+    after = [(f.timestamp, rx.decode(fid, f.data, f.timestamp).status) for f in kept if f.arbitration_id == fid]
+    after = [(t, st) for t, st in after if t >= gap[1]]
+    back = next(t for t, st in after if st in USABLE)
+    rejected = [t for t, st in after if t < back]
     merged, ticks = with_sync(kept, t0, frames[-1].timestamp)
     sat, health, _ = drive_sync(model, merged, len(ticks))
     est, sts, _ = _decode_outputs(sat)
@@ -193,7 +200,9 @@ def test_withheld_message_status(model, test_frames, message, expected):
                 "CHS_Suspension": 5}[message]
 
     g = int(np.searchsorted(ticks, gap[0]))  # first tick after the last frame before the gap
-    r = int(np.searchsorted(ticks, back))  # first tick after the message is back
+    r_ok = int(np.searchsorted(ticks, back))  # first tick after the message is back
+    r_err = int(np.searchsorted(ticks, rejected[-1])) + 1 if rejected else 0  # first tick after its E2E error
+    r = max(r_ok, r_err)
     first = 3  # INIT: one tick before every input is seen, then the two ticks of feature history
     assert (sts[first:g] == VALID).all()
     assert (sts[g + 2: r] == expected).all(), f"{message} withheld: {sts[g:g + 4].tolist()} after the gap"
@@ -204,12 +213,10 @@ def test_withheld_message_status(model, test_frames, message, expected):
         assert np.isfinite(est[g + 2: r]).all()  # the held input degrades the estimate, it is still sent
     # back: VALID at the first tick after its return (value-only features), or once the history
     # its rate/lag features read is fresh again (h more ticks)
-    assert (sts[r + h:] == VALID).all(), f"{message} back: {sts[r:r + h + 2].tolist()}"
-    assert (bitmap[r + h:] & bit).all()
-    if h == 0:
-        assert (sts[r] == VALID).all()
-    else:
-        assert (sts[r: r + h] == expected).all()
+    r_valid = max(r_ok + h, r_err)
+    assert (sts[r_valid:] == VALID).all(), f"{message} back: {sts[r:r_valid + 2].tolist()}"
+    assert (bitmap[r_valid:] & bit).all()
+    assert (sts[r:r_valid] == expected).all()
 
 
 # ------------------------------------------------------------------------------------------------ (c)
@@ -368,7 +375,7 @@ def test_random_well_formed_frames_keep_the_contract(model, frames):
     t = 0.0
     for i, (fid, payload) in enumerate(frames):
         m = MATRIX.by_id[fid]
-        c = ctr[fid] = (ctr.get(fid, -1) + 1) & 0xF
+        c = ctr[fid] = next_counter(ctr.get(fid, COUNTER_MAX))
         data = bytearray(payload)
         data[1] = (data[1] & 0xF0) | c
         data[0] = frame_crc(m.seed, data)
@@ -499,7 +506,7 @@ def test_bus_errors_are_survived_with_reconnect(model, test_frames):
     assert late.sum() >= 5 and (sts[late] == VALID).all(), "VALID again after the reconnects"
     gone = tc > t_end + 0.25  # 10 cycles of the 20 ms ESC_VehicleSpeed (critical) after the last frame, and a tick
     assert gone.sum() >= 3 and (sts[gone] == INVALID).all(), "inputs gone: INVALID"
-    assert E2EStatus.OKSOMELOST in e2e or E2EStatus.WRONGSEQUENCE in e2e or E2EStatus.INITIAL in e2e[1:]
+    assert any(s is not E2EStatus.OK for s in e2e[1:])  # the frames lost to the send errors show
     print(f"\n[e] free-running, in-process: {stats['ticks']} ticks, overruns {stats['overruns']}, tick latency p50 "
           f"{stats['latency_p50_us']:.0f} us p99 {stats['latency_p99_us']:.0f} us, wake-up lateness p50 "
           f"{stats['wake_late_p50_us']:.0f} us p99 {stats['wake_late_p99_us']:.0f} us; send errors "

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from runtime_support import synthetic_streams, train_model
 
-from virtsensor.can_codec import CanMatrix
+from virtsensor.canbus.codec import CanMatrix
 from virtsensor.recording import simulated_recording, write_log
 
 ROOT = Path(__file__).resolve().parent.parent

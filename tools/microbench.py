@@ -57,7 +57,8 @@ def tyre_call_ms(repeats: int) -> float:
 
 def can_frame_us(repeats: int) -> dict[str, float]:
     from virtsensor import signals as cat
-    from virtsensor.can_codec import CanMatrix
+    from virtsensor.canbus.codec import CanMatrix
+    from virtsensor.canbus.e2e import next_counter
 
     matrix = CanMatrix.load()
     values = {n: 0.5 * (cat.SIGNALS[n].minimum + cat.SIGNALS[n].maximum) for n in cat.INPUTS}
@@ -70,7 +71,7 @@ def can_frame_us(repeats: int) -> dict[str, float]:
 
     def encode_decode() -> None:
         # a new counter and timestamp per round, so the E2E check sees an intact sequence
-        state["counter"] = (state["counter"] + 1) % 16
+        state["counter"] = next_counter(state["counter"])
         state["t"] += 0.01
         for m in msgs:
             matrix.decode(m.frame_id, matrix.encode(m.name, values, state["counter"]), state["t"])

@@ -657,7 +657,7 @@ def _xproc_driver(out_path: str, n_ticks: int) -> int:
     """Inside the netns: send the ticks' frames on udp_multicast, time last input frame -> SAT_FRONT."""
     import can
 
-    from virtsensor.can_codec import CanMatrix
+    from virtsensor.canbus.codec import CanMatrix
 
     sat_id = CanMatrix.load().messages["SAT_FRONT"].frame_id
     inputs = Inputs()
@@ -704,7 +704,7 @@ def _xproc_driver(out_path: str, n_ticks: int) -> int:
 def run_bench(model_path: str | os.PathLike, *, quick: bool = False, soak_ticks: int | None = None,
               cross_process: bool = True, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run every measurement; returns the JSON-able result (plus ``_samples`` for the histogram)."""
-    from virtsensor.can_codec import CanMatrix
+    from virtsensor.canbus.codec import CanMatrix
     from virtsensor.model.onnx import OnnxModel
 
     say = progress or (lambda s: None)

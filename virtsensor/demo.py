@@ -303,7 +303,7 @@ def run_demo(
     """
     import can
 
-    from virtsensor.can_codec import CanMatrix
+    from virtsensor.canbus.codec import CanMatrix
     from virtsensor.replay import parse_rate, replay
     from virtsensor.runtime import VirtualSensor, configure_logging
 

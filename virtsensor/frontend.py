@@ -4,9 +4,9 @@ Semantics, identical in both paths: the value of a signal at tick time ``t``
 is the latest *usable* value received at or before ``t`` (sample and hold),
 where
 
-* usable = the frame's E2E status is OK, OKSOMELOST or INITIAL and the value
+* usable = the frame's E2E status is OK or OKSOMELOST and the value
   is neither SNA nor outside the catalogue range (see
-  :class:`virtsensor.can_codec.DecodedFrame`);
+  :class:`virtsensor.canbus.codec.DecodedFrame`);
 * "at or before" compares the frame timestamp with ``t + TIME_TOLERANCE_S``
   (1 us: the resolution of text log formats), with ties in timestamp resolved
   in favour of the frame that comes later in the input (stable time order).
@@ -19,7 +19,7 @@ Two implementations:
 * :class:`SampleHoldStore` — the online store, updated per frame and sampled
   per tick (:meth:`SampleHoldStore.sample`); the daemon keeps the same
   sample-and-hold semantics in plain lists written by its generated per-message
-  receivers (:func:`virtsensor.fastdecode.compile_receiver`; ``tests/test_fastdecode.py``
+  receivers (:func:`virtsensor.canbus.codec.compile_receiver`; ``tests/test_fastdecode.py``
   checks those against a reference receive path built on ``CanMatrix.decode``,
   not against this class);
 * :func:`to_table` — replays a whole log; the default vectorised path uses one
@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from virtsensor.e2e import USABLE
+from virtsensor.canbus.e2e import USABLE
 
 __all__ = [
     "TIME_TOLERANCE_S",
@@ -220,7 +220,7 @@ def to_table(
     """Sample-and-hold table of decoded frames on the tick grid ``t0 + k / rate_hz``.
 
     Args:
-        frames: :class:`~virtsensor.can_codec.DecodedFrame` objects (None entries ignored),
+        frames: :class:`~virtsensor.canbus.codec.DecodedFrame` objects (None entries ignored),
             in any order (they are replayed in stable time order).
         signals: catalogue names of the columns.
         rate_hz: tick rate (Hz); the canonical table is 20 Hz.

@@ -7,8 +7,9 @@ message is stamped ``start_time + k * cycle + phase`` seconds (run time
 ``time_s[0]`` maps to ``start_time``) where ``phase`` is a fixed per-message
 offset (:func:`phase_offset`: 0.25 ms times the message's rank by frame id)
 so that messages do not share timestamps. It carries the latest sample at or
-before its own time, an alive counter (+1 mod 16 per message, starting from a
-value drawn from ``seed``) and its E2E CRC. Messages none of whose catalogue
+before its own time, an alive counter (E2E Profile 11: from 0, as after
+``E2E_P11ProtectInit``, +1 mod 15 per message, so that a reader's Profile 11
+check accepts the very first frame) and its E2E CRC. Messages none of whose catalogue
 signals are given are not sent.
 
 Reading (:func:`read_log`): any log python-can reads (``.blf``, ``.asc``,
@@ -33,8 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from virtsensor import signals as cat
-from virtsensor.can_codec import CanMatrix
-from virtsensor.e2e import E2EStatus
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.canbus.e2e import E2EStatus, counter_sequence
 from virtsensor.errors import UserError
 from virtsensor.frontend import TableBuild, collect, table_from_collected
 
@@ -102,7 +103,7 @@ def frame_arrays(
         signals: catalogue name -> array on ``time_s`` (SI). Other names are ignored.
         matrix: CAN matrix (default: bundled).
         start_time: timestamp (s) of run time ``time_s[0]``.
-        seed: seeds each message's first alive counter.
+        seed: no effect (it used to draw the first alive counters; they now start at 0).
         phases: message name -> transmit phase (s, ``0 <= phase < cycle``) overriding
             :func:`phase_offset`, e.g. to send right after a sensor's own update instants.
 
@@ -118,14 +119,10 @@ def frame_arrays(
     for name, arr in signals.items():
         if np.shape(arr) != time_s.shape:
             raise ValueError(f"signal {name!r} has shape {np.shape(arr)}, time_s has {time_s.shape}")
-    rng = np.random.default_rng(seed)
-    start_counters = rng.integers(0, 16, size=len(matrix.messages))
     span = float(time_s[-1] - time_s[0])
     ts_parts, id_parts, data_parts = [], [], []
     counts: dict[str, int] = {}
-    for (name, m), c0 in zip(
-        sorted(matrix.messages.items(), key=lambda kv: kv[1].frame_id), start_counters, strict=True
-    ):
+    for name, m in sorted(matrix.messages.items(), key=lambda kv: kv[1].frame_id):
         present = [c for c in m.catalogue_names if c in signals]
         if not present or m.cycle_s <= 0:
             continue
@@ -138,7 +135,7 @@ def frame_arrays(
             continue
         idx = np.searchsorted(time_s, time_s[0] + rel + _GRID_TOL_S, side="right") - 1
         cols = {c: np.asarray(signals[c], dtype=np.float64)[idx] for c in present}
-        data = matrix.encode_many(name, cols, (int(c0) + k) % 16)
+        data = matrix.encode_many(name, cols, counter_sequence(0, k.size))
         ts_parts.append(start_time + rel)
         id_parts.append(np.full(k.size, m.frame_id, dtype=np.int64))
         data_parts.append(data)
@@ -401,8 +398,8 @@ class Recording:
 
     @property
     def e2e_errors(self) -> int:
-        """Frames whose E2E status is not OK/INITIAL (ERROR, REPEATED, OKSOMELOST, WRONGSEQUENCE)."""
-        return sum(n for st, n in self.counts_by_status.items() if st not in ("OK", "INITIAL"))
+        """Frames whose E2E status is not OK (ERROR, REPEATED, OKSOMELOST, WRONGSEQUENCE)."""
+        return sum(n for st, n in self.counts_by_status.items() if st != "OK")
 
     def count(self, status: str | E2EStatus, message: str | None = None) -> int:
         """Frames with E2E ``status`` (name or enum), over all messages or one."""

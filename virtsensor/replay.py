@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from virtsensor.can_codec import CanMatrix
+from virtsensor.canbus.codec import CanMatrix
 from virtsensor.errors import UserError
 
 __all__ = ["SPIN_S", "ReplaySummary", "replay", "parse_rate", "open_bus", "simulated_frames"]

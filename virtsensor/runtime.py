@@ -85,10 +85,9 @@ from typing import Any
 import numpy as np
 
 from virtsensor import signals as cat
-from virtsensor.can_codec import CanMatrix
-from virtsensor.e2e import E2EStatus
+from virtsensor.canbus.codec import STATUS_KEYS, CanMatrix, compile_encoder, compile_receiver
+from virtsensor.canbus.e2e import E2EStatus, next_counter
 from virtsensor.errors import UserError
-from virtsensor.fastdecode import STATUS_KEYS, compile_encoder, compile_receiver
 from virtsensor.features import TICK_S, FeatureBuilder, FeatureSpec
 
 __all__ = [
@@ -788,7 +787,7 @@ class VirtualSensor:
             # ---- publish
             m = self._sat_msg
             m.data[:] = self._encode_sat(sv, self._sat_ctr)
-            self._sat_ctr = (self._sat_ctr + 1) & 0xF
+            self._sat_ctr = next_counter(self._sat_ctr)
             compute_us = (time.monotonic_ns() - start_ns) // 1000
             self._send(m)
             lat_us = (time.monotonic_ns() - start_ns) // 1000
@@ -799,7 +798,7 @@ class VirtualSensor:
             hv["VS_InputStatus"] = bitmap
             h = self._health_msg
             h.data[:] = self._encode_health(hv, self._health_ctr)
-            self._health_ctr = (self._health_ctr + 1) & 0xF
+            self._health_ctr = next_counter(self._health_ctr)
             self._send(h)
             k = c["ticks"]
             self._lat_us[k % self._lat_us.shape[0]] = lat_us

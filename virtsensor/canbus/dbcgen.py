@@ -2,14 +2,15 @@
 
 Usage::
 
-    python -m virtsensor.dbcgen > dbc/virtsensor.dbc
+    python -m virtsensor.canbus.dbcgen > dbc/virtsensor.dbc
 
 The generated text is deterministic (a test checks the committed file equals
 it). Layout rules, applied to every message (8-byte classic CAN frames,
 Intel/little-endian, bit 0 = LSB of byte 0):
 
-* byte 0: ``<Msg>_CRC`` (8 bits), byte 1 bits 0..3: ``<Msg>_Counter`` (4 bits);
-  see :mod:`virtsensor.e2e` for the exact CRC definition (CRC-8/SAE-J1850
+* byte 0: ``<Msg>_CRC`` (8 bits), byte 1 bits 0..3: ``<Msg>_Counter`` (4 bits):
+  the header of AUTOSAR E2E Profile 11, Data ID mode BOTH; see
+  :mod:`virtsensor.canbus.e2e` for the exact CRC definition (polynomial 0x1D
   over the 16-bit data ID, low byte first, then payload bytes 1..7);
 * the signals follow from bit 12 in catalogue order, each with the fewest
   bits whose raw range covers the catalogue ``minimum..maximum`` at
@@ -18,7 +19,7 @@ Intel/little-endian, bit 0 = LSB of byte 0):
   signed signals, all ones for unsigned ones. A signal is stored signed with
   offset 0 when that is as short as unsigned with ``offset = minimum``.
 * physical DBC units equal the catalogue SI units except those in
-  :data:`UNIT_CONVERSIONS` (pressure in kPa); :mod:`virtsensor.can_codec`
+  :data:`UNIT_CONVERSIONS` (pressure in kPa); :mod:`virtsensor.canbus.codec`
   does that scaling, once.
 * every signal is packed at its catalogue resolution; a message whose signals
   do not fit in the 52 free bits is refused (split it in the catalogue, as the
@@ -31,9 +32,10 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from virtsensor import signals as cat
+from virtsensor.canbus.e2e import COUNTER_MAX
 
 #: catalogue SI unit -> (DBC unit, factor): DBC value = SI value * factor.
 UNIT_CONVERSIONS: dict[str, tuple[str, float]] = {"Pa": ("kPa", 1e-3)}
@@ -223,91 +225,102 @@ def _input_messages() -> tuple[str, ...]:
     return tuple(m.name for m in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id) if m.name in names)
 
 
-def _payload_vsens(msg: cat.Message, rx: tuple[str, ...]) -> list[SignalLayout]:
+def _payload_sat_front(rx: tuple[str, ...]) -> list[SignalLayout]:
     sigs: list[SignalLayout] = []
     bit = FREE_BIT
-    if msg.name == "SAT_FRONT":
-        for corner, cname in (("FL", "sat_fl_nm"), ("FR", "sat_fr_nm")):
-            spec = cat.SIGNALS[cname]
-            s = _physical(
-                f"SAT_{corner}",
-                None,
-                spec,
-                bit,
-                rx,
-                f"Estimated {'front-left' if corner == 'FL' else 'front-right'} self-aligning torque "
-                f"(tyre Mz at the contact centre, ISO-W, z up); negative in a left turn. Estimate of "
-                f"{cname}; SNA while the estimator is initialising.",
-            )
-            sigs.append(s)
-            bit += s.length
-        for corner in ("FL", "FR"):
-            sigs.append(
-                _integer(
-                    f"SAT_{corner}_Status",
-                    bit,
-                    2,
-                    "",
-                    rx,
-                    f"Validity of SAT_{corner}: 0 VALID, 1 DEGRADED (a non-critical input held or "
-                    f"substituted), 2 INVALID (a critical input missing or implausible), 3 INIT.",
-                    STATUS_CHOICES,
-                )
-            )
-            bit += 2
-    elif msg.name == "VS_Health":
-        inputs = _input_messages()
-        bitmap = ", ".join(f"bit {i} {m}" for i, m in enumerate(inputs))
+    for corner, cname in (("FL", "sat_fl_nm"), ("FR", "sat_fr_nm")):
+        spec = cat.SIGNALS[cname]
+        s = _physical(
+            f"SAT_{corner}",
+            None,
+            spec,
+            bit,
+            rx,
+            f"Estimated {'front-left' if corner == 'FL' else 'front-right'} self-aligning torque "
+            f"(tyre Mz at the contact centre, ISO-W, z up); negative in a left turn. Estimate of "
+            f"{cname}; SNA while the estimator is initialising.",
+        )
+        sigs.append(s)
+        bit += s.length
+    for corner in ("FL", "FR"):
         sigs.append(
             _integer(
-                "VS_TickOverruns",
+                f"SAT_{corner}_Status",
                 bit,
-                16,
+                2,
                 "",
                 rx,
-                "Number of estimator ticks that missed their deadline since start (saturates at 65535).",
+                f"Validity of SAT_{corner}: 0 VALID, 1 DEGRADED (a non-critical input held or "
+                f"substituted), 2 INVALID (a critical input missing or implausible), 3 INIT.",
+                STATUS_CHOICES,
             )
         )
-        bit += 16
-        sigs.append(
-            _integer(
-                "VS_TickLatency",
-                bit,
-                16,
-                "us",
-                rx,
-                "Latency of the last estimator tick, from tick start to SAT_FRONT "
-                "transmission, in microseconds (saturates at 65535).",
-            )
-        )
-        bit += 16
-        sigs.append(
-            _integer(
-                "VS_InputStatus",
-                bit,
-                8,
-                "",
-                rx,
-                "Input status bitmap, one bit per input message, 1 = received intact "
-                f"(E2E OK) within its timeout: {bitmap}; unused bits 0.",
-            )
-        )
-        bit += 8
-        sigs.append(
-            _integer(
-                "VS_ModelId",
-                bit,
-                8,
-                "",
-                rx,
-                "Identifier/version byte of the estimator model in use "
-                "(high nibble model id, low nibble version).",
-            )
-        )
-        bit += 8
-    else:  # pragma: no cover - catalogue grew a VSENS message this generator does not know
-        raise ValueError(f"dbcgen does not know the layout of VSENS message {msg.name}")
+        bit += 2
     return sigs
+
+
+def _payload_vs_health(rx: tuple[str, ...]) -> list[SignalLayout]:
+    sigs: list[SignalLayout] = []
+    bit = FREE_BIT
+    inputs = _input_messages()
+    bitmap = ", ".join(f"bit {i} {m}" for i, m in enumerate(inputs))
+    sigs.append(
+        _integer(
+            "VS_TickOverruns",
+            bit,
+            16,
+            "",
+            rx,
+            "Number of estimator ticks that missed their deadline since start (saturates at 65535).",
+        )
+    )
+    bit += 16
+    sigs.append(
+        _integer(
+            "VS_TickLatency",
+            bit,
+            16,
+            "us",
+            rx,
+            "Latency of the last estimator tick, from tick start to SAT_FRONT "
+            "transmission, in microseconds (saturates at 65535).",
+        )
+    )
+    bit += 16
+    sigs.append(
+        _integer(
+            "VS_InputStatus",
+            bit,
+            8,
+            "",
+            rx,
+            "Input status bitmap, one bit per input message, 1 = received intact "
+            f"(E2E OK) within its timeout: {bitmap}; unused bits 0.",
+        )
+    )
+    bit += 8
+    sigs.append(
+        _integer(
+            "VS_ModelId",
+            bit,
+            8,
+            "",
+            rx,
+            "Identifier/version byte of the estimator model in use "
+            "(high nibble model id, low nibble version).",
+        )
+    )
+    bit += 8
+    return sigs
+
+
+def _payload_vsens(msg: cat.Message, rx: tuple[str, ...]) -> list[SignalLayout]:
+    if msg.name == "SAT_FRONT":
+        return _payload_sat_front(rx)
+    if msg.name == "VS_Health":
+        return _payload_vs_health(rx)
+    # pragma: no cover - catalogue grew a VSENS message this generator does not know
+    raise ValueError(f"dbcgen does not know the layout of VSENS message {msg.name}")
 
 
 def layout() -> tuple[MessageLayout, ...]:
@@ -330,10 +343,10 @@ def layout() -> tuple[MessageLayout, ...]:
                 8,
                 "",
                 rx,
-                f"E2E CRC-8/SAE-J1850 (poly 0x1D, init 0xFF, xorout 0xFF) over the data ID "
+                f"AUTOSAR E2E Profile 11 CRC (Data ID mode BOTH): CRC-8 poly 0x1D, register start 0x00, "
+                f"no final XOR (Crc_CalculateCRC8 chained with start value 0xFF) over the data ID "
                 f"0x{msg.data_id:04X} (low byte first: 0x{msg.data_id & 0xFF:02X} "
-                f"0x{msg.data_id >> 8:02X}) "
-                f"followed by payload bytes 1..7.",
+                f"0x{msg.data_id >> 8:02X}) followed by payload bytes 1..7.",
             ),
             _integer(
                 f"{msg.name}_Counter",
@@ -341,9 +354,11 @@ def layout() -> tuple[MessageLayout, ...]:
                 4,
                 "",
                 rx,
-                "E2E alive counter, +1 modulo 16 per transmitted frame (15 wraps to 0).",
+                "AUTOSAR E2E Profile 11 alive counter: 0..14, +1 modulo 15 per transmitted frame (14 wraps "
+                "to 0); 15 is invalid.",
             ),
         ]
+        sigs[1] = replace(sigs[1], maximum=float(COUNTER_MAX))  # 15 is not a counter value
         if msg.sender in _OUTPUT_SENDERS:
             sigs += _payload_vsens(msg, rx)
         else:
@@ -381,6 +396,39 @@ def _q(text: str) -> str:
     return '"' + text.replace("\\", "/").replace('"', "'") + '"'
 
 
+#: The DBC new-symbols section (``NS_``), as cantools and CANdb++ write it.
+_NS_KEYS = (
+    "NS_DESC_",
+    "CM_",
+    "BA_DEF_",
+    "BA_",
+    "VAL_",
+    "CAT_DEF_",
+    "CAT_",
+    "FILTER",
+    "BA_DEF_DEF_",
+    "EV_DATA_",
+    "ENVVAR_DATA_",
+    "SGTYPE_",
+    "SGTYPE_VAL_",
+    "BA_DEF_SGTYPE_",
+    "BA_SGTYPE_",
+    "SIG_TYPE_REF_",
+    "VAL_TABLE_",
+    "SIG_GROUP_",
+    "SIG_VALTYPE_",
+    "SIGTYPE_VALTYPE_",
+    "BO_TX_BU_",
+    "BA_DEF_REL_",
+    "BA_REL_",
+    "BA_DEF_DEF_REL_",
+    "BU_SG_REL_",
+    "BU_EV_REL_",
+    "BU_BO_REL_",
+    "SG_MUL_VAL_",
+)
+
+
 def generate() -> str:
     """The DBC file text (deterministic)."""
     msgs = layout()
@@ -389,39 +437,7 @@ def generate() -> str:
         "",
         "",
         "NS_ :",
-        *(
-            f"\t{k}"
-            for k in (
-                "NS_DESC_",
-                "CM_",
-                "BA_DEF_",
-                "BA_",
-                "VAL_",
-                "CAT_DEF_",
-                "CAT_",
-                "FILTER",
-                "BA_DEF_DEF_",
-                "EV_DATA_",
-                "ENVVAR_DATA_",
-                "SGTYPE_",
-                "SGTYPE_VAL_",
-                "BA_DEF_SGTYPE_",
-                "BA_SGTYPE_",
-                "SIG_TYPE_REF_",
-                "VAL_TABLE_",
-                "SIG_GROUP_",
-                "SIG_VALTYPE_",
-                "SIGTYPE_VALTYPE_",
-                "BO_TX_BU_",
-                "BA_DEF_REL_",
-                "BA_REL_",
-                "BA_DEF_DEF_REL_",
-                "BU_SG_REL_",
-                "BU_EV_REL_",
-                "BU_BO_REL_",
-                "SG_MUL_VAL_",
-            )
-        ),
+        *(f"\t{k}" for k in _NS_KEYS),
         "",
         "BS_:",
         "",
@@ -441,11 +457,12 @@ def generate() -> str:
     lines.append(
         "CM_ "
         + _q(
-            "virtsensor CAN matrix, generated by python -m virtsensor.dbcgen from virtsensor/signals.py; "
-            "do not edit. " + _SIGN_CONVENTION + " E2E (AUTOSAR Profile 1/11 style): CRC-8/SAE-J1850 "
-            "(poly 0x1D, init 0xFF, xorout 0xFF) over the 16-bit data ID (attribute E2E_DataID, low byte "
-            "first) followed by payload bytes 1..7, stored in byte 0; 4-bit alive counter in byte 1 "
-            "bits 0-3, counting 0..15."
+            "virtsensor CAN matrix, generated by python -m virtsensor.canbus.dbcgen from virtsensor/signals.py; "
+            "do not edit. " + _SIGN_CONVENTION + " E2E: AUTOSAR E2E Profile 11, Data ID mode BOTH "
+            "(CRCOffset 0, CounterOffset 8): CRC-8 poly 0x1D with register start 0x00 and no final XOR "
+            "(Crc_CalculateCRC8 chained with start value 0xFF) over the 16-bit data ID (attribute E2E_DataID, "
+            "low byte first) followed by payload bytes 1..7, stored in byte 0; 4-bit alive counter in byte 1 "
+            "bits 0-3, counting 0..14 (15 invalid)."
         )
         + ";"
     )
@@ -477,7 +494,7 @@ def generate() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Write the DBC to stdout (``python -m virtsensor.dbcgen > dbc/virtsensor.dbc``)."""
+    """Write the DBC to stdout (``python -m virtsensor.canbus.dbcgen > dbc/virtsensor.dbc``)."""
     sys.stdout.write(generate())
     return 0
 
