@@ -166,14 +166,14 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
         body, closed = _strip_comment(stripped)
         body = body.strip()
         if not closed:
-            raise TirError(f"{name}:{lineno}: unterminated quoted string: {stripped!r}")
+            raise TirError(f"{name}:{lineno}: unterminated quoted string")
         if not body:
             continue
 
         if body.startswith("["):
             m = _SECTION_RE.match(body)
             if m is None:
-                raise TirError(f"{name}:{lineno}: malformed section header {body!r}")
+                raise TirError(f"{name}:{lineno}: malformed section header")
             section = m.group(1).upper().replace(" ", "_")
             section_lines.setdefault(section, lineno)
             in_table = False
@@ -181,7 +181,7 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
 
         if body.startswith("{"):
             if not body.endswith("}"):
-                raise TirError(f"{name}:{lineno}: malformed table header {body!r}")
+                raise TirError(f"{name}:{lineno}: malformed table header")
             in_table = True
             tables.setdefault(section, [])
             continue
@@ -192,17 +192,17 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
                 for tok in body.split():
                     num = _parse_number(tok)
                     if num is None:
-                        raise TirError(f"{name}:{lineno}: cannot parse table value {tok!r} in [{section}]")
+                        raise TirError(f"{name}:{lineno}: cannot parse a table value in [{section}]")
                     row.append(num)
                 tables[section].append(tuple(row))
                 continue
-            raise TirError(f"{name}:{lineno}: expected 'KEY = value', got {body!r}")
+            raise TirError(f"{name}:{lineno}: expected 'KEY = value' (is this a tyre property file?)")
 
         key_text, _, value_text = body.partition("=")
         key = key_text.strip().upper()
         value_text = value_text.strip()
         if not _KEY_RE.match(key):
-            raise TirError(f"{name}:{lineno}: invalid key {key_text.strip()!r}")
+            raise TirError(f"{name}:{lineno}: invalid key name")
         if not value_text:
             raise TirError(f"{name}:{lineno}: missing value for {key}")
 
@@ -210,7 +210,7 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
         if value_text[0] in "'\"":
             q = value_text[0]
             if len(value_text) < 2 or value_text[-1] != q or q in value_text[1:-1]:
-                raise TirError(f"{name}:{lineno}: cannot parse value {value_text!r} for {key}")
+                raise TirError(f"{name}:{lineno}: cannot parse the value of {key}")
             value = value_text[1:-1]
         else:
             num = _parse_number(value_text)
@@ -219,7 +219,7 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
             elif (key in _STRING_KEYS or section in ("MDI_HEADER", "UNITS")) and " " not in value_text:
                 value = value_text
             else:
-                raise TirError(f"{name}:{lineno}: cannot parse value {value_text!r} for {key}")
+                raise TirError(f"{name}:{lineno}: cannot parse the value of {key}")
 
         first = seen_in_section.get((section, key))
         if first is not None:
@@ -238,7 +238,7 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
         allowed = _SI_UNITS.get(unit_key)
         if allowed is not None and value.strip().lower() not in allowed:
             raise TirError(
-                f"{name}:{unit_lines[unit_key]}: unit {unit_key} = {value!r} is not supported "
+                f"{name}:{unit_lines[unit_key]}: unit {unit_key} is not supported "
                 f"(only SI files: {', '.join(sorted(allowed))})"
             )
 

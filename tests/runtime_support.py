@@ -11,7 +11,8 @@ import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.features import HISTORY, FeatureSpec
-from virtsensor.onnx_model import export_pipeline
+from virtsensor.model import ModelCard
+from virtsensor.model.export import export_pipeline, pipeline_weights
 
 #: A dedicated sync id of the tests (not in the DBC).
 SYNC_ID = 0x7F0
@@ -22,13 +23,8 @@ SYNC_OFFSET_S = 0.5e-6
 
 
 def card_inputs(spec: FeatureSpec) -> list[dict]:
-    """The card's ``inputs`` entries, as ``virtsensor train`` writes them."""
-    out = []
-    for f in spec.features:
-        s = cat.SIGNALS[f.signal]
-        out.append({"name": f.name, "signal": f.signal, "op": f.op, "lag": f.lag, "unit": f.unit,
-                    "dbc_message": s.message, "dbc_signal": s.dbc_signal, "critical": s.critical})
-    return out
+    """The card's ``inputs`` entries, as ``virtsensor train`` writes them (:meth:`ModelCard.inputs_for`)."""
+    return ModelCard.inputs_for(spec)
 
 
 def train_model(tables: Sequence[Mapping[str, np.ndarray]], path: Path, spec: FeatureSpec = HISTORY,
@@ -53,9 +49,8 @@ def train_model(tables: Sequence[Mapping[str, np.ndarray]], path: Path, spec: Fe
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore", ConvergenceWarning)
         pipe.fit(X, Y)
-    return export_pipeline(pipe, X.shape[1], path, parity_X=X[:200], card_extra={
-        "model": "virtsensor-test", "feature_spec": spec.to_json(), "inputs": card_inputs(spec),
-        "signals": list(spec.signals)})
+    return export_pipeline(pipe, X.shape[1], path, parity_X=X[:200], card_extra=ModelCard.trainer_fields(
+        model="virtsensor-test", spec=spec, weights=pipeline_weights(pipe)))
 
 
 def synthetic_streams(duration_s: float, seed: int = 0, rate_hz: float = 100.0):

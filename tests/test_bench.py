@@ -16,7 +16,7 @@ from runtime_support import card_inputs, synthetic_streams
 from virtsensor import cli
 from virtsensor import signals as cat
 from virtsensor.features import HISTORY
-from virtsensor.onnx_model import export_pipeline, pipeline_weights
+from virtsensor.model.export import export_pipeline, pipeline_weights
 from virtsensor.recording import simulated_recording
 
 PCT = ("p50", "p99", "p999", "max")

@@ -53,12 +53,12 @@ def test_parameter_overrides_change_the_car(tmp_path):
     [
         (["simulate", "moonwalk", "--speed", "50", "--mu", "1"], "unknown manoeuvre 'moonwalk'"),
         (["simulate", "fishhook", "--speed", "150", "--mu", "1"], "outside fishhook's range 40-80 km/h"),
-        (["simulate", "fishhook", "--speed", "60", "--mu", "3"], "mu 3 is outside"),
+        (["simulate", "fishhook", "--speed", "60", "--mu", "3"], "--mu: 3 is out of range"),
         (["simulate", "fishhook", "--speed", "60", "--mu", "1", "--set", "vehicle.mas_kg=3"],
          "unknown parameter 'vehicle.mas_kg' (did you mean vehicle.mass_kg?)"),
         (["simulate", "fishhook", "--speed", "60", "--mu", "1", "--set", "vehicle.mass_kg=heavy"],
          "vehicle.mass_kg: expected float"),
-        (["simulate", "fishhook", "--speed", "fast", "--mu", "1"], "invalid float value: 'fast'"),
+        (["simulate", "fishhook", "--speed", "fast", "--mu", "1"], "--speed: 'fast' is not a number"),
     ],
 )
 def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, args, needle):

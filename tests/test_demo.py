@@ -86,7 +86,7 @@ def test_demo_figures_equal_the_offline_pipeline(demo):
     """The daemon's estimates on the bus, paired by the demo, score what the offline table and model score
     (up to SAT_FRONT's 0.02 Nm resolution): a tick paired with the wrong instant would show."""
     from virtsensor.features import FeatureSpec
-    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.model.onnx import OnnxModel
     from virtsensor.recording import read_log
 
     model = OnnxModel.load(default_model())
@@ -130,7 +130,7 @@ def test_demo_without_matplotlib_still_prints_its_figures(tmp_path, monkeypatch)
         (["--recording", "{tmp}/missing.blf"], ["missing.blf", "no such log file"]),
         (["--recording", "{tmp}/notalog.txt"], ["notalog.txt", "unsupported CAN log format"]),
         (["--model", "{tmp}/missing.onnx"], ["--model", "missing.onnx"]),
-        (["--model", "{tmp}/notalog.txt"], ["model card"]),
+        (["--model", "{tmp}/notalog.txt"], ["--model", "notalog.txt", "expected a .onnx file"]),
         (["--plot", "{tmp}/notalog.txt/demo.png"], ["--plot", "not a directory"]),
         (["--plot", "{tmp}"], ["--plot", "is a directory"]),
         (["--json", "{tmp}/notalog.txt/d.json"], ["--json", "not a directory"]),

@@ -104,7 +104,8 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     import warnings
 
     from virtsensor.diagnose.calibrate import merge_ensemble
-    from virtsensor.onnx_model import OnnxModel, export_pipeline
+    from virtsensor.model.export import export_pipeline
+    from virtsensor.model.onnx import OnnxModel
     from virtsensor.training import PAPER_PARAMS, make_pipeline
 
     rng = np.random.default_rng(0)
@@ -281,8 +282,8 @@ def test_a_control_car_answers_none_through_the_cli(tmp_path, capsys):
     (["--measured", "x.csv", "--campaign", "huge"], "--campaign 'huge'"),
     (["--measured", "x.csv", "--export-model", "m.txt"], "expected a .onnx"),
     (["--measured", "x.csv", "--json", "/no/such/dir/x.json"], "does not exist"),
-    (["--measured", "x.csv", "--mu", "3"], "--mu 3"),
-    (["--measured", "x.csv", "--mu", "1.4"], "outside the simulator's 0.1-1.2"),  # the simulator's own bounds
+    (["--measured", "x.csv", "--mu", "3"], "--mu: 3 is out of range"),
+    (["--measured", "x.csv", "--mu", "1.4"], ">= 0.1 and <= 1.2"),  # the simulator's own bounds
 ])
 def test_bad_command_lines(tmp_path, monkeypatch, capsys, argv, msg):
     from virtsensor.cli import main

@@ -128,7 +128,7 @@ def test_train_and_evaluate_from_the_command_line(tmp_path, capsys):
     import json
 
     from virtsensor.cli import main
-    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.model.onnx import OnnxModel
 
     data = _write_runs(tmp_path / "data")
     track = tmp_path / "track.csv"

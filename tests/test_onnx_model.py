@@ -16,9 +16,11 @@ from sklearn.pipeline import Pipeline
 from sklearn.preprocessing import RobustScaler
 from threadpoolctl import threadpool_limits
 
-from virtsensor import onnx_model as om
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
+from virtsensor.model import export as ex
+from virtsensor.model import onnx as rt
+from virtsensor.model.card import card_path_for
 
 N_FEATURES = len(cat.INPUTS)
 
@@ -69,7 +71,7 @@ def mlp2() -> Pipeline:
 @pytest.fixture(scope="module")
 def exported(mlp2, tmp_path_factory):
     path = tmp_path_factory.mktemp("model") / "sat.onnx"
-    card = om.export_pipeline(mlp2, N_FEATURES, path, card_extra=_card_extra(), parity_X=_features(500, 1))
+    card = ex.export_pipeline(mlp2, N_FEATURES, path, card_extra=_card_extra(), parity_X=_features(500, 1))
     return path, card
 
 
@@ -78,16 +80,16 @@ def test_parity_with_sklearn_on_sat_magnitudes(mlp2, exported):
     X = _features(500, 1)
     ref = mlp2.predict(X)
     assert np.abs(ref).max() > 100.0  # the check is about SAT-sized numbers, not ~1 Nm ones
-    model = om.OnnxModel.load(path)
-    assert np.abs(model.predict(X) - ref).max() <= om.PARITY_TOL_NM
-    assert 0.0 <= card["parity_max_abs_nm"] <= om.PARITY_TOL_NM
+    model = rt.OnnxModel.load(path)
+    assert np.abs(model.predict(X) - ref).max() <= rt.PARITY_TOL_NM
+    assert 0.0 <= card["parity_max_abs_nm"] <= rt.PARITY_TOL_NM
     assert card["parity_rows"] == 500
 
 
 @pytest.mark.parametrize("n", [1, 7])
 def test_output_shape_is_n_by_outputs(exported, mlp2, n):
     path, _ = exported
-    model = om.OnnxModel.load(path)
+    model = rt.OnnxModel.load(path)
     X = _features(n, 2)
     raw = model.session.run(["sat"], {"features": X.astype(np.float32)})[0]
     assert raw.shape == (n, 2)
@@ -106,21 +108,21 @@ def test_output_shape_is_n_by_outputs(exported, mlp2, n):
 def test_one_output_model(tmp_path):
     pipe = _mlp(1)
     X = _features(7, 3)
-    card = om.export_pipeline(pipe, N_FEATURES, tmp_path / "fl.onnx", card_extra=_card_extra(),
+    card = ex.export_pipeline(pipe, N_FEATURES, tmp_path / "fl.onnx", card_extra=_card_extra(),
                               parity_X=X, output_names=("sat_fl_nm",))
-    model = om.OnnxModel.load(tmp_path / "fl.onnx")
+    model = rt.OnnxModel.load(tmp_path / "fl.onnx")
     assert model.predict(X).shape == (7, 1)
     assert model.predict_one(X[0]).shape == (1,)
     np.testing.assert_allclose(model.predict(X)[:, 0], pipe.predict(X), atol=1e-3)
     assert model.outputs == ("sat_fl_nm",) and card["n_outputs"] == 1
     with pytest.raises(ValueError, match="output_names"):
-        om.export_pipeline(pipe, N_FEATURES, tmp_path / "x.onnx", card_extra=_card_extra())
+        ex.export_pipeline(pipe, N_FEATURES, tmp_path / "x.onnx", card_extra=_card_extra())
 
 
 def test_card_contents_and_sha256(exported):
     path, card = exported
-    on_disk = json.loads(om.card_path_for(path).read_text())
-    assert on_disk == card and om.card_path_for(path).name == "sat.card.json"
+    on_disk = json.loads(card_path_for(path).read_text())
+    assert on_disk == card and card_path_for(path).name == "sat.card.json"
     assert card["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
     assert card["onnx_file"] == "sat.onnx" and card["n_features"] == N_FEATURES
     assert [o["name"] for o in card["outputs"]] == list(cat.OUTPUTS)
@@ -128,7 +130,7 @@ def test_card_contents_and_sha256(exported):
     assert card["feature_names"] == list(cat.INPUTS)
     assert card["inputs"][0]["dbc_signal"] == "AccelLong"  # card_extra kept
     assert card["training_data"]["rows"] == 200
-    assert card["opset"]["ai.onnx"] <= om.TARGET_OPSET[""] and card["target_opset"]["ai.onnx"] == 17
+    assert card["opset"]["ai.onnx"] <= ex.TARGET_OPSET[""] and card["target_opset"]["ai.onnx"] == 17
     opset = {d.domain or "ai.onnx": d.version for d in onnx.load(path).opset_import}
     assert card["opset"] == opset
     assert set(card["tool_versions"]) == {"python", "numpy", "scikit-learn", "skl2onnx", "onnx", "onnxruntime",
@@ -143,9 +145,9 @@ def test_tampered_onnx_is_refused(exported, tmp_path):
     data[len(data) // 2] ^= 0x01
     bad = tmp_path / "sat.onnx"
     bad.write_bytes(bytes(data))
-    card = om.card_path_for(path)
+    card = card_path_for(path)
     with pytest.raises(UserError, match="sha256") as e:
-        om.OnnxModel.load(bad, card)
+        rt.OnnxModel.load(bad, card)
     msg = str(e.value)
     assert "\n" not in msg and str(bad) in msg and str(card) in msg
     assert hashlib.sha256(bytes(data)).hexdigest() in msg and json.loads(card.read_text())["sha256"] in msg
@@ -155,18 +157,18 @@ def test_missing_card_or_onnx_is_a_user_error(exported, tmp_path):
     path, _ = exported
     (tmp_path / "sat.onnx").write_bytes(path.read_bytes())
     with pytest.raises(UserError, match="sat.card.json"):
-        om.OnnxModel.load(tmp_path / "sat.onnx")
+        rt.OnnxModel.load(tmp_path / "sat.onnx")
     with pytest.raises(UserError, match="nothere.onnx"):
-        om.OnnxModel.load(tmp_path / "nothere.onnx", om.card_path_for(path))
+        rt.OnnxModel.load(tmp_path / "nothere.onnx", card_path_for(path))
     (tmp_path / "sat.card.json").write_text("{not json")
     with pytest.raises(UserError, match="not valid JSON"):
-        om.OnnxModel.load(tmp_path / "sat.onnx")
+        rt.OnnxModel.load(tmp_path / "sat.onnx")
 
 
 @pytest.mark.parametrize("use_iobinding", [True, False])
 def test_predict_one_equals_predict(exported, use_iobinding):
     path, _ = exported
-    model = om.OnnxModel.load(path, use_iobinding=use_iobinding)
+    model = rt.OnnxModel.load(path, use_iobinding=use_iobinding)
     X = _features(5, 4)
     batch = model.predict(X)
     out = model.predict_one(X[2])
@@ -181,7 +183,7 @@ def test_predict_one_equals_predict(exported, use_iobinding):
 
 def test_session_is_single_threaded_without_spinning(exported):
     path, _ = exported
-    model = om.OnnxModel.load(path)
+    model = rt.OnnxModel.load(path)
     import onnxruntime as ort
 
     for so in (model.session_options, model.session.get_session_options()):
@@ -196,65 +198,65 @@ def test_session_is_single_threaded_without_spinning(exported):
 def test_linear_regression_pipeline_exports(tmp_path):
     X = _features(200, 5)
     pipe = Pipeline([("scaler", RobustScaler()), ("lin", LinearRegression())]).fit(X, _sat(X))
-    card = om.export_pipeline(pipe, N_FEATURES, tmp_path / "lin.onnx", card_extra=_card_extra(), parity_X=X)
-    model = om.OnnxModel.load(tmp_path / "lin.onnx")
+    card = ex.export_pipeline(pipe, N_FEATURES, tmp_path / "lin.onnx", card_extra=_card_extra(), parity_X=X)
+    model = rt.OnnxModel.load(tmp_path / "lin.onnx")
     assert onnx.load(tmp_path / "lin.onnx").graph.node[-1].name == "sat_reshape"  # appended: no Reshape to retarget
     for n in (1, 7):
         assert model.predict(X[:n]).shape == (n, 2)
-    assert card["parity_max_abs_nm"] <= om.PARITY_TOL_NM
-    np.testing.assert_allclose(om.numpy_forward(pipe)(X), pipe.predict(X), rtol=0, atol=1e-9)
+    assert card["parity_max_abs_nm"] <= rt.PARITY_TOL_NM
+    np.testing.assert_allclose(rt.numpy_forward(pipe)(X), pipe.predict(X), rtol=0, atol=1e-9)
 
 
 def test_export_is_byte_reproducible(mlp2, exported, tmp_path):
     """The same fitted pipeline exports to the same bytes (and card sha256): a rebuild from
     the same data and seed can be checked against the shipped file."""
-    card = om.export_pipeline(mlp2, N_FEATURES, tmp_path / "again.onnx", card_extra=_card_extra())
+    card = ex.export_pipeline(mlp2, N_FEATURES, tmp_path / "again.onnx", card_extra=_card_extra())
     assert (tmp_path / "again.onnx").read_bytes() == exported[0].read_bytes()
     assert card["sha256"] == exported[1]["sha256"]
-    assert onnx.load(tmp_path / "again.onnx").graph.name == om.GRAPH_NAME
+    assert onnx.load(tmp_path / "again.onnx").graph.name == ex.GRAPH_NAME
 
 
 def test_double_precision_export(mlp2, tmp_path):
     X = _features(50, 6)
-    card = om.export_pipeline(mlp2, N_FEATURES, tmp_path / "d.onnx", card_extra=_card_extra(), parity_X=X,
+    card = ex.export_pipeline(mlp2, N_FEATURES, tmp_path / "d.onnx", card_extra=_card_extra(), parity_X=X,
                               precision="float64")
     assert card["input_dtype"] == "float64" and card["parity_max_abs_nm"] < 1e-9
-    model = om.OnnxModel.load(tmp_path / "d.onnx")
+    model = rt.OnnxModel.load(tmp_path / "d.onnx")
     np.testing.assert_allclose(model.predict_one(X[0]), mlp2.predict(X[:1])[0], rtol=0, atol=1e-9)
 
 
 def test_parity_failure_writes_nothing(mlp2, tmp_path, monkeypatch):
-    monkeypatch.setattr(om, "PARITY_TOL_NM", 0.0)
+    monkeypatch.setattr(rt, "PARITY_TOL_NM", 0.0)
     with pytest.raises(ValueError, match="parity"):
-        om.export_pipeline(mlp2, N_FEATURES, tmp_path / "p.onnx", card_extra=_card_extra(),
+        ex.export_pipeline(mlp2, N_FEATURES, tmp_path / "p.onnx", card_extra=_card_extra(),
                            parity_X=_features(50, 7))
     assert list(tmp_path.iterdir()) == []
 
 
 def test_bad_card_extra(mlp2, tmp_path):
     with pytest.raises(ValueError, match="sha256"):
-        om.export_pipeline(mlp2, N_FEATURES, tmp_path / "a.onnx", card_extra={**_card_extra(), "sha256": "x"})
+        ex.export_pipeline(mlp2, N_FEATURES, tmp_path / "a.onnx", card_extra={**_card_extra(), "sha256": "x"})
     with pytest.raises(ValueError, match="features"):
-        om.export_pipeline(mlp2, N_FEATURES, tmp_path / "a.onnx", card_extra={"inputs": ["ax_mps2"]})
+        ex.export_pipeline(mlp2, N_FEATURES, tmp_path / "a.onnx", card_extra={"inputs": ["ax_mps2"]})
 
 
 @pytest.mark.parametrize("activation", ["tanh", "relu", "identity"])
 def test_numpy_forward_matches_sklearn(mlp2, activation):
     pipe = mlp2 if activation == "tanh" else _mlp(2, activation)
     X = _features(300, 8)
-    fwd = om.numpy_forward(pipe)
+    fwd = rt.numpy_forward(pipe)
     np.testing.assert_allclose(fwd(X), pipe.predict(X), rtol=0, atol=1e-9)
     np.testing.assert_allclose(fwd.predict_one(X[0]), pipe.predict(X[:1])[0], rtol=0, atol=1e-9)
     # the same from the JSON-able weights
-    weights = json.loads(json.dumps(om.pipeline_weights(pipe)))
-    np.testing.assert_allclose(om.numpy_forward(weights)(X), pipe.predict(X), rtol=0, atol=1e-9)
+    weights = json.loads(json.dumps(ex.pipeline_weights(pipe)))
+    np.testing.assert_allclose(rt.numpy_forward(weights)(X), pipe.predict(X), rtol=0, atol=1e-9)
 
 
 @pytest.mark.parametrize("scaler", ["robust", "standard", "minmax"])
 def test_numpy_forward_and_card_weights_for_every_scaler_the_grid_may_pick(scaler):
     """The grid search may choose another scaler than the paper's; the card's weights and the
     numpy back-end must follow (a StandardScaler winner once crashed `train --grid` at export)."""
-    from virtsensor.onnx_model import numpy_forward
+    from virtsensor.model.onnx import numpy_forward
     from virtsensor.training import PAPER_PARAMS, make_pipeline
 
     rng = np.random.default_rng(1)

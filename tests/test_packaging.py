@@ -15,7 +15,8 @@ import tomllib
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("sklearn", "skl2onnx", "scipy", "sim", "joblib", "matplotlib", "shap", "tqdm")
 #: the modules a daemon image imports to run: they must not pull in the training stack
-RUNTIME_MODULES = ("virtsensor.runtime", "virtsensor.onnx_model", "virtsensor.canbus.codec", "virtsensor.replay",
+RUNTIME_MODULES = ("virtsensor.runtime", "virtsensor.model", "virtsensor.model.onnx", "virtsensor.model.card",
+                   "virtsensor.canbus.codec", "virtsensor.replay",
                    "virtsensor.features", "virtsensor.frontend", "virtsensor.assets", "virtsensor.cli")
 
 

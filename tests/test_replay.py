@@ -190,6 +190,7 @@ def test_cli_replay_virtual(tmp_path, channel, capsys):
 
 
 def test_cli_unknown_interface_lists_valid_ones(tmp_path, capsys):
+    (tmp_path / "x.blf").write_bytes(b"")  # a log file is there: the interface is what is wrong
     rc = cli.main(["replay", str(tmp_path / "x.blf"), "--interface", "nosuchbus", "--channel", "c0"])
     assert rc == 2
     err = capsys.readouterr().err

@@ -25,7 +25,7 @@ from virtsensor import cli
 from virtsensor.canbus.codec import CanMatrix
 from virtsensor.canbus.e2e import COUNTER_MAX, USABLE, E2EStatus, frame_crc, next_counter
 from virtsensor.features import FeatureSpec
-from virtsensor.onnx_model import OnnxModel, card_path_for
+from virtsensor.model import OnnxModel, card_path_for
 from virtsensor.recording import iter_frames, simulated_recording
 from virtsensor.replay import replay
 from virtsensor.runtime import DEGRADED, INIT, INVALID, VALID, VirtualSensor, load_config
@@ -591,7 +591,7 @@ def test_refuses_sha256_mismatch(model_path, tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("text", "needle"), [
-    (None, "cannot read config file"),
+    (None, "no such file"),  # --config is checked for kind before the daemon reads it
     ("interface = \n", "not valid TOML"),
     ('interfce = "virtual"\n', "unknown key 'interfce'"),
     ("sync_id = 4096\n", "sync_id"),

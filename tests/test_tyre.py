@@ -540,8 +540,8 @@ def test_tir_reader_format(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("line", "message"),
     [
-        ("QDZ1 = abc $Peak trail", "cannot parse value 'abc' for QDZ1"),
-        ("QDZ1 = 0.08 0.09", "cannot parse value '0.08 0.09' for QDZ1"),
+        ("QDZ1 = abc $Peak trail", "cannot parse the value of QDZ1"),
+        ("QDZ1 = 0.08 0.09", "cannot parse the value of QDZ1"),
         ("QDZ1 =", "missing value for QDZ1"),
         ("QDZ1 0.08431013", "expected 'KEY = value'"),
         ("QDZ1 = 'abc", "unterminated quoted string"),

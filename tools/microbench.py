@@ -82,7 +82,7 @@ def can_frame_us(repeats: int) -> dict[str, float]:
 
 
 def onnx_rows_per_s(repeats: int) -> dict[str, float]:
-    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.model.onnx import OnnxModel
 
     out = {}
     for name in ("paper", "improved"):

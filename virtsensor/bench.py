@@ -429,7 +429,7 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
 
 
 def _sklearn_pipeline(weights: dict[str, Any]) -> Any:
-    """RobustScaler + MLPRegressor rebuilt from :func:`virtsensor.onnx_model.pipeline_weights` output."""
+    """RobustScaler + MLPRegressor rebuilt from :func:`virtsensor.model.export.pipeline_weights` output."""
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import Pipeline
     from sklearn.preprocessing import RobustScaler
@@ -456,7 +456,7 @@ def _sklearn_pipeline(weights: dict[str, Any]) -> Any:
 
 def measure_backends(model: Any, X: np.ndarray, n_max: int) -> dict[str, Any]:
     """onnxruntime / sklearn / numpy on the same feature vectors, one vector per call (us per call)."""
-    from virtsensor.onnx_model import numpy_forward
+    from virtsensor.model.onnx import numpy_forward
 
     out: dict[str, Any] = {}
     if X.size == 0:
@@ -705,7 +705,7 @@ def run_bench(model_path: str | os.PathLike, *, quick: bool = False, soak_ticks:
               cross_process: bool = True, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run every measurement; returns the JSON-able result (plus ``_samples`` for the histogram)."""
     from virtsensor.canbus.codec import CanMatrix
-    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.model.onnx import OnnxModel
 
     say = progress or (lambda s: None)
     counts = dict(QUICK if quick else FULL)

@@ -3,7 +3,11 @@
 Each subcommand lives in ``virtsensor/commands/<name>.py`` and exposes
 ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``.
 Modules are imported only when their subcommand runs, so ``--help`` is fast
-and an optional heavy dependency never breaks an unrelated command.
+and an optional heavy dependency never breaks an unrelated command. Every mistake
+is one line on stderr and exit code 2: argparse's (numbers and their ranges, at
+parse time), the path arguments' kinds (:func:`~virtsensor.commands._types.check_paths`,
+before the command runs) and the command's own :class:`~virtsensor.errors.UserError`.
+:func:`main` returns the exit code (it does not raise ``SystemExit``).
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from virtsensor.commands._types import check_paths
 from virtsensor.errors import UserError
 from virtsensor.extras import as_user_error, require
 
@@ -81,6 +86,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     # First pass: find the subcommand, then let its module add its arguments.
     name = next((a for a in argv if not a.startswith("-")), None)
+    sub_action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     if name in COMMANDS:
         try:
             if name in COMMAND_EXTRAS:
@@ -88,11 +94,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             mod = _load(COMMANDS[name][0])
         except UserError as exc:
             return _fail(name, exc)
-        sub_action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
         mod.add_arguments(sub_action.choices[name])
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: a mistake (2, one line printed), --help or --version (0)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     mod = _load(args._module)
     try:
+        # the kind of every path argument (file, directory, writable), before any work
+        check_paths(sub_action.choices[args.command], args)
         return int(mod.run(args) or 0)
     except UserError as exc:
         return _fail(args.command, exc)

@@ -14,7 +14,7 @@ Figures (PNG, matplotlib's Agg canvas: no display, no pyplot state):
 
 What is explained
 -----------------
-The shipped ONNX graph itself, through :meth:`virtsensor.onnx_model.OnnxModel.predict`,
+The shipped ONNX graph itself, through :meth:`virtsensor.model.onnx.OnnxModel.predict`,
 on rows of the test side of the paper's random 70/30 split
 (:func:`virtsensor.evaluation.random_split`), against a background of
 :data:`BACKGROUND_ROWS` rows drawn from the training side. Both draws and the
@@ -473,7 +473,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     from virtsensor.dataset import build_dataset, load_runs, split_track_laps
     from virtsensor.evaluation import random_split
     from virtsensor.features import FeatureSpec
-    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.model.onnx import OnnxModel
     from virtsensor.training import metrics as fit_metrics
 
     say = log or (lambda _msg: None)

@@ -139,13 +139,14 @@ def simulated_frames(
         from sim.api import simulate_streams  # lazy: the runtime never needs the simulator
         from sim.manoeuvres import ManoeuvreError
         from sim.params import ParamError
+        from sim.tir import TirError
     except ImportError as exc:
         raise UserError(f"the simulator is not available ({exc})") from None
     from virtsensor.recording import iter_frames
 
     try:
         time_s, signals = simulate_streams(manoeuvre, speed_kmh=speed_kmh, mu=mu, seed=seed, overrides=overrides)
-    except (ManoeuvreError, ParamError) as exc:
+    except (ManoeuvreError, ParamError, TirError) as exc:
         raise UserError(str(exc)) from None
     return list(iter_frames(time_s, signals, matrix=matrix, seed=seed))
 

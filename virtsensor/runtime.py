@@ -7,7 +7,7 @@ decoding and E2E checks, constants inlined), keeps the latest valid value per si
 (the semantics of :class:`~virtsensor.frontend.SampleHoldStore`), and at every tick builds the
 feature vector with :class:`~virtsensor.features.FeatureBuilder` (the same
 numbers the trainer's ``FeatureSpec.transform`` gives on the 20 Hz table),
-runs the ONNX model (:meth:`~virtsensor.onnx_model.OnnxModel.predict_one`, one
+runs the ONNX model (:meth:`~virtsensor.model.onnx.OnnxModel.predict_one`, one
 thread) and publishes both front SATs with a status per wheel.
 
 Threads and clocks
@@ -392,7 +392,7 @@ class VirtualSensor:
 
     Args:
         bus: an open ``can.BusABC``; the sensor takes ownership (it shuts it down in :meth:`stop`).
-        model: a loaded :class:`~virtsensor.onnx_model.OnnxModel`.
+        model: a loaded :class:`~virtsensor.model.onnx.OnnxModel`.
         matrix: a :class:`~virtsensor.can_codec.CanMatrix` (its compiled tables are shared; the sensor
             keeps its own E2E state with ``timeout_cycles``).
         sync_id, sync_every, timeout_cycles, model_id, cpu, realtime, rt_priority: see :class:`RuntimeConfig`.
@@ -625,7 +625,7 @@ class VirtualSensor:
         Raises:
             UserError: unreadable/invalid config, model or DBC; model inputs not in the DBC; bus not openable.
         """
-        from virtsensor.onnx_model import OnnxModel
+        from virtsensor.model.onnx import OnnxModel
         from virtsensor.replay import open_bus
 
         if isinstance(config, (str, os.PathLike)):

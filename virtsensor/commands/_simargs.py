@@ -16,12 +16,16 @@ from virtsensor.errors import UserError
 
 def add_car_arguments(parser: argparse.ArgumentParser) -> None:
     """--set, --params, --pressure-bar, --tyre."""
+    from virtsensor.commands import _types as t
+
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.NAME=VALUE",
                         help="override one car parameter (repeatable), e.g. --set vehicle.mass_kg=1600")
     parser.add_argument("--params", dest="param_files", action="append", default=[], metavar="FILE.toml",
+                        type=t.text_file(),
                         help="TOML file of parameter overrides, same shape as sim/data/car_c_segment.toml")
-    parser.add_argument("--pressure-bar", type=float, default=None, metavar="P",
-                        help="inflation pressure of all four tyres (gauge, bar)")
+    parser.add_argument("--pressure-bar", type=t.positive_float(10.0), default=None, metavar="P",
+                        help="inflation pressure of all four tyres (gauge, bar; > 0 and <= 10, the tyre "
+                             "file sets the usable range)")
     parser.add_argument("--tyre", dest="tyres", action="append", default=[], metavar="[front=|rear=]FILE.tir",
                         help="MF 6.1 tyre property file, or a bundled tyre's name (see 'virtsensor tyre'), of all "
                              "four wheels, or with front= / rear= of one axle (repeatable); checked before any "

@@ -19,15 +19,17 @@ HELP = "measure the daemon: per-stage and end-to-end latency, jitter, CPU/RSS, m
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from virtsensor.bench import DEFAULT_MODEL
+    from virtsensor.commands import _types as t
 
-    parser.add_argument("--model", metavar="FILE.onnx", default=DEFAULT_MODEL,
+    parser.add_argument("--model", metavar="FILE.onnx", default=DEFAULT_MODEL, type=t.existing_file(".onnx"),
                         help=f"ONNX model (its .card.json beside it; default {DEFAULT_MODEL})")
-    parser.add_argument("--json", metavar="FILE", help="write the figures as JSON")
-    parser.add_argument("--markdown", metavar="FILE", help="write a Markdown summary")
-    parser.add_argument("--histogram", metavar="PNG", help="write a histogram of the tick compute times")
+    parser.add_argument("--json", metavar="FILE", type=t.output_file(), help="write the figures as JSON")
+    parser.add_argument("--markdown", metavar="FILE", type=t.output_file(), help="write a Markdown summary")
+    parser.add_argument("--histogram", metavar="PNG", type=t.output_file(".png"),
+                        help="write a histogram of the tick compute times")
     parser.add_argument("--quick", action="store_true", help="small counts everywhere (a few seconds)")
-    parser.add_argument("--soak-ticks", type=int, default=None, metavar="N",
-                        help="ticks of the soak (default 72000 = one hour at 20 Hz; --quick: 1000)")
+    parser.add_argument("--soak-ticks", type=t.int_range(1, 10**8), default=None, metavar="N",
+                        help="ticks of the soak (1 to 10**8; default 72000 = one hour at 20 Hz; --quick: 1000)")
     parser.add_argument("--no-cross-process", action="store_true",
                         help="skip the udp_multicast run in a private network namespace")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")

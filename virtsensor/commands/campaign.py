@@ -14,17 +14,26 @@ from virtsensor.errors import UserError
 
 HELP = "simulate a whole data-set preset (e.g. the paper's Table I campaign) in parallel"
 FORMATS = ("csv", "blf", "asc", "log")
+#: joblib backends the campaign may run on (ray and dask register themselves when installed).
+BACKENDS = ("loky", "threading", "multiprocessing", "sequential", "ray", "dask")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from virtsensor.commands import _types as t
+
     parser.add_argument("preset", metavar="PRESET",
                         help="paper (Table I, ~45,000 samples), smoke (20 runs) or tiny (4 runs)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output directory (created; must be empty)")
+    parser.add_argument("--out", required=True, metavar="DIR", type=t.output_dir(empty=True),
+                        help="output directory (created; must be empty)")
     parser.add_argument("--format", choices=FORMATS, default="csv", help="file format of each run (default csv)")
-    parser.add_argument("--seed", type=int, default=0, help="campaign seed (every run's seed derives from it)")
-    parser.add_argument("--jobs", type=int, default=-1, help="parallel workers (default: all cores)")
-    parser.add_argument("--batch-size", type=int, default=25, help="runs per vectorised batch")
-    parser.add_argument("--backend", default=None, help="joblib backend (loky, threading, ray, dask...)")
+    parser.add_argument("--seed", type=t.seed(), default=0,
+                        help="campaign seed, 0 to 2**32-1 (every run's seed derives from it)")
+    parser.add_argument("--jobs", type=t.jobs(), default=-1, metavar="N",
+                        help="parallel workers (1 to 1024, or -1: all cores, the default)")
+    parser.add_argument("--batch-size", type=t.int_range(1, 10000), default=25, metavar="N",
+                        help="runs per vectorised batch (1 to 10000; default 25)")
+    parser.add_argument("--backend", default=None, choices=BACKENDS,
+                        help="joblib backend (default loky; ray and dask need their packages)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_car_arguments(parser)
 

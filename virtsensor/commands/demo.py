@@ -20,19 +20,22 @@ HELP = "the daemon on a bundled wet-road manoeuvre: estimated vs true SAT live, 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from virtsensor.commands import _types as t
     from virtsensor.demo import DEFAULT_PLOT
 
-    parser.add_argument("--model", metavar="FILE.onnx", default=None,
+    parser.add_argument("--model", metavar="FILE.onnx", default=None, type=t.existing_file(".onnx"),
                         help="ONNX model, its .card.json beside it (default: the shipped models/improved.onnx)")
-    parser.add_argument("--recording", metavar="LOG", default=None,
+    parser.add_argument("--recording", metavar="LOG", default=None, type=t.existing_file(what="log file"),
                         help="CAN log to replay (.blf, .asc, .log, .csv, .trc; default: the bundled wet-road run)")
-    parser.add_argument("--rate", default="1.0",
-                        help="replay speed factor (1.0 = real time, the default) or 'max' (as fast as possible)")
+    parser.add_argument("--rate", default="1.0", type=t.rate(),
+                        help="replay speed factor, 0.001 to 1000 (1.0 = real time, the default), or 'max' "
+                             "(as fast as possible)")
     parser.add_argument("--no-live", dest="live", action="store_false",
                         help="no line per half second during the run, only the closing figures")
-    parser.add_argument("--plot", metavar="FILE.png", default=DEFAULT_PLOT,
+    parser.add_argument("--plot", metavar="FILE.png", default=DEFAULT_PLOT, type=t.output_file(".png", mkdirs=True),
                         help=f"PNG of estimated vs true SAT and the error (default {DEFAULT_PLOT}; needs matplotlib)")
-    parser.add_argument("--json", dest="json_path", metavar="FILE", default=None, help="write the figures as JSON")
+    parser.add_argument("--json", dest="json_path", metavar="FILE", default=None, type=t.output_file(),
+                        help="write the figures as JSON")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -23,72 +23,52 @@ HELP = "sim-to-real: compare measured runs with their re-simulation, name the ca
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from sim.manoeuvres import MU_RANGE
+    from virtsensor.commands import _types as t
     from virtsensor.commands._simargs import add_car_arguments
 
-    parser.add_argument("--measured", nargs="+", required=True, metavar="FILE",
+    parser.add_argument("--measured", nargs="+", required=True, metavar="FILE", type=t.existing_path(),
                         help="measured runs (.blf/.asc/.log/.trc CAN logs, .mf4 MDF4, .csv tables) or directories")
-    parser.add_argument("--holdout", nargs="+", metavar="FILE",
+    parser.add_argument("--holdout", nargs="+", metavar="FILE", type=t.existing_path(),
                         help="measured runs used only to score the estimator before/after (default: the last "
                              "third of --measured when there are 3 or more)")
-    parser.add_argument("--json", metavar="FILE", help="write the result as JSON")
-    parser.add_argument("--report", metavar="DIR", help="write diagnosis.md and PNG plots into this directory")
-    parser.add_argument("--mu", type=float, default=1.0, help="road friction of the test track (default 1.0)")
+    parser.add_argument("--json", metavar="FILE", type=t.output_file(), help="write the result as JSON")
+    parser.add_argument("--report", metavar="DIR", type=t.output_dir(),
+                        help="write diagnosis.md and PNG plots into this directory")
+    parser.add_argument("--mu", type=t.float_range(*MU_RANGE), default=1.0,
+                        help=f"road friction of the test track ({MU_RANGE[0]:g} to {MU_RANGE[1]:g}; default 1.0)")
     parser.add_argument("--campaign", default="smoke", help="training campaign preset for the estimators "
                         "(smoke, tiny, paper; default smoke)")
     parser.add_argument("--recipe", default="improved", help="estimator recipe (paper, improved; default improved)")
-    parser.add_argument("--max-iter", type=int, default=None, help="MLP epochs (default: the recipe's)")
-    parser.add_argument("--ensemble", type=int, default=3,
-                        help="networks averaged per estimator (merged into one ONNX network; default 3)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the campaigns and the training")
-    parser.add_argument("--n-jobs", type=int, default=-1, help="joblib workers for the re-simulations (-1: all cores)")
+    parser.add_argument("--max-iter", type=t.int_range(1, 100000), default=None, metavar="N",
+                        help="MLP epochs (1 to 100000; default: the recipe's)")
+    parser.add_argument("--ensemble", type=t.int_range(1, 10), default=3, metavar="N",
+                        help="networks averaged per estimator (merged into one ONNX network; 1 to 10, default 3)")
+    parser.add_argument("--seed", type=t.seed(), default=0,
+                        help="seed of the campaigns and the training (0 to 2**32-1)")
+    parser.add_argument("--n-jobs", type=t.jobs(), default=-1, metavar="N",
+                        help="joblib workers for the re-simulations (1 to 1024, or -1: all cores)")
     parser.add_argument("--no-retrain", action="store_true", help="diagnose only: no calibration, no gain")
-    parser.add_argument("--export-model", metavar="FILE.onnx",
+    parser.add_argument("--export-model", metavar="FILE.onnx", type=t.output_file(".onnx"),
                         help="export the calibrated estimator (ONNX and model card)")
     parser.add_argument("--quiet", action="store_true")
     add_car_arguments(parser)
 
 
-def _check_out(opt: str, path: str | None, is_dir: bool = False) -> None:
-    from virtsensor.errors import UserError
-
-    if not path:
-        return
-    p = Path(path)
-    parent = p if is_dir and p.exists() else p.parent
-    if is_dir and p.exists() and not p.is_dir():
-        raise UserError(f"--{opt} {path}: exists and is not a directory")
-    if not is_dir and p.is_dir():
-        raise UserError(f"--{opt} {path}: is a directory")
-    if not parent.exists() or not parent.is_dir():
-        raise UserError(f"--{opt} {path}: directory {parent} does not exist")
-
-
 def run(args: argparse.Namespace) -> int:
     from sim.campaign import PRESETS
-    from sim.manoeuvres import MU_RANGE
     from virtsensor.commands._simargs import car_from_args
     from virtsensor.diagnose import diagnose
     from virtsensor.errors import UserError
     from virtsensor.measured import load_measured
     from virtsensor.training import RECIPES
 
-    _check_out("json", args.json)
-    _check_out("report", args.report, is_dir=True)
-    _check_out("export-model", args.export_model)
-    if args.export_model and not args.export_model.endswith(".onnx"):
-        raise UserError(f"--export-model {args.export_model}: expected a .onnx file name")
     if args.export_model and args.no_retrain:
         raise UserError("--export-model needs the retraining; drop --no-retrain")
     if args.campaign not in PRESETS:
         raise UserError(f"--campaign {args.campaign!r}: one of {', '.join(PRESETS)}")
     if args.recipe not in RECIPES:
         raise UserError(f"--recipe {args.recipe!r}: one of {', '.join(RECIPES)}")
-    if not MU_RANGE[0] <= args.mu <= MU_RANGE[1]:  # the simulator's own bounds (sim.manoeuvres)
-        raise UserError(f"--mu {args.mu:g}: outside the simulator's {MU_RANGE[0]:g}-{MU_RANGE[1]:g}")
-    if not 1 <= args.ensemble <= 10:
-        raise UserError(f"--ensemble {args.ensemble}: must be 1-10")
-    if args.max_iter is not None and args.max_iter < 1:
-        raise UserError(f"--max-iter {args.max_iter}: must be >= 1")
     base = car_from_args(args)
     skipped: list[tuple[str, str]] = []
     runs = load_measured(args.measured, skipped=skipped)
@@ -125,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         from virtsensor.diagnose.report import markdown, plots
 
         d = Path(args.report)
-        d.mkdir(exist_ok=True)
+        d.mkdir(parents=True, exist_ok=True)
         (d / "diagnosis.md").write_text(markdown(res))
         files = plots(art, res, d)
         log(f"report: {d / 'diagnosis.md'}" + (f" and {len(files)} plots" if files else
@@ -168,32 +148,26 @@ def _jsonable(o):
 
 
 def _export(est, res, args) -> str:
-    from virtsensor.commands.train import _inputs_for_card
-    from virtsensor.errors import UserError
-    from virtsensor.features import SPECS
-    from virtsensor.onnx_model import export_pipeline, pipeline_weights
-
-    spec = SPECS[est.recipe["features"]]
     import numpy as np
 
+    from virtsensor.errors import UserError
+    from virtsensor.features import SPECS
+    from virtsensor.model import ModelCard
+    from virtsensor.model.export import export_pipeline, pipeline_weights
+
+    spec = SPECS[est.recipe["features"]]
     rng = np.random.default_rng(args.seed)
     mlp_scale = est.pipeline[0]
     parity = rng.normal(size=(500, len(spec.names))) * getattr(mlp_scale, "scale_", 1.0) + getattr(
         mlp_scale, "center_", 0.0)
+    extra = ModelCard.trainer_fields(
+        model=f"virtsensor-{args.recipe}-calibrated", spec=spec, recipe=est.recipe, seed=args.seed,
+        training_data={"fingerprint_sha256": est.fingerprint, "rows": est.samples, "campaign": args.campaign,
+                       "calibration": {k: res[k] for k in ("cause", "signal", "estimate", "ci95")}},
+        metrics={k: res.get(k) for k in ("mae_before_nm", "mae_after_nm", "r2_before", "r2_after")},
+        weights=pipeline_weights(est.pipeline))
     try:
-        card = export_pipeline(est.pipeline, len(spec.names), args.export_model, parity_X=parity, card_extra={
-            "model": f"virtsensor-{args.recipe}-calibrated",
-            "recipe": est.recipe,
-            "feature_spec": spec.to_json(),
-            "inputs": _inputs_for_card(spec),
-            "signals": list(spec.signals),
-            "training_data": {"fingerprint_sha256": est.fingerprint, "rows": est.samples,
-                              "campaign": args.campaign, "calibration": {
-                                  k: res[k] for k in ("cause", "signal", "estimate", "ci95")}},
-            "metrics": {k: res.get(k) for k in ("mae_before_nm", "mae_after_nm", "r2_before", "r2_after")},
-            "seed": args.seed,
-            "weights": pipeline_weights(est.pipeline),
-        })
+        card = export_pipeline(est.pipeline, len(spec.names), args.export_model, parity_X=parity, card_extra=extra)
     except ValueError as exc:
         raise UserError(f"{args.export_model}: export refused: {exc}") from None
     return f"{args.export_model} (sha256 {card['sha256'][:12]}...)"

@@ -19,15 +19,20 @@ HELP = "Table IV: the paper's protocols and honest ones, baselines, JSON and Mar
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", required=True, metavar="FILE.onnx",
+    from virtsensor.commands import _types as t
+
+    parser.add_argument("--model", required=True, metavar="FILE.onnx", type=t.existing_file(".onnx"),
                         help="the model under test; its card's recipe is evaluated as 'improved' "
                              "(unless it is the paper's) and the ONNX file itself on the track laps")
-    parser.add_argument("--data", nargs="+", required=True, metavar="PATH",
+    parser.add_argument("--data", nargs="+", required=True, metavar="PATH", type=t.existing_path(),
                         help="Table I recordings (files or directories), as for train")
-    parser.add_argument("--track", metavar="FILE", help="Magny-Cours recording (dry lap then wet lap)")
-    parser.add_argument("--json", required=True, metavar="FILE", help="write the results here")
-    parser.add_argument("--markdown", metavar="FILE", help="also write the Table IV comparison as Markdown")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the splits and initialisations")
+    parser.add_argument("--track", metavar="FILE", type=t.existing_file(),
+                        help="Magny-Cours recording (dry lap then wet lap)")
+    parser.add_argument("--json", required=True, metavar="FILE", type=t.output_file(), help="write the results here")
+    parser.add_argument("--markdown", metavar="FILE", type=t.output_file(),
+                        help="also write the Table IV comparison as Markdown")
+    parser.add_argument("--seed", type=t.seed(), default=0,
+                        help="seed of the splits and initialisations (0 to 2**32-1)")
     parser.add_argument("--quiet", action="store_true")
 
 
@@ -37,13 +42,9 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.evaluation import evaluate, markdown_table
     from virtsensor.features import SPECS, FeatureSpec
-    from virtsensor.onnx_model import OnnxModel
+    from virtsensor.model.onnx import OnnxModel
     from virtsensor.training import RECIPES, metrics
 
-    for opt in ("json", "markdown"):
-        p = getattr(args, opt)
-        if p and not Path(p).parent.exists():
-            raise UserError(f"--{opt} {p}: directory {Path(p).parent} does not exist")
     model = OnnxModel.load(args.model)
     card = model.card
     recipe = card.get("recipe")

@@ -19,18 +19,23 @@ HELP = "Section IV.B figures: input correlation, SHAP importance/dependence, tra
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", required=True, metavar="FILE.onnx",
+    from virtsensor.commands import _types as t
+
+    parser.add_argument("--model", required=True, metavar="FILE.onnx", type=t.existing_file(".onnx"),
                         help="the shipped model (its card beside it names the features)")
-    parser.add_argument("--data", nargs="+", required=True, metavar="PATH",
+    parser.add_argument("--data", nargs="+", required=True, metavar="PATH", type=t.existing_path(),
                         help="recordings (files or directories), as for train")
-    parser.add_argument("--track", metavar="FILE",
+    parser.add_argument("--track", metavar="FILE", type=t.existing_file(),
                         help="Magny-Cours recording (dry lap then wet lap): adds Figs. 5, 6 and 7")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output directory for the PNGs and explain.json")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seed of the 70/30 split, of the explained and background rows and of the permutations")
-    parser.add_argument("--samples", type=int, default=500, help="test rows to explain (default 500)")
-    parser.add_argument("--background", type=int, default=100,
-                        help="background rows of the independent masker (default 100)")
+    parser.add_argument("--out", required=True, metavar="DIR", type=t.output_dir(),
+                        help="output directory for the PNGs and explain.json")
+    parser.add_argument("--seed", type=t.seed(), default=0,
+                        help="seed of the 70/30 split, of the explained and background rows and of the permutations "
+                             "(0 to 2**32-1)")
+    parser.add_argument("--samples", type=t.int_range(1, 100000), default=500, metavar="N",
+                        help="test rows to explain (1 to 100000; default 500)")
+    parser.add_argument("--background", type=t.int_range(1, 10000), default=100, metavar="N",
+                        help="background rows of the independent masker (1 to 10000; default 100)")
     parser.add_argument("--method", choices=("auto", "exact", "permutation"), default="auto",
                         help="SHAP explainer: exact Shapley values when affordable (auto, default), "
                              "or force exact / permutation sampling")

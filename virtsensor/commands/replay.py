@@ -18,25 +18,41 @@ import argparse
 HELP = "play a CAN log (or a simulated manoeuvre) onto a python-can bus"
 
 
+def _mu_range() -> tuple[float, float]:
+    try:
+        from sim.manoeuvres import MU_RANGE
+    except ImportError:  # the simulator is optional for replaying logs
+        return (0.1, 1.2)
+    return MU_RANGE
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", nargs="?", help="CAN log to play (.blf, .asc, .log, .csv, .trc)")
+    from virtsensor.commands import _types as t
+
+    mu_lo, mu_hi = _mu_range()
+    parser.add_argument("file", nargs="?", type=t.existing_file(what="log file"),
+                        help="CAN log to play (.blf, .asc, .log, .csv, .trc)")
     parser.add_argument(
         "--interface", "-i", required=True, help="python-can interface, e.g. socketcan, virtual, pcan, vector"
     )
     parser.add_argument("--channel", "-c", required=True, help="bus channel, e.g. vcan0")
     parser.add_argument(
-        "--rate", default="1.0", help="playback speed factor (1.0 = real time) or 'max' (as fast as possible)"
+        "--rate", default="1.0", type=t.rate(),
+        help="playback speed factor, 0.001 to 1000 (1.0 = real time), or 'max' (as fast as possible)"
     )
     parser.add_argument("--loop", action="store_true", help="start over at the end (Ctrl-C stops)")
     parser.add_argument(
-        "--bitrate", type=int, default=None, help="bit rate in bit/s, for interfaces that set it"
+        "--bitrate", type=t.int_range(1000, 20_000_000), default=None,
+        help="bit rate in bit/s (1000 to 20,000,000), for interfaces that set it"
     )
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress display")
     sim = parser.add_argument_group("simulated manoeuvre instead of FILE (needs the simulator)")
     sim.add_argument("--manoeuvre", metavar="NAME", help="manoeuvre to simulate and play")
-    sim.add_argument("--speed", metavar="KMH", type=float, default=80.0, help="initial speed in km/h (80)")
-    sim.add_argument("--mu", metavar="MU", type=float, default=1.0, help="road friction coefficient (1.0)")
-    sim.add_argument("--seed", type=int, default=0, help="simulation seed (0)")
+    sim.add_argument("--speed", metavar="KMH", type=t.positive_float(500.0), default=80.0,
+                     help="initial speed in km/h (> 0, the manoeuvre sets the limit; default 80)")
+    sim.add_argument("--mu", metavar="MU", type=t.float_range(mu_lo, mu_hi), default=1.0,
+                     help=f"road friction coefficient ({mu_lo:g} to {mu_hi:g}; default 1.0)")
+    sim.add_argument("--seed", type=t.seed(), default=0, help="simulation seed (0 to 2**32-1; default 0)")
     sim.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.NAME=VALUE",
                      help="override one car parameter (repeatable)")
 

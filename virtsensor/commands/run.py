@@ -21,36 +21,35 @@ import sys
 HELP = "the real-time virtual-sensor daemon: CAN in, 20 Hz SAT_FRONT out"
 
 
-def _can_id(text: str) -> int:
-    try:
-        v = int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a CAN id: {text!r} (e.g. 0x7F0)") from None
-    if not 0 <= v <= 0x7FF:
-        raise argparse.ArgumentTypeError(f"{text} is not an 11-bit CAN id (0x000..0x7FF)")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", metavar="FILE.onnx", help="ONNX model (its .card.json beside it)")
-    parser.add_argument("--dbc", metavar="FILE.dbc", help="CAN matrix (default: the bundled dbc/virtsensor.dbc)")
+    from virtsensor.commands import _types as t
+
+    parser.add_argument("--model", metavar="FILE.onnx", type=t.existing_file(".onnx"),
+                        help="ONNX model (its .card.json beside it)")
+    parser.add_argument("--dbc", metavar="FILE.dbc", type=t.existing_file(".dbc"),
+                        help="CAN matrix (default: the bundled dbc/virtsensor.dbc)")
     parser.add_argument("--interface", "-i", help="python-can interface: socketcan, virtual, udp_multicast, pcan...")
     parser.add_argument("--channel", "-c", help="bus channel, e.g. vcan0, can0")
-    parser.add_argument("--bitrate", type=int, default=None, help="bit rate in bit/s, for interfaces that set it")
-    parser.add_argument("--sync-id", type=_can_id, default=None, metavar="ID",
+    parser.add_argument("--bitrate", type=t.int_range(1000, 20_000_000), default=None,
+                        help="bit rate in bit/s (1000 to 20,000,000), for interfaces that set it")
+    parser.add_argument("--sync-id", type=t.can_id(), default=None, metavar="ID",
                         help="tick on frames with this CAN id (e.g. 0x7F0) instead of the free-running 20 Hz clock")
-    parser.add_argument("--sync-every", type=int, default=None, metavar="N",
-                        help="tick on every N-th sync frame (default 1; e.g. 5 for a 100 Hz input frame)")
-    parser.add_argument("--config", metavar="FILE.toml", help="TOML file with any of these settings")
-    parser.add_argument("--cpu", type=int, default=None, metavar="N", help="pin the daemon to CPU N")
+    parser.add_argument("--sync-every", type=t.int_range(1, 1000), default=None, metavar="N",
+                        help="tick on every N-th sync frame (1 to 1000, default 1; e.g. 5 for a 100 Hz input frame)")
+    parser.add_argument("--config", metavar="FILE.toml", type=t.text_file(),
+                        help="TOML file with any of these settings")
+    parser.add_argument("--cpu", type=t.int_range(0, 4095), default=None, metavar="N",
+                        help="pin the daemon to CPU N (0 to 4095)")
     parser.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=None,
                         help="ask for SCHED_FIFO scheduling (logged and ignored when not permitted)")
-    parser.add_argument("--rt-priority", type=int, default=None, metavar="P", help="SCHED_FIFO priority (default 50)")
-    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-    parser.add_argument("--timeout-cycles", type=float, default=None, metavar="C",
-                        help="an input message is stale after C cycles without a usable frame (default 3)")
-    parser.add_argument("--model-id", type=int, default=None, metavar="BYTE",
-                        help="VS_ModelId byte (default: the card's model_id, else its sha256's first byte)")
+    parser.add_argument("--rt-priority", type=t.int_range(1, 99), default=None, metavar="P",
+                        help="SCHED_FIFO priority (1 to 99; default 50)")
+    parser.add_argument("--duration", type=t.float_range(0.0, 1e9, lo_open=True), default=None, metavar="S",
+                        help="stop after S seconds (> 0)")
+    parser.add_argument("--timeout-cycles", type=t.float_range(1.0, 1000.0), default=None, metavar="C",
+                        help="an input message is stale after C cycles without a usable frame (1 to 1000; default 3)")
+    parser.add_argument("--model-id", type=t.int_range(0, 255), default=None, metavar="BYTE",
+                        help="VS_ModelId byte, 0 to 255 (default: the card's model_id, else its sha256's first byte)")
     parser.add_argument("--log-level", default=None, choices=("debug", "info", "warning", "error"),
                         help="log level (default info)")
 

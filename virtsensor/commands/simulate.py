@@ -15,16 +15,23 @@ LOG_SUFFIXES = (".blf", ".asc", ".log")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from sim.manoeuvres import MU_RANGE
+    from virtsensor.commands import _types as t
+
     parser.add_argument("manoeuvre", metavar="MANOEUVRE",
                         help="free-steer, steering-pulse, double-lane-change, steady-state-circular, "
                              "single-sine, random-steer, braking-in-turn, fishhook, sine-with-dwell, "
                              "brake-accel, magny-cours, or recorded (with --inputs)")
-    parser.add_argument("--speed", type=float, metavar="KMH",
-                        help="entry speed in km/h (magny-cours: top speed); not with 'recorded'")
-    parser.add_argument("--mu", type=float, required=True, help="road friction coefficient (magny-cours: dry lap)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the manoeuvre's levels and the sensor noise")
-    parser.add_argument("--out", required=True, metavar="FILE", help="output: .csv table or .blf/.asc/.log CAN log")
-    parser.add_argument("--inputs", metavar="FILE",
+    parser.add_argument("--speed", type=t.positive_float(500.0), metavar="KMH",
+                        help="entry speed in km/h, > 0 (the manoeuvre sets the limit; magny-cours: top speed); "
+                             "not with 'recorded'")
+    parser.add_argument("--mu", type=t.float_range(*MU_RANGE), required=True,
+                        help=f"road friction coefficient, {MU_RANGE[0]:g} to {MU_RANGE[1]:g} (magny-cours: dry lap)")
+    parser.add_argument("--seed", type=t.seed(), default=0,
+                        help="seed of the manoeuvre's levels and the sensor noise (0 to 2**32-1)")
+    parser.add_argument("--out", required=True, metavar="FILE", type=t.output_file(*TABLE_SUFFIXES, *LOG_SUFFIXES),
+                        help="output: .csv table or .blf/.asc/.log CAN log")
+    parser.add_argument("--inputs", metavar="FILE", type=t.existing_file(),
                         help="for MANOEUVRE 'recorded': a table (.csv) or CAN log whose steering-wheel angle and "
                              "speed (or motor torque) drive the re-simulation")
     parser.add_argument("--longitudinal", choices=("speed", "torque"), default="speed",

@@ -15,34 +15,27 @@ import time
 import warnings
 from pathlib import Path
 
+#: Folds of the grid search (whole runs per fold).
+GRID_FOLDS = 3
 HELP = "train the paper's MLP (or the improved one) on recordings and export it to ONNX with its model card"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", nargs="+", required=True, metavar="PATH",
-                        help="recordings (.csv tables or CAN logs) or directories of them")
+    from virtsensor.commands import _types as t
+
+    parser.add_argument("--data", nargs="+", required=True, metavar="PATH", type=t.existing_path(),
+                        help="recordings (.csv tables or CAN logs) or directories of them (2 runs or more)")
     parser.add_argument("--recipe", default="paper", help="paper (Table III) or improved (default: paper)")
-    parser.add_argument("--out", required=True, metavar="FILE.onnx", help="ONNX file; the card goes beside it")
+    parser.add_argument("--out", required=True, metavar="FILE.onnx", type=t.output_file(".onnx"),
+                        help="ONNX file; the card goes beside it")
     parser.add_argument("--grid", action="store_true", help="grid search of Section III.B before the final fit")
-    parser.add_argument("--grid-rows", type=int, default=12000, help="rows the grid search uses (default 12000)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the splits and the network's initialisation")
-    parser.add_argument("--jobs", type=int, default=-1, help="parallel workers of the grid search")
+    parser.add_argument("--grid-rows", type=t.int_range(100, 10**7), default=12000, metavar="N",
+                        help="rows the grid search uses (100 to 10,000,000; default 12000)")
+    parser.add_argument("--seed", type=t.seed(), default=0,
+                        help="seed of the splits and the network's initialisation (0 to 2**32-1)")
+    parser.add_argument("--jobs", type=t.jobs(), default=-1, metavar="N",
+                        help="parallel workers of the grid search (1 to 1024, or -1: all cores; default -1)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
-
-
-def _inputs_for_card(spec) -> list[dict]:
-    from virtsensor import signals as cat
-
-    out = []
-    for f in spec.features:
-        s = cat.SIGNALS[f.signal]
-        scale = {"value": 1.0, "lag": 1.0, "rate": 1.0, "accel": 1.0}[f.op]
-        out.append({
-            "name": f.name, "signal": f.signal, "op": f.op, "lag": f.lag, "unit": f.unit,
-            "dbc_message": s.message, "dbc_signal": s.dbc_signal, "critical": s.critical,
-            "valid_range": [s.minimum * scale, s.maximum * scale] if f.op in ("value", "lag") else None,
-        })
-    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,16 +47,11 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.evaluation import grouped_split
     from virtsensor.features import SPECS
-    from virtsensor.onnx_model import export_pipeline
     from virtsensor.training import RECIPES, grid_search, make_pipeline, metrics
 
     if args.recipe not in RECIPES:
         raise UserError(f"--recipe: unknown recipe {args.recipe!r}; choose one of: {', '.join(RECIPES)}")
-    out = Path(args.out)
-    if out.suffix != ".onnx":
-        raise UserError(f"--out {out}: the model file must end in .onnx")
-    if not out.parent.exists():
-        raise UserError(f"--out {out}: directory {out.parent} does not exist")
+    out = Path(args.out)  # kind, suffix and directory checked by the argument's type
 
     def say(msg: str) -> None:
         if not args.quiet:
@@ -73,6 +61,11 @@ def run(args: argparse.Namespace) -> int:
     spec = SPECS[recipe["features"]]
     runs = load_runs(args.data, needed=(*spec.signals, *cat.OUTPUTS))
     ds = build_dataset(runs, spec)
+    n_runs = len(np.unique(ds.groups))
+    if n_runs < 2 or (args.grid and n_runs < GRID_FOLDS):
+        need = GRID_FOLDS if args.grid else 2
+        raise UserError(f"--data: {n_runs} run(s) with usable rows; training holds whole runs out, so it "
+                        f"needs at least {need}{' (one per fold of --grid)' if args.grid else ''}")
     say(f"{len(ds.runs)} runs, {len(ds.X)} rows of {len(ds.feature_names)} features "
         f"({ds.dropped_nonfinite} non-finite rows dropped)")
     report: dict = {"recipe": args.recipe}
@@ -80,8 +73,8 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore")  # convergence notes: the iteration counts go to the card instead
         if args.grid:
-            result = grid_search(ds.X, ds.Y, ds.groups, max_rows=args.grid_rows, seed=args.seed, n_jobs=args.jobs,
-                                 progress=not args.quiet, base_params=recipe["params"])
+            result = grid_search(ds.X, ds.Y, ds.groups, folds=GRID_FOLDS, max_rows=args.grid_rows, seed=args.seed,
+                                 n_jobs=args.jobs, progress=not args.quiet, base_params=recipe["params"])
             recipe["params"] = result.best_params
             report["grid_search"] = {"best_r2": result.best_r2, "seconds": result.seconds, "rows": result.rows,
                                      "folds": result.folds, "candidates": result.candidates}
@@ -103,28 +96,22 @@ def run(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     parity_rows = ds.X[rng.choice(len(ds.X), min(5000, len(ds.X)), replace=False)]
     try:
-        card = _export(export_pipeline, model, ds, out, parity_rows, args, recipe, spec, report)
+        card = _export(model, ds, out, parity_rows, args, recipe, spec, report)
     except ValueError as exc:  # parity beyond 1e-3 Nm: nothing was written
         raise UserError(f"{out}: export refused: {exc}") from None
     say(f"wrote {out} (sha256 {card['sha256'][:12]}..., ONNX/sklearn parity {card.get('parity_max_abs_nm', 0):.2e} Nm)")
     return 0
 
 
-def _export(export_pipeline, model, ds, out, parity_rows, args, recipe, spec, report) -> dict:
-    from virtsensor.onnx_model import pipeline_weights
+def _export(model, ds, out, parity_rows, args, recipe, spec, report):
+    from virtsensor.model import ModelCard
+    from virtsensor.model.export import export_pipeline, pipeline_weights
 
-    return export_pipeline(model, len(ds.feature_names), out, parity_X=parity_rows, card_extra={
-        "model": f"virtsensor-{args.recipe}",
-        "recipe": recipe,
-        "feature_spec": spec.to_json(),
-        "inputs": _inputs_for_card(spec),
-        "signals": list(spec.signals),
-        "training_data": {
+    return export_pipeline(model, len(ds.feature_names), out, parity_X=parity_rows, card_extra=ModelCard.trainer_fields(
+        model=f"virtsensor-{args.recipe}", spec=spec, recipe=recipe, seed=args.seed, metrics=report,
+        training_data={
             "fingerprint_sha256": ds.fingerprint(), "rows": int(len(ds.X)), "runs": len(ds.runs),
             "dropped_nonfinite": ds.dropped_nonfinite, "sources": [str(p) for p in args.data],
         },
-        "metrics": report,
-        "seed": args.seed,
         # the same weights as plain arrays: the numpy back-end and audits need no sklearn
-        "weights": pipeline_weights(model),
-    })
+        weights=pipeline_weights(model)))

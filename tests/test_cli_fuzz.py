@@ -1,0 +1,254 @@
+"""Every command-line mistake is one line and exit 2: named cases, then a fuzz over every subcommand.
+
+The fuzz draws, for a random subcommand, a random set of its options with values taken from each
+option's own type (``fuzz_valid``/``fuzz_invalid`` of :mod:`virtsensor.commands._types`), its
+``choices``, or the table of free-text options below, with at least one value that must be refused.
+It runs :func:`virtsensor.cli.main` in-process in a scratch directory and asserts exit 2, exactly one
+line on stderr, no traceback and nothing written. A refusal that comes only after work has started
+(a validation missing or too late) shows as a traceback, a written file or the per-case time limit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import os
+import shlex
+import signal
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from virtsensor import cli
+from virtsensor.commands import _types as t
+
+#: Free-text options (checked by the command itself): (valid values, values it must refuse).
+FREE_TEXT: dict[tuple[str, str], tuple[tuple[str, ...], tuple[str, ...]]] = {
+    ("simulate", "manoeuvre"): (("steering-pulse", "magny-cours"), ("nope", "")),
+    ("campaign", "preset"): (("tiny",), ("nope", "")),
+    ("train", "recipe"): (("paper", "improved"), ("nope",)),
+    ("diagnose", "recipe"): (("improved",), ("nope",)),
+    ("diagnose", "campaign"): (("smoke",), ("nope",)),
+    ("replay", "interface"): (("virtual",), ("nope",)),
+    ("replay", "channel"): (("fuzz",), ()),
+    ("replay", "manoeuvre"): (("steering-pulse",), ("nope",)),
+    ("run", "interface"): (("virtual",), ()),
+    ("run", "channel"): (("fuzz",), ()),
+}
+#: ``--set SECTION.NAME=VALUE`` (simulate, campaign, replay, diagnose).
+OVERRIDES = (("vehicle.mass_kg=1500",), ("x", "nope.nope=1", "vehicle.mass_kg=abc", "tyres.file={tmp}/secret.txt"))
+PER_CASE_S = 5.0
+IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
+
+
+@pytest.fixture(scope="module")
+def scratch(tmp_path_factory) -> Path:
+    """A directory with one of each kind of path the types' examples name."""
+    d = tmp_path_factory.mktemp("cli_fuzz")
+    (d / "secret.txt").write_text("password = hunter2-SECRET\n")
+    (d / "binary.bin").write_bytes(bytes(range(256)) * 4)
+    for suffix in (".onnx", ".dbc", ".csv", ".toml", ".png", ".txt"):
+        (d / f"file{suffix}").write_bytes(b"not really\n")
+        (d / f"dir{suffix}").mkdir()  # a directory where a file of that kind is wanted
+    (d / "dir").mkdir()
+    (d / "ro").mkdir()
+    (d / "ro").chmod(0o555)
+    yield d
+    (d / "ro").chmod(0o755)
+
+
+def _usable(text: str) -> bool:
+    return not (IS_ROOT and "/ro" in text)  # root writes into read-only directories: not a refusal for root
+
+
+def _spec(command: str) -> list[dict]:
+    """One entry per option/positional of ``command``: flags, nargs, required, valid and invalid values."""
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    cli._load(cli.COMMANDS[command][0]).add_arguments(sub)
+    out = []
+    for a in sub._actions:
+        if isinstance(a, argparse._HelpAction):
+            continue
+        entry = {"flag": a.option_strings[0] if a.option_strings else None, "dest": a.dest,
+                 "required": a.required or (not a.option_strings and a.nargs is None), "nargs": a.nargs}
+        if a.nargs == 0:  # store_true / store_false / BooleanOptionalAction
+            entry.update(valid=("",), invalid=())
+        elif a.choices is not None:
+            entry.update(valid=tuple(map(str, a.choices)), invalid=("nope", ""))
+        elif hasattr(a.type, "fuzz_valid"):
+            entry.update(valid=a.type.fuzz_valid, invalid=a.type.fuzz_invalid)
+        elif a.dest == "overrides":
+            entry.update(valid=OVERRIDES[0], invalid=OVERRIDES[1])
+        elif (command, a.dest) in FREE_TEXT:
+            valid, invalid = FREE_TEXT[(command, a.dest)]
+            entry.update(valid=valid, invalid=invalid)
+        else:
+            raise AssertionError(f"{command} {a.option_strings or a.dest}: no checked type (use virtsensor."
+                                 "commands._types), no choices, and not a known free-text option")
+        entry["invalid"] = tuple(v for v in entry["invalid"] if _usable(v))
+        out.append(entry)
+    return out
+
+
+SPECS = {name: _spec(name) for name in cli.COMMANDS}
+
+
+def test_every_option_of_every_command_has_a_checked_type():
+    """The table above and the types cover every option (``_spec`` raises otherwise); ranges are in the help."""
+    for name, spec in SPECS.items():
+        assert any(e["invalid"] for e in spec), name
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for name in cli.COMMANDS:
+        cli._load(cli.COMMANDS[name][0]).add_arguments(sub[name])
+        for a in sub[name]._actions:
+            name_of = getattr(a.type, "__name__", "")
+            if name_of in ("integer", "number") and a.help:
+                assert any(w in a.help for w in (" to ", ">", "<")), (name, a.option_strings, a.help)
+
+
+@st.composite
+def bad_argv(draw) -> list[str]:
+    """A subcommand's argument list with at least one value its checks must refuse."""
+    command = draw(st.sampled_from(sorted(SPECS)))
+    spec = SPECS[command]
+    chosen = [e for e in spec if e["required"] or draw(st.booleans())]
+    candidates = [e for e in chosen if e["invalid"]]
+    if not candidates:  # every command has an option with refusable values: add one
+        candidates = [draw(st.sampled_from([e for e in spec if e["invalid"]]))]
+        chosen.append(candidates[0])
+    bad = {id(draw(st.sampled_from(candidates)))}
+    bad |= {id(e) for e in candidates if draw(st.integers(0, 9)) == 0}  # now and then a second mistake
+    positionals, options = [], []
+    for e in chosen:
+        pool = e["invalid"] if id(e) in bad else e["valid"]
+        n = draw(st.integers(1, 2)) if e["nargs"] == "+" else 1
+        values = [draw(st.sampled_from(pool)) for _ in range(n)]
+        if e["flag"] is None:
+            positionals += values
+        elif e["nargs"] == 0:
+            options.append([e["flag"]])
+        else:
+            options.append([e["flag"], *values])
+    options = draw(st.permutations(options))
+    return [command, *positionals, *(x for o in options for x in o)]
+
+
+def _alarm(signum, frame):
+    raise TimeoutError(f"a case ran over {PER_CASE_S} s: work started before the arguments were checked")
+
+
+def _run(argv: list[str], where: Path) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    old_cwd = os.getcwd()
+    old = signal.signal(signal.SIGALRM, _alarm)
+    signal.setitimer(signal.ITIMER_REAL, PER_CASE_S)
+    try:
+        os.chdir(where)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            rc = cli.main(argv)
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+        os.chdir(old_cwd)
+    return rc, out.getvalue(), err.getvalue()
+
+
+def _listing(d: Path) -> list[str]:
+    return sorted(str(p.relative_to(d)) for p in d.rglob("*"))
+
+
+def _assert_refused(argv: list[str], scratch: Path) -> str:
+    argv = [a.replace("{tmp}", str(scratch)) for a in argv]
+    before = _listing(scratch)
+    rc, out, err = _run(argv, scratch)
+    shown = shlex.join(argv)
+    assert rc == 2, f"{shown}: exit {rc}\n{err}"
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, f"{shown}: stderr is not one line:\n{err}"
+    assert "Traceback" not in err and "SECRET" not in err + out, f"{shown}:\n{err}"
+    assert _listing(scratch) == before, f"{shown}: wrote {set(_listing(scratch)) - set(before)}"
+    return lines[0]
+
+
+@settings(max_examples=500, deadline=None, database=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
+                                 HealthCheck.data_too_large])
+@given(argv=bad_argv())
+def test_fuzz_every_mistake_is_one_line_and_exit_2(scratch, argv):
+    _assert_refused(argv, scratch)
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--seed", "-1", "--out", "{tmp}/x.csv"], "--seed"),
+    (["campaign", "tiny", "--jobs", "0", "--out", "{tmp}/camp"], "--jobs"),
+    (["train", "--data", "{tmp}/dir", "--grid-rows", "0", "--out", "{tmp}/m.onnx"], "--grid-rows"),
+    (["replay", "{tmp}/file.csv", "-i", "virtual", "-c", "x", "--rate", "1e-300"], "--rate"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--params", "{tmp}/binary.bin",
+      "--out", "{tmp}/x.csv"], "binary.bin"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--out", "{tmp}/dir.csv"], "is a directory"),
+    (["campaign", "tiny", "--out", "{tmp}/file.txt"], "not a directory"),
+    (["explain", "--model", "{tmp}/file.onnx", "--data", "{tmp}/dir", "--out", "{tmp}/file.txt"], "not a directory"),
+    (["evaluate", "--model", "{tmp}/dir.onnx", "--data", "{tmp}/dir", "--json", "{tmp}/e.json"], "is a directory"),
+    (["train", "--data", "{tmp}/missing", "--out", "{tmp}/m.onnx"], "no such file"),
+    (["simulate", "steering-pulse", "--speed", "nan", "--mu", "1", "--out", "{tmp}/x.csv"], "--speed"),
+    (["run", "--model-id", "256"], "--model-id"),
+    (["bench", "--soak-ticks", "0"], "--soak-ticks"),
+    (["demo", "--rate", "0"], "--rate"),
+    (["diagnose", "--measured", "{tmp}/dir", "--ensemble", "11"], "--ensemble"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--set", "tyres.file={tmp}/secret.txt",
+      "--out", "{tmp}/x.csv"], "secret.txt"),
+])
+def test_named_mistakes(scratch, argv, needle):
+    line = _assert_refused(argv, scratch)
+    assert needle in line, line
+
+
+def test_a_read_only_output_directory_is_refused(scratch, monkeypatch):
+    """(Root writes anywhere, so the directory's mode alone cannot show it: the permission check is faked.)"""
+    ro = str(scratch / "ro")
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if str(p).startswith(ro) and mode & os.W_OK
+                        else real(p, mode, **kw))
+    for argv in (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--out", "{tmp}/ro/x.csv"],
+                 ["campaign", "tiny", "--out", "{tmp}/ro/camp"],
+                 ["explain", "--model", "{tmp}/file.onnx", "--data", "{tmp}/dir", "--out", "{tmp}/ro"]):
+        assert "not writable" in _assert_refused(argv, scratch)
+
+
+def test_train_refuses_a_single_run(scratch, tmp_path):
+    from virtsensor import signals as cat
+
+    names = ["time_s", *cat.INPUTS, *cat.OUTPUTS]
+    rows = [",".join(["0.05" if n == "time_s" else "0.0" for n in names])] * 3
+    run = tmp_path / "run.csv"
+    run.write_text(",".join(names) + "\n" + "\n".join(
+        ",".join([f"{0.05 * i:.2f}", *r.split(",")[1:]]) for i, r in enumerate(rows)) + "\n")
+    line = _assert_refused(["train", "--data", str(run), "--out", "{tmp}/m.onnx"], scratch)
+    assert "at least 2" in line
+
+
+def test_types_refuse_and_accept_their_own_examples(scratch):
+    """The examples the fuzz draws from are what the types do (no example is silently the other kind)."""
+    import inspect
+
+    makers = [t.int_range(0, 9), t.int_range(1, None), t.jobs(), t.seed(), t.float_range(0.0, 1.0, lo_open=True),
+              t.positive_float(), t.rate(), t.can_id(), t.existing_file(".onnx"), t.text_file(), t.existing_dir(),
+              t.existing_path(), t.output_file(".csv"), t.output_file(mkdirs=True), t.output_dir(empty=True)]
+    assert {n for n, f in inspect.getmembers(t, inspect.isfunction) if not n.startswith("_")} >= {
+        "int_range", "float_range", "existing_file", "output_file", "output_dir"}
+    def full(fn, text):  # what the CLI applies: the parse-time type, then the path's kind
+        value = fn(text)
+        getattr(fn, "check_path", lambda _v: None)(value)
+
+    for fn in makers:
+        for v in fn.fuzz_valid:
+            full(fn, v.replace("{tmp}", str(scratch)))
+        for v in fn.fuzz_invalid:
+            if _usable(v):
+                with pytest.raises(argparse.ArgumentTypeError):
+                    full(fn, v.replace("{tmp}", str(scratch)))
