@@ -109,11 +109,15 @@ def check_tyre_file(name: str | Path, overrides: Mapping[str, float] | None = No
             line = tir.section_lines.get("MODEL")
             where = f"{path}:{line}: [MODEL]" if line is not None else f"{path}:"
             raise TirError(f"{where} no FITTYP (Magic Formula version; 61 or 62 expected)")
+        model = MagicFormula61(tir, source=str(path))
         if overrides:
+            unknown = sorted(k for k in overrides if k not in tir and k not in model.params)
+            if unknown:
+                raise TirError(f"--set {unknown[0]}: not a coefficient of the MF 6.1 model or of {path.name}")
             for key in overrides:
                 tir.lines.pop(key, None)
             tir.update(overrides)
-        model = MagicFormula61(tir, source=str(path))
+            model = MagicFormula61(tir, source=str(path))
     except TirError as exc:
         raise UserError(str(exc)) from None
     defaults = {k: v for k, v in model.params.items() if k not in tir and isinstance(v, float)}

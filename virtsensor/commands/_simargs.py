@@ -27,6 +27,7 @@ def add_car_arguments(parser: argparse.ArgumentParser) -> None:
                         help="inflation pressure of all four tyres (gauge, bar; > 0 and <= 10, the tyre "
                              "file sets the usable range)")
     parser.add_argument("--tyre", dest="tyres", action="append", default=[], metavar="[front=|rear=]FILE.tir",
+                        type=t.tyre_spec(),
                         help="MF 6.1 tyre property file, or a bundled tyre's name (see 'virtsensor tyre'), of all "
                              "four wheels, or with front= / rear= of one axle (repeatable); checked before any "
                              "work; the same as --set tyres.file=FILE (tyres.file_front, tyres.file_rear)")

@@ -160,6 +160,26 @@ def can_id() -> ArgType:
     return _tag(parse, "CAN id", ["0x7F0", "0", "2047"], ["0x800", "-1", "x", "", "1e3", str(10**40)])
 
 
+def tyre_spec(*, axles: bool = True) -> ArgType:
+    """``[front=|rear=]TYRE`` (``axles``) or ``TYRE``: a tyre file or a bundled tyre's name.
+
+    Only the form is checked here (an axle prefix, a non-empty name); the file itself is read and
+    validated before any work starts (:func:`virtsensor.tyres.check_tyre_file`)."""
+
+    def parse(text: str) -> str:
+        axle, sep, name = text.partition("=") if axles else ("", "", text)
+        if sep and axle not in ("front", "rear"):
+            raise argparse.ArgumentTypeError(f"{text!r}: the axle before '=' is front or rear")
+        if not (name if sep else text).strip():
+            raise argparse.ArgumentTypeError(f"{text!r}: no tyre file or name given")
+        return text
+
+    if not axles:
+        return _tag(parse, "tyre", ["mf61_255_55R20"], ["", "/no/such/tyre.tir", "{tmp}/secret.txt"])
+    return _tag(parse, "tyre", ["mf61_255_55R20", "front=mf61_255_55R20", "rear=c_segment_205_55R16"],
+                ["", "front=", "left=x.tir", "/no/such/tyre.tir", "rear=/no/such.tir"])
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # paths
 #
@@ -333,6 +353,17 @@ def output_file(*suffixes: str, mkdirs: bool = False) -> ArgType:
     if suffixes:
         invalid.append("{tmp}/out.wrongsuffix")
     return _path_tag(check, "output file", [f"{{tmp}}/{name}"], invalid)
+
+
+def output_file_or_stdout(*suffixes: str) -> ArgType:
+    """``-`` (standard output) or an :func:`output_file`."""
+    inner = output_file(*suffixes)
+
+    def check(text: str) -> str:
+        return text if text == "-" else inner.check_path(text)  # type: ignore[attr-defined]
+
+    return _path_tag(check, "output file or -", ["-", *inner.fuzz_valid],  # type: ignore[attr-defined]
+                     inner.fuzz_invalid)  # type: ignore[attr-defined]
 
 
 def output_dir(*, empty: bool = False) -> ArgType:

@@ -22,10 +22,13 @@ HELP = "check a .tir tyre property file; cornering stiffness, Fy and Mz peaks, t
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", metavar="FILE.tir", help="tyre property file, or the name of a bundled tyre")
-    parser.add_argument("--json", dest="json_path", metavar="FILE", default=None,
+    from virtsensor.commands import _types as t
+
+    parser.add_argument("file", metavar="FILE.tir", type=t.tyre_spec(axles=False),
+                        help="tyre property file, or the name of a bundled tyre")
+    parser.add_argument("--json", dest="json_path", metavar="FILE", default=None, type=t.output_file_or_stdout(),
                         help="write the figures as JSON ('-': to standard output instead of the table)")
-    parser.add_argument("--plot", metavar="FILE.png", default=None,
+    parser.add_argument("--plot", metavar="FILE.png", default=None, type=t.output_file(".png"),
                         help="PNG of Fy, Mz against slip angle and Fx against kappa, 3 loads, 2 pressures "
                              "(needs matplotlib: the 'plots' extra)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
