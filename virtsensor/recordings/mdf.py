@@ -4,10 +4,19 @@ Channels named by a catalogue name or a DBC signal name are sampled and held at
 the 20 Hz ticks ``t0 + k * 0.05 s`` (k = 1, 2...; ``t0`` the first sample of any
 channel), as the CAN front-end samples frames; the table's ``time_s`` counts
 from ``t0``. A channel's unit, when the file gives one, must be the catalogue's.
+
+An MDF4 file cut by the end of the file (a block that starts or ends past it,
+found by walking every link from the header block) or never finalized by its
+logger is refused, with the last timestamp that can still be read, if any.
 """
 
 from __future__ import annotations
 
+import gc
+import struct
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +35,12 @@ def read_mdf(path: Path) -> dict[str, np.ndarray]:
     except ImportError:
         raise UserError(f"{path}: reading MDF4 needs asammdf: pip install 'virtsensor[mdf]'") from None
     by_dbc = {s.dbc_signal: s.name for s in cat.SIGNALS.values() if s.dbc_signal}
+    cut = mdf4_cut(path)
+    if cut is not None:
+        raise UserError(f"{path}: truncated: {cut}; {_last_good(MDF, path)}")
     try:
-        mdf = MDF(str(path))
+        with _quiet_cleanup():
+            mdf = MDF(str(path))
     except Exception as exc:  # asammdf raises many kinds on a bad file
         raise UserError(f"{path}: not a readable MDF file ({type(exc).__name__}: {exc})") from None
     series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -53,3 +66,57 @@ def read_mdf(path: Path) -> dict[str, np.ndarray]:
         col = np.where(i >= 0, ys[np.maximum(i, 0)], np.nan)
         table[name] = col
     return table
+
+
+@contextmanager
+def _quiet_cleanup() -> Iterator[None]:
+    """asammdf objects that failed to open raise again in ``__del__``; those echoes of an
+    error already reported in one line are silenced (collected here, not at exit)."""
+    hook = sys.unraisablehook
+    sys.unraisablehook = lambda _: None
+    try:
+        yield
+    finally:
+        gc.collect()
+        sys.unraisablehook = hook
+
+
+def mdf4_cut(path: Path) -> str | None:
+    """Why an MDF4 file is cut (a block starting or ending past the end of the file,
+    or a file its logger never finalized), or None. Not MDF4: None (the reader judges)."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        ident = f.read(64)
+        if ident[:8] == b"UnFinMF ":
+            return "the file was never finalized (its logger did not close it)"
+        if ident[:8] != b"MDF     " or not ident[8:9] == b"4":
+            return None
+        stack, seen = [64], set()
+        while stack:
+            off = stack.pop()
+            if off in seen:
+                continue
+            seen.add(off)
+            if off + 24 > size:
+                return f"a block at byte offset {off} lies past the end of the file ({size} bytes)"
+            f.seek(off)
+            head = f.read(24)
+            if head[:2] != b"##":
+                return None  # not a block: damaged, not cut; the reader says so
+            length, n_links = struct.unpack("<QQ", head[8:24])
+            if off + length > size:
+                return (f"its {head[2:4].decode(errors='replace')} block at byte offset {off} ({length} bytes) "
+                        f"ends past the end of the file ({size} bytes)")
+            n_links = min(n_links, max(0, (length - 24) // 8))
+            stack.extend(x for x in struct.unpack(f"<{n_links}Q", f.read(8 * n_links)) if x)
+    return None
+
+
+def _last_good(mdf_class, path: Path) -> str:
+    """The last timestamp any channel group of a cut file still gives, for messages."""
+    try:
+        with _quiet_cleanup(), mdf_class(str(path)) as mdf:
+            last = max(float(mdf.get_master(i)[-1]) for i in range(len(mdf.groups)) if len(mdf.get_master(i)))
+    except Exception:  # noqa: BLE001 - asammdf fails in many ways on a cut file
+        return "no timestamp can be read (the channel directory is past the cut)"
+    return f"the last good timestamp is {last:.6f} s"
