@@ -15,9 +15,8 @@ from __future__ import annotations
 import gc
 import struct
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,11 +37,9 @@ def read_mdf(path: Path) -> dict[str, np.ndarray]:
     cut = mdf4_cut(path)
     if cut is not None:
         raise UserError(f"{path}: truncated: {cut}; {_last_good(MDF, path)}")
-    try:
-        with _quiet_cleanup():
-            mdf = MDF(str(path))
-    except Exception as exc:  # asammdf raises many kinds on a bad file
-        raise UserError(f"{path}: not a readable MDF file ({type(exc).__name__}: {exc})") from None
+    mdf, error = _open(MDF, path)
+    if mdf is None:
+        raise UserError(f"{path}: not a readable MDF file ({error})")
     series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     with mdf:
         for ch in list(mdf.channels_db):
@@ -68,16 +65,20 @@ def read_mdf(path: Path) -> dict[str, np.ndarray]:
     return table
 
 
-@contextmanager
-def _quiet_cleanup() -> Iterator[None]:
-    """asammdf objects that failed to open raise again in ``__del__``; those echoes of an
-    error already reported in one line are silenced (collected here, not at exit)."""
+def _open(mdf_class: Any, path: Path) -> tuple[Any, str | None]:
+    """``(mdf, None)``, or ``(None, error)`` if asammdf cannot open ``path``. A
+    half-built asammdf object raises again in its ``__del__``; that echo of an
+    error reported once already is collected here, silently."""
     hook = sys.unraisablehook
     sys.unraisablehook = lambda _: None
     try:
-        yield
+        try:
+            return mdf_class(str(path)), None
+        except Exception as exc:  # noqa: BLE001 - asammdf raises many kinds on a bad file
+            error = f"{type(exc).__name__}: {exc}"
+        gc.collect()  # the traceback is released: the half-built object goes now
+        return None, error
     finally:
-        gc.collect()
         sys.unraisablehook = hook
 
 
@@ -114,9 +115,12 @@ def mdf4_cut(path: Path) -> str | None:
 
 def _last_good(mdf_class, path: Path) -> str:
     """The last timestamp any channel group of a cut file still gives, for messages."""
+    mdf, _ = _open(mdf_class, path)
+    if mdf is None:
+        return "no timestamp can be read (the channel directory is past the cut)"
     try:
-        with _quiet_cleanup(), mdf_class(str(path)) as mdf:
+        with mdf:
             last = max(float(mdf.get_master(i)[-1]) for i in range(len(mdf.groups)) if len(mdf.get_master(i)))
     except Exception:  # noqa: BLE001 - asammdf fails in many ways on a cut file
-        return "no timestamp can be read (the channel directory is past the cut)"
+        return "no timestamp can be read"
     return f"the last good timestamp is {last:.6f} s"
