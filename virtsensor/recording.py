@@ -338,22 +338,22 @@ def _last_good(path: Path, real: str, stop_line: int) -> str:
     from can.io.player import MESSAGE_READERS
 
     lines = _Lines(open(path, encoding="utf-8", newline=None), None)  # noqa: SIM115 - closed below
-    n, first, last = 0, None, None
+    n, first, last = 0, 0.0, 0.0
     log = logging.getLogger("can")
     level = log.level
     log.setLevel(logging.ERROR)  # python-can warns about the cut line: the message says it already
     try:
-        for msg in MESSAGE_READERS[real](file=lines):
+        for msg in MESSAGE_READERS[real](file=lines):  # type: ignore[arg-type]
             if lines.lineno >= stop_line:
                 break
-            first = msg.timestamp if first is None else first
+            first = msg.timestamp if n == 0 else first
             last, n = msg.timestamp, n + 1
     except Exception:  # noqa: BLE001 - what is readable before the cut is all that is wanted
         pass
     finally:
         log.setLevel(level)
         lines.close()
-    if last is None:
+    if n == 0:
         return "no frame before it is complete"
     return (f"the last good frame is frame {n - 1}, timestamp {last:.6f} s "
             f"({last - first:.3f} s after the first frame)")
@@ -396,14 +396,14 @@ def iter_log(path: str | os.PathLike) -> Iterator:
     if real == ".blf":
         problem = _blf_truncation(path, reader)
         if problem:
-            n, first, last = 0, None, None
+            n, first, last = 0, 0.0, 0.0
             try:
                 for msg in reader:
-                    first = msg.timestamp if first is None else first
+                    first = msg.timestamp if n == 0 else first
                     last, n = msg.timestamp, n + 1
             except Exception:  # noqa: BLE001 - only counting what is readable
                 pass
-            good = "no frame is readable" if last is None else (
+            good = "no frame is readable" if n == 0 else (
                 f"frames 0..{n - 1} are readable (the last good one at timestamp {last:.6f} s, "
                 f"{last - first:.3f} s after the first frame), frame {n} is cut")
             raise UserError(f"{path}: {problem}; {good}")
