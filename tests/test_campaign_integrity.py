@@ -99,15 +99,19 @@ def _assert_all_end_and_nothing_is_written(out: Path, workers: set[int], killed_
     assert _snapshot(out) == before
 
 
-def test_ctrl_c_ends_the_whole_campaign_at_once_and_leaves_nothing(tmp_path):
+@pytest.mark.parametrize("how", ["ctrl-c", pytest.param("sigterm", marks=pytest.mark.slow)])
+def test_ctrl_c_or_sigterm_ends_the_whole_campaign_at_once_and_leaves_nothing(tmp_path, how):
     out = tmp_path / "d"
     proc, workers = _start_and_wait_for_work(out)
-    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
+    if how == "ctrl-c":
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
+    else:
+        os.kill(proc.pid, signal.SIGTERM)
     try:
         proc.wait(timeout=3.0)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
-        pytest.fail("the campaign did not end within 3 s of Ctrl-C")
+        pytest.fail(f"the campaign did not end within 3 s of {how}")
     ended = time.time()
     _assert_all_end_and_nothing_is_written(out, workers, ended)
     err = proc.stderr.read()
