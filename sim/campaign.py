@@ -209,10 +209,10 @@ def _backend_config(backend: str | None, parent_pid: int):
     """joblib configuration of a campaign: loky (joblib's default) with workers bound
     to the campaign's process from their start; any other backend as named."""
     from joblib import parallel_config
-    from joblib._parallel_backends import LokyBackend
     from joblib.parallel import get_active_backend
 
-    if backend == "loky" or (backend is None and isinstance(get_active_backend()[0], LokyBackend)):
+    default_is_loky = type(get_active_backend()[0]).__name__ == "LokyBackend"
+    if backend == "loky" or (backend is None and default_is_loky):
         return parallel_config(backend="loky", initializer=_loky_initializer, initargs=(parent_pid,))
     return parallel_config(backend=backend) if backend else nullcontext()
 

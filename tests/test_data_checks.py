@@ -149,6 +149,16 @@ def test_train_refuses_a_bad_table_naming_file_column_and_row_as_diagnose_does(t
     assert re.search(pattern, str(e.value)), str(e.value)
 
 
+def test_simulator_truth_is_not_a_sensor_reading_and_is_not_range_checked():
+    t = _table()
+    t["kappa_fl_1"] = np.full(200, 3.4)  # a front wheel spinning at low speed on ice: slip ratio > 1
+    check_table("sim.csv", t)
+    t["tyre_pressure_fl_pa"] = np.full(200, 2.3e5)
+    t["tyre_pressure_fl_pa"][0] = -1.0  # an aux signal a car carries is checked
+    with pytest.raises(UserError, match=r"column tyre_pressure_fl_pa, row 1 \(line 2\): expected 0 to 510000 Pa"):
+        check_table("sim.csv", t)
+
+
 def test_targets_must_be_finite_for_training_but_a_missing_input_is_sna(tmp_path):
     t = _table()
     t["steer_torque_nm"][10] = np.nan  # SNA: the row is dropped later, the file is fine
