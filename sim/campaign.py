@@ -9,6 +9,14 @@ changes. Results are deterministic for a seed whatever the backend or the
 number of workers: each run's randomness comes from its own seed, derived from
 the campaign seed and the run's index.
 
+Workers end with the campaign's process: a worker that is its child (loky,
+multiprocessing) is bound to it when it starts (loky initializer) and again at
+each batch (any backend): on Linux the kernel sends it SIGKILL the moment its
+parent ends (``PR_SET_PDEATHSIG``), elsewhere a watchdog thread ends it within
+:data:`WATCHDOG_S`. An interrupt (KeyboardInterrupt) in the parent makes joblib
+kill and join the workers before it propagates. Workers on other machines (Ray,
+Dask) are left to their cluster's cancellation.
+
 Preset ``paper`` is the data set of the paper: the ten manoeuvres of Table I,
 each at four speeds spread over its Table I range, on roads of friction
 1.0, 0.7, 0.5, 0.3 and 0.2 (dry asphalt to ice), 20 Hz, about 45,000 samples.
@@ -17,6 +25,9 @@ each at four speeds spread over its Table I range, on roads of friction
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import asdict
@@ -73,6 +84,60 @@ PRESETS: dict[str, Callable[[int], list[Request]]] = {
 }
 
 
+#: polling period (s) of the watchdog that ends a worker whose parent is gone (where prctl is missing)
+WATCHDOG_S = 0.2
+_PR_SET_PDEATHSIG = 1
+_bound_to: int | None = None
+
+
+def _set_pdeathsig(sig: int) -> bool:
+    """Ask the Linux kernel to send ``sig`` to this process when its parent ends."""
+    import ctypes
+    import ctypes.util
+
+    if not os.uname().sysname == "Linux":
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        return libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watchdog(parent_pid: int) -> None:
+    while os.getppid() == parent_pid:
+        threading.Event().wait(WATCHDOG_S)
+    os._exit(1)
+
+
+def bind_to_parent(parent_pid: int) -> None:
+    """Make the calling worker process end when the campaign's process ``parent_pid`` ends.
+
+    Idempotent. Does nothing in the campaign's own process (sequential or
+    threading backends) or in a process that is not its child (a worker of a
+    cluster). On Linux the kernel delivers SIGKILL at the parent's death;
+    elsewhere a daemon thread polls the parent every :data:`WATCHDOG_S` s. (The
+    kernel ties the signal to the parent's thread that started the worker: loky
+    starts its workers from threads that live as long as its executor.)
+    """
+    global _bound_to
+    if _bound_to == parent_pid or os.getpid() == parent_pid or os.getppid() != parent_pid:
+        return
+    _bound_to = parent_pid
+    if not _set_pdeathsig(signal.SIGKILL):
+        threading.Thread(target=_watchdog, args=(parent_pid,), daemon=True, name="campaign-watchdog").start()
+    if os.getppid() != parent_pid:  # the parent ended before the binding took effect
+        os._exit(1)
+
+
+def _loky_initializer(parent_pid: int) -> None:
+    """Start of a loky worker (always a child of the campaign's process): bind it, or
+    end it at once if the campaign's process ended while it was starting."""
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    bind_to_parent(parent_pid)
+
+
 def _batches(plans: Sequence[Plan], n_batches: int) -> list[list[int]]:
     """Group run indices into batches of similar duration (less padding per batch)."""
     # longest batches first, so the short ones fill the workers at the end
@@ -81,7 +146,8 @@ def _batches(plans: Sequence[Plan], n_batches: int) -> list[list[int]]:
 
 
 def _run_batch(requests: Sequence[Request], plans: Sequence[Plan], params: Mapping[str, Any],
-               writer: Callable[[SimRun], Any] | None):
+               writer: Callable[[SimRun], Any] | None, parent_pid: int):
+    bind_to_parent(parent_pid)
     runs = simulate_many(requests, params, plans=plans)
     if writer is None:
         return runs
@@ -111,7 +177,7 @@ def run_campaign(
         progress: show a tqdm bar on stderr.
         backend: joblib backend name (None: joblib's default, loky).
     """
-    from joblib import Parallel, delayed, parallel_config
+    from joblib import Parallel, delayed
     from tqdm import tqdm
 
     if not requests:
@@ -122,15 +188,33 @@ def run_campaign(
     n_batches = max(1, int(np.ceil(len(requests) / batch_size)))
     groups = _batches(plans, n_batches)
     results: list[Any] = [None] * len(requests)
-    with parallel_config(backend=backend) if backend else nullcontext():
+    me = os.getpid()
+    with _backend_config(backend, me):
         par = Parallel(n_jobs=n_jobs, return_as="generator")
-        jobs = (delayed(_run_batch)([requests[i] for i in g], [plans[i] for i in g], params, writer) for g in groups)
-        with tqdm(total=len(requests), unit="run", disable=not progress, desc="simulating") as bar:
-            for g, out in zip(groups, par(jobs), strict=True):
-                for i, item in zip(g, out, strict=True):
-                    results[i] = item
-                bar.update(len(g))
+        jobs = (delayed(_run_batch)([requests[i] for i in g], [plans[i] for i in g], params, writer, me)
+                for g in groups)
+        outputs = par(jobs)
+        try:
+            with tqdm(total=len(requests), unit="run", disable=not progress, desc="simulating") as bar:
+                for g, out in zip(groups, outputs, strict=True):
+                    for i, item in zip(g, out, strict=True):
+                        results[i] = item
+                    bar.update(len(g))
+        finally:
+            outputs.close()  # on an interrupt: joblib kills and joins the workers now
     return results
+
+
+def _backend_config(backend: str | None, parent_pid: int):
+    """joblib configuration of a campaign: loky (joblib's default) with workers bound
+    to the campaign's process from their start; any other backend as named."""
+    from joblib import parallel_config
+    from joblib.parallel import get_active_backend
+
+    default_is_loky = type(get_active_backend()[0]).__name__ == "LokyBackend"
+    if backend == "loky" or (backend is None and default_is_loky):
+        return parallel_config(backend="loky", initializer=_loky_initializer, initargs=(parent_pid,))
+    return parallel_config(backend=backend) if backend else nullcontext()
 
 
 def manifest_entry(run: SimRun, path: Path, samples: int, duration_s: float) -> dict[str, Any]:

@@ -22,6 +22,8 @@ def synthetic_table(n: int, seed: int, mu: float = 1.0) -> dict[str, np.ndarray]
     for k, name in enumerate(cat.INPUTS):
         f = 0.1 + 0.07 * k
         table[name] = np.sin(2 * np.pi * f * t + rng.uniform(0, 6)) * (1 + k % 3) + rng.normal(0, 0.01, n)
+        if name.startswith("susp_defl"):
+            table[name] *= 0.03  # inside the catalogue's +-0.15 m
     ay, assist = table["ay_mps2"], table["assist_torque_nm"]
     table["sat_fl_nm"] = -12.0 * np.tanh(ay / 2) + 3.0 * assist
     table["sat_fr_nm"] = -10.0 * np.tanh(ay / 2) + 2.0 * assist - 0.5 * table["steer_torque_nm"]

@@ -50,15 +50,16 @@ def test_missing_signal_is_named(tmp_path):
 def test_other_sample_rate_is_named(tmp_path):
     tab = _table(n=2000, dt=0.01)
     write_csv(tmp_path / "a.csv", tab)
-    with pytest.raises(UserError, match=r"a\.csv: sample rate 100 Hz.*20 Hz"):
+    with pytest.raises(UserError, match=r"a\.csv: column time_s, row 2 \(line 3\): expected 20 Hz.*got 100 Hz"):
         load_measured([tmp_path / "a.csv"])
 
 
 @pytest.mark.parametrize(("signal", "factor", "pattern"), [
     ("vx_mps", 3.6, r"vx_mps is 3\.\d+ x what the kinematics give.*km/h instead of m/s"),
     ("ay_mps2", 1 / 9.81, r"ay_mps2 is 0\.1\d* x what the kinematics give.*g instead of m/s\^2"),
-    ("steer_angle_rad", 57.2958, r"steer_angle_rad reaches 28\.6"),
-    ("yaw_rate_radps", 57.2958, r"yaw_rate_radps reaches"),
+    ("steer_angle_rad", 57.2958, r"column steer_angle_rad, row \d+ \(line \d+\): expected -13 to 13 rad or SNA, "
+                                 r"got .*reaching -?28\.6.*wrong unit or scaling"),
+    ("yaw_rate_radps", 57.2958, r"column yaw_rate_radps, row \d+ .*expected -2 to 2 rad/s"),
 ])
 def test_unit_scaling_is_named(tmp_path, signal, factor, pattern):
     tab = _table()

@@ -1,15 +1,17 @@
 """Training and evaluation data: recordings -> per-run 20 Hz tables -> feature matrices.
 
-A *recording* is a canonical CSV table or a CAN log (.blf, .asc, .log, ...). Logs
-are decoded through the DBC and sampled by the same front-end the runtime uses
+A *recording* is a canonical CSV table, a CAN log (.blf, .asc, .log, .trc) or an
+MDF4 file (:mod:`virtsensor.recordings.files`). Logs are decoded through the DBC
+and sampled by the same front-end the runtime uses
 (:func:`virtsensor.recording.read_log`); simulated CSV tables were made by that
 same path. A directory of recordings may hold the ``manifest.json`` a campaign
-writes; its per-run metadata (manoeuvre, speed, friction, seed) then travel with
-each run.
+writes last; the directory must then hold exactly its runs, each as listed, and
+their metadata (manoeuvre, speed, friction, seed) travel with each run.
 
-Rows whose features or targets are not finite (NaN, inf: a signal missing at
-that tick, the first ticks of a run without history) are dropped and counted,
-never trained on.
+Rows whose features or targets are not finite (NaN: a signal not available at
+that tick, the first ticks of a run without history) are dropped by
+:func:`build_dataset` and counted, never trained on; a file whose reference SATs
+are not finite in every row is refused by :func:`load_runs` before that.
 """
 
 from __future__ import annotations
@@ -26,9 +28,9 @@ import numpy as np
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
-
-TABLE_SUFFIXES = (".csv",)
-LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc")
+from virtsensor.recordings.check import check_table
+from virtsensor.recordings.files import read_table, recording_files
+from virtsensor.recordings.manifest import check_rows
 
 
 @dataclass
@@ -41,57 +43,39 @@ class Run:
     path: Path | None = None
 
 
-def _recording_files(paths: Iterable[Path | str]) -> list[Path]:
-    files: list[Path] = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            found = sorted(f for f in p.iterdir() if f.suffix.lower() in TABLE_SUFFIXES + LOG_SUFFIXES)
-            if not found:
-                raise UserError(f"{p}: no recordings (.csv, .blf, .asc, .log) in this directory")
-            files.extend(found)
-        elif p.exists():
-            files.append(p)
-        else:
-            raise UserError(f"{p}: no such file or directory")
-    return files
-
-
-def _manifests(files: Sequence[Path]) -> dict[Path, dict[str, Any]]:
-    meta: dict[Path, dict[str, Any]] = {}
-    for d in {f.parent for f in files}:
-        m = d / "manifest.json"
-        if m.exists():
-            try:
-                runs = json.loads(m.read_text())["runs"]
-            except (ValueError, KeyError, TypeError) as exc:
-                raise UserError(f"{m}: not a campaign manifest ({exc})") from None
-            for r in runs:
-                meta[d / r["file"]] = {k: v for k, v in r.items() if k != "file"}
-    return meta
-
-
 def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[Run]:
-    """Read recordings (files or directories of them) into runs.
+    """Read recordings (files or directories of them) into runs, each checked.
+
+    Files are listed by :func:`virtsensor.recordings.files.recording_files`
+    (hidden and ``.partial-*`` files never count; a campaign directory must be
+    complete and hold exactly its manifest's runs, each with its listed sha256 and
+    rows) and every table passes the shared input check
+    :func:`virtsensor.recordings.check.check_table` (20 Hz, no missing rows,
+    strictly increasing time, signals in their catalogue ranges or SNA; the
+    reference SATs among ``needed`` finite in every row).
 
     Args:
         paths: recording files, or directories holding them.
         needed: catalogue signals every run must carry; a run without one is
             refused with a one-line error naming the signal and the file.
-    """
-    from virtsensor.recording import read_csv, read_log
 
-    files = _recording_files(paths)
-    meta = _manifests(files)
+    Raises:
+        UserError: the first file that fails, naming it (and column and row).
+    """
+    targets = [s for s in needed if s in cat.OUTPUTS]
     runs = []
-    for f in files:
-        if f.suffix.lower() in TABLE_SUFFIXES:
-            table = read_csv(f)
-        else:
-            table = read_log(f).table
+    for source in recording_files(paths):
+        f = source.path
+        table = read_table(f)
         missing = [s for s in needed if s not in table]
         if missing:
             raise UserError(f"{f}: recording lacks the needed signal(s) {', '.join(missing)}")
-        runs.append(Run(f.stem, table, dict(meta.get(f, {})), f))
+        meta: dict[str, Any] = {}
+        if source.entry is not None:
+            check_rows(f, source.entry, len(table["time_s"]))
+            meta = {k: v for k, v in source.entry.items() if k != "file"}
+        check_table(f, table, targets=targets)
+        runs.append(Run(f.stem, table, meta, f))
     return runs
 
 

@@ -7,15 +7,18 @@ with channels named by catalogue name or DBC signal name, and the canonical
 SATs (wheel-force transducers); anything else the car had (TPMS pressures, rear
 wheel speeds...) is kept.
 
-Checks, each a one-line :class:`UserError` naming file and signal:
+Files are listed and read by :mod:`virtsensor.recordings.files` (hidden and
+``.partial-*`` files are never runs; a campaign directory is checked against its
+manifest). Checks, each a one-line :class:`UserError` naming the file:
 
 * a needed signal missing;
-* a sample rate other than the canonical 20 Hz (CSV tables; logs and MDF files
-  are sampled at 20 Hz by the front-end, whatever their message rates);
+* the shared input check :func:`virtsensor.recordings.check.check_table` with
+  gaps allowed: 20 Hz rows (logs and MDF files are sampled at 20 Hz by the
+  front-end, whatever their message rates), strictly increasing time, every
+  signal inside its catalogue range or SNA;
 * a unit scaling that contradicts the car's kinematics (speed in km/h, angles in
   degrees, accelerations in g, pressures in bar...), found by cross-checking
-  signals that physics ties together;
-* values outside the catalogue's valid range.
+  signals that physics ties together.
 
 Gaps (non-finite samples, or missing ticks in a CSV table) are kept as gaps: the
 run is cut into segments at them, never interpolated across; each segment is
@@ -32,14 +35,14 @@ import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
+from virtsensor.recordings.check import check_table
+from virtsensor.recordings.files import read_table, recording_files
+from virtsensor.recordings.manifest import check_rows
 
 RATE_HZ = cat.TABLE_RATE_HZ
 TICK_S = 1.0 / RATE_HZ
 #: signals a measured run must carry: the 12 inputs and the reference SATs (the canonical table but time_s)
 NEEDED: tuple[str, ...] = cat.TABLE_COLUMNS[1:]
-MDF_SUFFIXES = (".mf4", ".mdf")
-LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc")
-TABLE_SUFFIXES = (".csv",)
 #: shortest segment between gaps worth re-simulating (s)
 MIN_SEGMENT_S = 4.0
 
@@ -77,84 +80,6 @@ class MeasuredRun:
         return {k: v[seg.start:seg.stop] for k, v in self.table.items()}
 
 
-def _files(paths: Iterable[str | Path]) -> list[Path]:
-    out: list[Path] = []
-    suffixes = TABLE_SUFFIXES + LOG_SUFFIXES + MDF_SUFFIXES
-    for p in map(Path, paths):
-        if p.is_dir():
-            found = sorted(f for f in p.iterdir() if f.suffix.lower() in suffixes)
-            if not found:
-                raise UserError(f"{p}: no measured runs (.csv, .blf, .asc, .log, .mf4) in this directory")
-            out.extend(found)
-        elif p.is_file():
-            if p.suffix.lower() not in suffixes:
-                raise UserError(f"{p}: unsupported file type {p.suffix!r} (use .csv, .blf, .asc, .log, .trc, .mf4)")
-            out.append(p)
-        else:
-            raise UserError(f"{p}: no such file or directory")
-    return out
-
-
-def read_mdf(path: Path) -> dict[str, np.ndarray]:
-    """A 20 Hz table from an MDF4 file: each channel named by its catalogue name or
-    its DBC signal name is sampled and held at the ticks, as the CAN front-end does."""
-    try:
-        from asammdf import MDF
-    except ImportError:
-        raise UserError(f"{path}: reading MDF4 needs asammdf: pip install 'virtsensor[mdf]'") from None
-    by_dbc = {s.dbc_signal: s.name for s in cat.SIGNALS.values() if s.dbc_signal}
-    try:
-        mdf = MDF(str(path))
-    except Exception as exc:  # asammdf raises many kinds on a bad file
-        raise UserError(f"{path}: not a readable MDF file ({type(exc).__name__}: {exc})") from None
-    series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    with mdf:
-        for ch in list(mdf.channels_db):
-            name = ch if ch in cat.SIGNALS else by_dbc.get(ch)
-            if name is None or name == "time_s" or name in series:
-                continue
-            sig = mdf.get(ch)
-            unit = (sig.unit or "").strip()
-            want = cat.SIGNALS[name].unit
-            if unit and unit != want:
-                raise UserError(f"{path}: channel {ch!r} is in {unit!r}, the catalogue's {name} is in {want!r}")
-            series[name] = (np.asarray(sig.timestamps, dtype=float), np.asarray(sig.samples, dtype=float))
-    if not series:
-        raise UserError(f"{path}: no channel named like a catalogue or DBC signal")
-    t0 = min(ts[0] for ts, _ in series.values() if len(ts))
-    t1 = max(ts[-1] for ts, _ in series.values() if len(ts))
-    ticks = t0 + TICK_S * np.arange(1, int(np.floor((t1 - t0) / TICK_S + 1e-9)) + 1)
-    table = {"time_s": ticks - t0}
-    for name, (ts, ys) in series.items():
-        i = np.searchsorted(ts, ticks + 1e-9, side="right") - 1
-        col = np.where(i >= 0, ys[np.maximum(i, 0)], np.nan)
-        table[name] = col
-    return table
-
-
-def _read(path: Path) -> dict[str, np.ndarray]:
-    from virtsensor.recording import read_csv, read_log
-
-    suffix = path.suffix.lower()
-    if suffix in TABLE_SUFFIXES:
-        return read_csv(path)
-    if suffix in MDF_SUFFIXES:
-        return read_mdf(path)
-    return dict(read_log(path).table)
-
-
-def _check_rate(path: Path, t: np.ndarray) -> None:
-    if len(t) < 3:
-        raise UserError(f"{path}: only {len(t)} samples; a measured run needs several seconds at 20 Hz")
-    if not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
-        raise UserError(f"{path}: time_s must be finite and strictly increasing")
-    dt = float(np.median(np.diff(t)))
-    if abs(dt - TICK_S) > 0.02 * TICK_S:
-        raise UserError(f"{path}: sample rate {1.0 / dt:.4g} Hz (time_s steps of {dt:.4g} s); "
-                        f"the canonical table is {RATE_HZ:g} Hz (steps of {TICK_S:g} s): resample it on the bus "
-                        f"tick or give the CAN log")
-
-
 def _kinematic_checks(table: Mapping[str, np.ndarray]) -> list[tuple[str, float]]:
     """LS ratios of a signal to what kinematics predicts from others (about 1 when the
     units are right): speed against the front wheel speeds times a passenger-car
@@ -185,16 +110,7 @@ _NAMED_SCALES = {3.6: "km/h instead of m/s", 1 / 3.6: "m/s against wheel speeds 
 
 
 def _check_units(path: Path, table: Mapping[str, np.ndarray]) -> None:
-    """Gross unit errors: kinematic cross-checks and the catalogue's valid ranges."""
-    for name, col in table.items():
-        s = cat.SIGNALS.get(name)
-        if s is None or name == "time_s":
-            continue
-        y = col[np.isfinite(col)]
-        if y.size and (y.min() < s.minimum or y.max() > s.maximum):
-            bad = y.max() if y.max() > s.maximum else y.min()
-            raise UserError(f"{path}: {name} reaches {bad:.6g} {s.unit}, outside its valid range "
-                            f"[{s.minimum:g}, {s.maximum:g}] (wrong unit or scaling?)")
+    """Gross unit errors the catalogue ranges let through: kinematic cross-checks."""
     # a car at its limit (sideslip, wheelspin) departs from the kinematics by tens of
     # per cent: only a ratio near a unit factor is a unit error
     for name, k in _kinematic_checks(table):
@@ -264,14 +180,16 @@ def load_measured(paths: Iterable[str | Path], needed: Sequence[str] = NEEDED,
     there as ``(file, reason)`` instead, unless no run at all is left.
     """
     runs = []
-    for path in _files(paths):
-        table = _read(path)
+    for source in recording_files(paths):
+        path = source.path
+        table = read_table(path)
         missing = [s for s in ("time_s", *needed) if s not in table]
         if missing:
             raise UserError(f"{path}: measured run lacks the needed signal(s) {', '.join(missing)}")
-        t = np.asarray(table["time_s"], dtype=float)
-        _check_rate(path, t)
+        if source.entry is not None:
+            check_rows(path, source.entry, len(table["time_s"]))
         table = {k: np.asarray(v, dtype=float) for k, v in table.items()}
+        check_table(path, table, gaps=True)
         _check_units(path, table)
         full, segs, gaps, notes = _segments(path, table, needed)
         if not segs:

@@ -20,7 +20,11 @@ log's first frame (log formats differ in how they keep absolute time: ASC
 stores it relative to its first frame, BLF only to the millisecond).
 
 Failures to read a file raise :class:`~virtsensor.errors.UserError` naming the
-file and the position (frame index, line number or byte offset).
+file and the position (frame index, line number or byte offset). A log cut by
+the end of its file (a BLF shorter than its header says, a text log whose last
+line has no end of line, an ASC log without its ``End TriggerBlock`` line) is
+refused as a whole, naming its last good frame and timestamp; so is a CSV table
+whose last row has no end of line.
 """
 
 from __future__ import annotations
@@ -302,6 +306,56 @@ def _blf_truncation(path: Path, reader) -> str | None:
     return None
 
 
+def _text_cut(path: Path, real: str) -> tuple[int, str] | None:
+    """Where a text log was cut: ``(first line not read, why)``, or None when it is whole.
+
+    A last line without its end of line is a record cut in the middle; an ASC log
+    without its closing ``End TriggerBlock`` line stopped before its writer closed it.
+    """
+    size = path.stat().st_size
+    if size == 0:
+        return None
+    with open(path, "rb") as f:
+        f.seek(max(0, size - 4096))
+        tail = f.read()
+        whole_asc = real == ".asc" and tail.rstrip().lower().endswith(b"end triggerblock")
+        if whole_asc or (real != ".asc" and tail.endswith(b"\n")):
+            return None
+        f.seek(0)
+        lines = sum(block.count(b"\n") for block in iter(lambda: f.read(1 << 20), b""))
+    if not tail.endswith(b"\n"):
+        return lines + 1, f"line {lines + 1} is cut mid-record (the file ends inside it)"
+    return lines + 1, f"it ends at line {lines} without its 'End TriggerBlock' line (the log was not closed)"
+
+
+def _last_good(path: Path, real: str, stop_line: int) -> str:
+    """The last frame read intact before text line ``stop_line``, for messages."""
+    import logging
+
+    from can.io.player import MESSAGE_READERS
+
+    lines = _Lines(open(path, encoding="utf-8", newline=None), None)  # noqa: SIM115 - closed below
+    n, first, last = 0, 0.0, 0.0
+    log = logging.getLogger("can")
+    level = log.level
+    log.setLevel(logging.ERROR)  # python-can warns about the cut line: the message says it already
+    try:
+        for msg in MESSAGE_READERS[real](file=lines):  # type: ignore[arg-type]
+            if lines.lineno >= stop_line:
+                break
+            first = msg.timestamp if n == 0 else first
+            last, n = msg.timestamp, n + 1
+    except Exception:  # noqa: BLE001 - what is readable before the cut is all that is wanted
+        pass
+    finally:
+        log.setLevel(level)
+        lines.close()
+    if n == 0:
+        return "no frame before it is complete"
+    return (f"the last good frame is frame {n - 1}, timestamp {last:.6f} s "
+            f"({last - first:.3f} s after the first frame)")
+
+
 def iter_log(path: str | os.PathLike) -> Iterator:
     """Yield the python-can ``Message`` objects of a log file, in file order.
 
@@ -317,6 +371,9 @@ def iter_log(path: str | os.PathLike) -> Iterator:
     if not path.is_file():
         raise UserError(f"{path}: no such log file")
     real, gz = _suffix(path)
+    cut = _text_cut(path, real) if real in _TEXT_SUFFIXES and not gz else None
+    if cut is not None:
+        raise UserError(f"{path}: truncated: {cut[1]}; {_last_good(path, real, cut[0])}")
     lines: _Lines | None = None
     try:
         if real in _TEXT_SUFFIXES:
@@ -336,13 +393,17 @@ def iter_log(path: str | os.PathLike) -> Iterator:
     if real == ".blf":
         problem = _blf_truncation(path, reader)
         if problem:
-            n = 0
+            n, first, last = 0, 0.0, 0.0
             try:
-                for _ in reader:
-                    n += 1
+                for msg in reader:
+                    first = msg.timestamp if n == 0 else first
+                    last, n = msg.timestamp, n + 1
             except Exception:  # noqa: BLE001 - only counting what is readable
                 pass
-            raise UserError(f"{path}: {problem}; frames 0..{n - 1} are readable, frame {n} is cut")
+            good = "no frame is readable" if n == 0 else (
+                f"frames 0..{n - 1} are readable (the last good one at timestamp {last:.6f} s, "
+                f"{last - first:.3f} s after the first frame), frame {n} is cut")
+            raise UserError(f"{path}: {problem}; {good}")
     index = 0
     try:
         for msg in reader:
@@ -543,7 +604,8 @@ def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Read a canonical table written by :func:`write_csv` (dict of float arrays, file column order).
 
     Raises:
-        UserError: naming the file and line of a malformed header or row.
+        UserError: naming the file and line of a malformed header or row, or of a
+            last row the file ends inside (cut mid-row), with the last good row.
     """
     path = Path(path)
     try:
@@ -566,6 +628,9 @@ def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
             s = line.strip()
             if not s:
                 continue
+            if not line.endswith("\n"):
+                raise UserError(f"{path}:{lineno}: truncated: the file ends inside this row; "
+                                f"{_last_good_row(names, rows)} (a complete file ends with a newline)")
             parts = s.split(",")
             if len(parts) != width:
                 raise UserError(f"{path}:{lineno}: expected {width} fields, got {len(parts)}")
@@ -576,6 +641,13 @@ def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
                 raise UserError(f"{path}:{lineno}: {bad.strip()!r} is not a number") from None
     mat = np.array(rows, dtype=np.float64).reshape(len(rows), width)
     return {n: mat[:, i].copy() for i, n in enumerate(names)}
+
+
+def _last_good_row(names: Sequence[str], rows: Sequence[Sequence[float]]) -> str:
+    if not rows:
+        return "no row before it"
+    at = f", time_s {rows[-1][names.index('time_s')]:.6g} s" if "time_s" in names else ""
+    return f"the last good row is line {len(rows) + 1}{at}"
 
 
 def _is_float(text: str) -> bool:

@@ -8,10 +8,9 @@ from pathlib import Path
 
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
 from virtsensor.errors import UserError
+from virtsensor.recordings.simulated import LOG_SUFFIXES, TABLE_SUFFIXES, write_run
 
 HELP = "simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log (.blf/.asc/.log)"
-TABLE_SUFFIXES = (".csv",)
-LOG_SUFFIXES = (".blf", ".asc", ".log")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -87,39 +86,3 @@ def _resimulate(args: argparse.Namespace):
     with sim_errors():
         plan = from_recording(table, args.mu, longitudinal=args.longitudinal)
         return simulate_plan(plan, params, args.seed)
-
-
-def run_table(sim_run) -> dict:
-    """The canonical 20 Hz table of a simulated run: what a receiver on the bus samples
-    from its frames (inputs and reference SATs), with the simulator's truth columns
-    (slip angles, loads, forces...) at the same ticks."""
-    from sim.sensors import truth_at
-    from virtsensor.recording import simulated_recording
-
-    streams = sim_run.streams
-    rec = simulated_recording(streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
-                              seed=sim_run.request.seed)
-    table = dict(rec.table)
-    table.update(truth_at(sim_run.truth, table["time_s"]))
-    return table
-
-
-def write_run(sim_run, out: Path) -> dict:
-    """Write a simulated run to ``out`` (.csv table or CAN log), atomically: on any
-    failure no partial file is left behind. Returns the run's canonical table."""
-    from virtsensor.recording import write_csv, write_log
-
-    table = run_table(sim_run)
-    # python-can picks the log writer by suffix: the temporary file keeps it
-    tmp = out.with_name(f".partial-{out.name}")
-    try:
-        if out.suffix.lower() in TABLE_SUFFIXES:
-            write_csv(tmp, table)
-        else:
-            streams = sim_run.streams
-            write_log(tmp, streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
-                      seed=sim_run.request.seed)
-        tmp.replace(out)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return table

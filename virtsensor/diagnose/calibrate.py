@@ -27,7 +27,7 @@ from virtsensor.training import RECIPES, make_pipeline, metrics
 def campaign_runs(params: Mapping[str, Any], preset: str, seed: int, n_jobs: int) -> list[Run]:
     """The canonical tables of a campaign preset simulated with ``params``."""
     from sim.campaign import PRESETS, run_campaign
-    from virtsensor.commands.simulate import run_table
+    from virtsensor.recordings.simulated import run_table
 
     requests = PRESETS[preset](seed)
     tables = run_campaign(requests, params, n_jobs=n_jobs, writer=run_table, progress=False)

@@ -54,7 +54,7 @@ def make_case(seed: int, out_dir: str | Path, *, control: bool = False, causes: 
         hidden: a given effect instead of a random one.
     """
     from sim.api import Request, simulate_many
-    from virtsensor.commands.simulate import run_table, write_run
+    from virtsensor.recordings.simulated import run_table, write_run
 
     rng = np.random.default_rng(seed)
     if hidden is None and not control:

@@ -1,0 +1,145 @@
+"""A campaign stopped or killed in the middle: its workers end with it, nothing is written
+after, and the directory it leaves is refused by train in one line."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from virtsensor.cli import main
+
+pytestmark = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc to find the workers")
+
+
+def _parents() -> dict[int, int]:
+    out = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            out[int(d.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+    return out
+
+
+def _descendants(pid: int) -> set[int]:
+    parents = _parents()
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {p for p, pp in parents.items() if pp in frontier} - found
+        found |= frontier
+    return found
+
+
+def _alive(pids: set[int]) -> set[int]:
+    alive = set()
+    for p in pids:
+        try:
+            state = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            alive.add(p)
+    return alive
+
+
+def _snapshot(d: Path) -> dict[str, tuple[int, int]]:
+    if not d.exists():
+        return {}
+    return {f.name: (f.stat().st_size, f.stat().st_mtime_ns) for f in d.iterdir()}
+
+
+def _cpu_s(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _start_and_wait_for_work(out: Path) -> tuple[subprocess.Popen, set[int]]:
+    """A campaign of four runs on two workers, caught in the middle: once a worker has
+    spent a second simulating (past its imports), or has written its first run."""
+    proc = subprocess.Popen([sys.executable, "-m", "virtsensor.cli", "campaign", "tiny", "--out", str(out),
+                             "--quiet", "--jobs", "2", "--batch-size", "1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        workers = _descendants(proc.pid)
+        if any(_cpu_s(p) > 1.5 for p in workers) or (
+                out.exists() and any(f.name.startswith(".partial-") for f in out.iterdir())):
+            break
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    else:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail("the campaign's workers did not start within 120 s")
+    workers = _descendants(proc.pid)
+    assert workers, "no worker process under the campaign"
+    assert not (out / "manifest.json").exists(), "the campaign ended before the kill"
+    return proc, workers
+
+
+def _assert_all_end_and_nothing_is_written(out: Path, workers: set[int], killed_at: float) -> None:
+    deadline = time.monotonic() + 5.0
+    while _alive(workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(workers), f"workers still running 5 s after the kill: {sorted(_alive(workers))}"
+    before = _snapshot(out)
+    for name, (_, mtime) in before.items():
+        assert mtime <= killed_at * 1e9, f"{name} written after the kill"
+    time.sleep(0.5)
+    assert _snapshot(out) == before
+
+
+@pytest.mark.parametrize("how", ["ctrl-c", pytest.param("sigterm", marks=pytest.mark.slow)])
+def test_ctrl_c_or_sigterm_ends_the_whole_campaign_at_once_and_leaves_nothing(tmp_path, how):
+    out = tmp_path / "d"
+    proc, workers = _start_and_wait_for_work(out)
+    if how == "ctrl-c":
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
+    else:
+        os.kill(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=3.0)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail(f"the campaign did not end within 3 s of {how}")
+    ended = time.time()
+    _assert_all_end_and_nothing_is_written(out, workers, ended)
+    err = proc.stderr.read()
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    assert not out.exists()  # it made the directory: it removes it, with every file it wrote
+
+
+def test_sigkill_of_the_parent_ends_its_workers_and_train_refuses_the_directory(tmp_path, capsys):
+    out = tmp_path / "d"
+    proc, workers = _start_and_wait_for_work(out)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=5.0)
+    ended = time.time()
+    _assert_all_end_and_nothing_is_written(out, workers, ended)
+    # what is left: the in-progress marker, maybe unfinished .partial- runs, no manifest, no run
+    names = sorted(p.name for p in out.iterdir())
+    assert ".campaign-incomplete.json" in names and "manifest.json" not in names
+    assert all(n.startswith(".") for n in names), names
+    capsys.readouterr()
+    assert main(["train", "--data", str(out), "--out", str(tmp_path / "m.onnx"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert str(out) in err and "did not complete" in err and "manifest.json" in err
+    assert not (tmp_path / "m.onnx").exists()
+    # a .partial- file given by name is never a run
+    for partial in (p for p in out.iterdir() if p.name.startswith(".partial-")):
+        assert main(["train", "--data", str(partial), "--out", str(tmp_path / "m.onnx"), "--quiet"]) == 2
+        assert "unfinished write" in capsys.readouterr().err
+    # nor will a new campaign write into it
+    assert main(["campaign", "tiny", "--out", str(out), "--quiet"]) == 2
+    assert "did not complete" in capsys.readouterr().err

@@ -1,0 +1,232 @@
+"""Training data integrity: which files are runs, the manifest check, the one input check
+that train, evaluate and diagnose share, and cut logs."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from virtsensor import signals as cat
+from virtsensor.cli import main
+from virtsensor.dataset import load_runs
+from virtsensor.errors import UserError
+from virtsensor.measured import load_measured
+from virtsensor.recording import write_csv, write_log
+from virtsensor.recordings.check import check_table
+from virtsensor.recordings.manifest import MARKER, file_sha256, start_marker, write_manifest
+
+
+def _table(n: int = 200, dt: float = 0.05, seed: int = 0) -> dict[str, np.ndarray]:
+    """A plausible 20 Hz table: a car at 20 m/s steering gently (every signal in range)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt
+    sw = 0.5 * np.sin(2 * np.pi * 0.3 * t + rng.uniform(0, 1))
+    vx = np.full(n, 20.0)
+    yaw = vx * sw / (14.8 * 2.7 * 1.2)
+    tab = {"time_s": t, **{s: np.zeros(n) for s in cat.TABLE_COLUMNS[1:]}}
+    tab.update({"steer_angle_rad": sw, "vx_mps": vx, "yaw_rate_radps": yaw, "ay_mps2": yaw * vx,
+                "wheel_speed_fl_radps": vx / 0.31, "wheel_speed_fr_radps": vx / 0.31,
+                "sat_fl_nm": -30 * sw, "sat_fr_nm": -28 * sw})
+    return tab
+
+
+def _campaign_dir(d, n_runs: int = 3):
+    """A directory as a complete campaign leaves it: runs, then the manifest."""
+    d.mkdir()
+    start_marker(d, {"preset": "test", "runs": n_runs})
+    entries = []
+    for i in range(n_runs):
+        path = d / f"run{i}.csv"
+        write_csv(path, _table(seed=i))
+        entries.append({"file": path.name, "manoeuvre": "test", "mu": 1.0, "rows": 200, "sha256": file_sha256(path)})
+    write_manifest(d, {"preset": "test", "runs": entries})
+    assert not (d / MARKER).exists()
+    return d
+
+
+def _train(capsys, tmp_path, *data) -> tuple[int, str]:
+    capsys.readouterr()
+    code = main(["train", "--data", *map(str, data), "--out", str(tmp_path / "m.onnx"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert not (tmp_path / "m.onnx").exists()
+    return code, err
+
+
+# ------------------------------------------------------------------------------------ which files
+def test_a_complete_campaign_directory_gives_exactly_its_runs_with_their_metadata(tmp_path):
+    d = _campaign_dir(tmp_path / "c")
+    (d / ".partial-run9.csv").write_text("time_s\n0.0\n")  # hidden: never a run, never "extra"
+    runs = load_runs([d])
+    assert [r.name for r in runs] == ["run0", "run1", "run2"]
+    assert runs[0].meta["manoeuvre"] == "test" and runs[0].meta["rows"] == 200
+    assert [r.name for r in load_runs([d / "run1.csv"])] == ["run1"]
+
+
+def test_hidden_and_partial_files_are_never_runs(tmp_path, capsys):
+    d = tmp_path / "plain"
+    d.mkdir()
+    write_csv(d / "a.csv", _table())
+    write_csv(d / ".partial-b.csv", _table(seed=1))
+    write_csv(d / ".hidden.csv", _table(seed=2))
+    assert [r.name for r in load_runs([d])] == ["a"]
+    code, err = _train(capsys, tmp_path, d / ".partial-b.csv")
+    assert code == 2 and "unfinished write" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("damage, needle", [
+    (lambda d: (d / "run1.csv").unlink(), r"run1\.csv: listed in .*manifest\.json but missing"),
+    (lambda d: write_csv(d / "stray.csv", _table()), r"stray\.csv: not listed in .*manifest\.json"),
+    (lambda d: (d / "notes.txt").write_text("hello"), r"notes\.txt: not listed in .*manifest\.json"),
+    (lambda d: (d / "run2.csv").write_text((d / "run2.csv").read_text().replace("0.05,", "0.050,", 1)),
+     r"run2\.csv: sha256 [0-9a-f]+\.\.\. differs from the [0-9a-f]+\.\.\. in .*manifest\.json"),
+])
+def test_a_campaign_directory_that_differs_from_its_manifest_is_refused_naming_the_file(
+        tmp_path, capsys, damage, needle):
+    d = _campaign_dir(tmp_path / "c")
+    damage(d)
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and len(err.splitlines()) == 1 and re.search(needle, err), err
+
+
+def test_manifest_rows_and_entries_are_checked(tmp_path):
+    d = _campaign_dir(tmp_path / "c")
+    m = json.loads((d / "manifest.json").read_text())
+    m["runs"][0]["rows"] = 201
+    (d / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(UserError, match=r"run0\.csv: 200 rows read, its manifest lists 201"):
+        load_runs([d])
+    # a file given by name must be one of the manifest's runs
+    write_csv(d / "other.csv", _table())
+    with pytest.raises(UserError, match=r"other\.csv: not listed in"):
+        load_runs([d / "other.csv"])
+    del m["runs"][0]["sha256"]
+    (d / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(UserError, match=r"manifest\.json: run 0 \(run0\.csv\) lacks sha256"):
+        load_runs([d])
+
+
+def test_an_unfinished_campaign_is_refused_in_one_line(tmp_path, capsys):
+    d = tmp_path / "c"
+    d.mkdir()
+    start_marker(d, {"preset": "smoke", "runs": 20})
+    write_csv(d / "a.csv", _table())  # one run done (renamed), no manifest yet
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "campaign 'smoke' did not complete: no manifest.json, 1 of 20 runs written" in err
+    with pytest.raises(UserError, match="did not complete"):
+        load_measured([d / "a.csv"])
+
+
+# ----------------------------------------------------------------------------- the input check
+def _unsorted(t):
+    t["time_s"][[40, 41]] = t["time_s"][[41, 40]]
+
+
+def _ay_out_of_range(t):
+    t["ay_mps2"][57] = 35.0
+
+
+@pytest.mark.parametrize("change, pattern", [
+    (lambda t: t.update(time_s=t["time_s"] * 2),
+     r"bad\.csv: column time_s, row 2 \(line 3\): expected 20 Hz rows \(steps of 0\.05 s\), got 10 Hz"),
+    (_unsorted, r"bad\.csv: column time_s, row 42 \(line 43\): expected time strictly increasing"),
+    (_ay_out_of_range,
+     r"bad\.csv: column ay_mps2, row 58 \(line 59\): expected -20 to 20 m/s\^2 or SNA, got 35"),
+])
+def test_train_refuses_a_bad_table_naming_file_column_and_row_as_diagnose_does(tmp_path, capsys, change, pattern):
+    t = _table()
+    change(t)
+    d = tmp_path / "data"
+    d.mkdir()
+    write_csv(d / "bad.csv", t)
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and len(err.splitlines()) == 1 and re.search(pattern, err), err
+    with pytest.raises(UserError) as e:
+        load_measured([d / "bad.csv"])  # diagnose's reader: the same check, the same words
+    assert re.search(pattern, str(e.value)), str(e.value)
+
+
+def test_simulator_truth_is_not_a_sensor_reading_and_is_not_range_checked():
+    t = _table()
+    t["kappa_fl_1"] = np.full(200, 3.4)  # a front wheel spinning at low speed on ice: slip ratio > 1
+    check_table("sim.csv", t)
+    t["tyre_pressure_fl_pa"] = np.full(200, 2.3e5)
+    t["tyre_pressure_fl_pa"][0] = -1.0  # an aux signal a car carries is checked
+    with pytest.raises(UserError, match=r"column tyre_pressure_fl_pa, row 1 \(line 2\): expected 0 to 510000 Pa"):
+        check_table("sim.csv", t)
+
+
+def test_targets_must_be_finite_for_training_but_a_missing_input_is_sna(tmp_path):
+    t = _table()
+    t["steer_torque_nm"][10] = np.nan  # SNA: the row is dropped later, the file is fine
+    write_csv(tmp_path / "a.csv", t)
+    assert len(load_runs([tmp_path / "a.csv"], needed=("steer_torque_nm", "sat_fl_nm"))) == 1
+    t["sat_fr_nm"][30] = np.nan
+    write_csv(tmp_path / "a.csv", t)
+    with pytest.raises(UserError, match=r"a\.csv: column sat_fr_nm, row 31 \(line 32\): expected a finite"):
+        load_runs([tmp_path / "a.csv"], needed=cat.OUTPUTS)
+    t["sat_fr_nm"][30] = np.inf
+    with pytest.raises(UserError, match=r"column sat_fr_nm, row 31: expected -300 to 300 Nm or SNA, got inf"):
+        check_table("x.blf", t)
+
+
+def test_gaps_pass_only_where_allowed(tmp_path):
+    t = _table()
+    keep = np.ones(200, dtype=bool)
+    keep[100:110] = False  # half a second of missing rows
+    t = {k: v[keep] for k, v in t.items()}
+    check_table("m.csv", t, gaps=True)
+    with pytest.raises(UserError, match=r"column time_s, row 101 \(line 102\): expected one 0\.05 s tick after "
+                                        r"row 100 .*got a step of 0\.55 s"):
+        check_table("m.csv", t)
+    t["time_s"][150] += 0.02  # off the tick grid
+    with pytest.raises(UserError, match=r"row 151 .*expected a whole number of 0\.05 s ticks"):
+        check_table("m.csv", t, gaps=True)
+
+
+# --------------------------------------------------------------------------------- cut logs
+def _log_signals():
+    t = np.arange(0, 3.0, 0.01)
+    tab = _table(n=len(t), dt=0.01)
+    return t, {k: v for k, v in tab.items() if k in cat.CAN_SIGNALS}
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".log", ".blf"])
+def test_a_log_cut_mid_record_is_refused_with_its_last_good_timestamp(tmp_path, suffix):
+    t, sig = _log_signals()
+    path = tmp_path / f"run{suffix}"
+    write_log(path, t, sig)
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * 0.6) + 3])
+    with pytest.raises(UserError) as e:
+        load_runs([tmp_path])
+    msg = str(e.value)
+    assert str(path) in msg and "truncated" in msg and "\n" not in msg
+    m = re.search(r"timestamp (\d+\.\d+) s", msg)
+    assert m and 0.5 < float(m.group(1)) < 3.0, msg
+
+
+def test_a_csv_table_cut_mid_row_is_refused(tmp_path):
+    path = tmp_path / "a.csv"
+    write_csv(path, _table())
+    text = path.read_text()
+    path.write_text(text[:-7])
+    with pytest.raises(UserError, match=r"a\.csv:201: truncated: the file ends inside this row; the last good row "
+                                        r"is line 200, time_s 9\.9 s"):
+        load_runs([path])
+
+
+def test_a_cut_mdf4_file_is_refused(tmp_path):
+    asammdf = pytest.importorskip("asammdf")
+    t = np.arange(0, 5, 0.01)
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append([asammdf.Signal(np.full_like(t, 20.0), t, name="VehSpeed", unit="m/s")])
+    path = tmp_path / "m.mf4"
+    mdf.save(path, overwrite=True)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(UserError, match=r"m\.mf4: truncated: .*past the end of the file.*timestamp"):
+        load_measured([path])

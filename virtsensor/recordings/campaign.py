@@ -1,0 +1,116 @@
+"""Write a simulation campaign into a directory that readers can trust.
+
+The order of writes is the contract of :mod:`virtsensor.recordings.manifest`:
+marker, runs under ``.partial-*`` names (written by the workers), renames (by
+the campaign's own process, once every run is complete), manifest, marker
+removed. A campaign that is interrupted (KeyboardInterrupt, or SIGTERM turned
+into one by the command) removes what it wrote; one that is killed leaves its
+marker, so readers refuse the directory.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from virtsensor.errors import UserError
+from virtsensor.recordings.manifest import (
+    MANIFEST,
+    MARKER,
+    file_sha256,
+    incomplete_campaign,
+    start_marker,
+    write_manifest,
+)
+from virtsensor.recordings.simulated import partial_name, write_run_file
+
+#: file formats of a campaign's runs (suffix without the dot)
+FORMATS = ("csv", "blf", "asc", "log")
+
+
+def run_name(request: Any, fmt: str) -> str:
+    """File name of a campaign run (a :class:`sim.api.Request`) in format ``fmt``."""
+    r = request
+    return f"{r.manoeuvre}_{r.speed_kmh:g}kmh_mu{r.mu:g}_{r.seed}.{fmt}"
+
+
+def write_partial_run(sim_run: Any, out_dir: Path, fmt: str) -> dict[str, Any]:
+    """Worker side: write one finished run under its ``.partial-*`` name and return
+    its manifest entry (final file name, request, rows, sha256, duration...)."""
+    from sim.campaign import manifest_entry
+
+    final = Path(out_dir) / run_name(sim_run.request, fmt)
+    tmp = partial_name(final)
+    table = write_run_file(sim_run, tmp)
+    t = table["time_s"]
+    entry = manifest_entry(sim_run, final, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
+    entry.update(rows=len(t), sha256=file_sha256(tmp))
+    return entry
+
+
+def _check_out(out_dir: Path) -> None:
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"--out {out_dir}: is a file, not a directory")
+    why = incomplete_campaign(out_dir) if out_dir.is_dir() else None
+    if why:
+        raise UserError(why)
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        raise UserError(f"--out {out_dir}: directory is not empty (refusing to mix campaigns)")
+
+
+def _remove(out_dir: Path, names: Sequence[str], created: bool) -> None:
+    """Undo an interrupted campaign: its files, then the directory if it made it."""
+    for name in (*names, MANIFEST):
+        (out_dir / name).unlink(missing_ok=True)
+        partial_name(out_dir / name).unlink(missing_ok=True)
+    (out_dir / MARKER).unlink(missing_ok=True)
+    if created:
+        try:
+            out_dir.rmdir()
+        except OSError:
+            pass
+
+
+def write_campaign(requests: Sequence[Any], params: Mapping[str, Any], out_dir: Path | str, *, fmt: str = "csv",
+                   info: Mapping[str, Any] | None = None, n_jobs: int = -1, batch_size: int = 25,
+                   backend: str | None = None, progress: bool = True) -> dict[str, Any]:
+    """Simulate ``requests`` with the car ``params`` into the empty (or new) directory
+    ``out_dir``, one file per run in format ``fmt``; returns the manifest written.
+
+    ``info`` (preset, seed, car overrides...) goes into the marker and the manifest.
+    On any exception or interrupt the files written so far are removed (workers
+    first stopped by :func:`sim.campaign.run_campaign`) and it propagates.
+
+    Raises:
+        UserError: ``out_dir`` not empty, a file, or an unfinished campaign; an unknown ``fmt``.
+    """
+    from sim.campaign import run_campaign
+
+    if fmt not in FORMATS:
+        raise UserError(f"--format {fmt!r}: one of {', '.join(FORMATS)}")
+    out_dir = Path(out_dir)
+    _check_out(out_dir)
+    info = dict(info or {})
+    names = [run_name(r, fmt) for r in requests]
+    if len(set(names)) != len(names):
+        raise UserError("two runs of the campaign would share a file name (same manoeuvre, speed, mu and seed)")
+    created = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        start_marker(out_dir, {**info, "runs": len(requests), "format": fmt})
+        t0 = time.perf_counter()
+        entries = run_campaign(requests, params, n_jobs=n_jobs, batch_size=batch_size,
+                               writer=partial(write_partial_run, out_dir=out_dir, fmt=fmt),
+                               progress=progress, backend=backend)
+        for e in entries:
+            partial_name(out_dir / e["file"]).replace(out_dir / e["file"])
+        manifest = {**info, "format": fmt, "runs": entries, "samples": sum(e["rows"] for e in entries),
+                    "simulated_s": sum(e["duration_s"] for e in entries), "wall_s": time.perf_counter() - t0}
+        write_manifest(out_dir, manifest)
+    except BaseException:
+        _remove(out_dir, names, created)
+        raise
+    return manifest

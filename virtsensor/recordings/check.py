@@ -1,0 +1,126 @@
+"""The one input check of a recording's 20 Hz table, shared by every command that reads data.
+
+:func:`check_table` refuses, with a :class:`~virtsensor.errors.UserError` in one
+format, ``<file>: column <name>, row <k>: expected <what>, got <what>``:
+
+* ``time_s`` missing, not finite, or not strictly increasing;
+* a rate other than the canonical 20 Hz: every step between rows must be one
+  tick (0.05 s) within :data:`STEP_TOLERANCE` of a tick, or, where gaps are
+  allowed (measured runs, cut into segments at gaps), a whole number of ticks;
+* a signal a car carries (catalogue roles input, output, aux) outside its
+  catalogue range; NaN is SNA (signal not available) and passes; +-inf never
+  does. The simulator's truth columns describe its state, not a sensor's
+  reading, and are not range-checked (a spinning wheel's slip ratio exceeds 1);
+* a target (reference SAT to train or score on) that is not finite, where the
+  caller names targets.
+
+Rows are numbered from 1, the first data row; in a CSV table row ``k`` is
+line ``k + 1`` (the header is line 1) and the message says so.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from virtsensor import signals as cat
+from virtsensor.errors import UserError
+
+RATE_HZ = cat.TABLE_RATE_HZ
+TICK_S = 1.0 / RATE_HZ
+#: largest departure of a step between rows from a whole number of ticks, as a fraction of a tick
+STEP_TOLERANCE = 0.05
+#: catalogue roles whose values must lie in their catalogue range (or be SNA)
+_RANGE_CHECKED = ("input", "output", "aux")
+
+
+def table_error(path: Path | str, column: str, row: int | None, expected: str, got: str) -> UserError:
+    """The one message format of a bad value: file, column, row (1-based; None: the
+    column as a whole), what was expected and what was found."""
+    path = Path(path)
+    where = f"column {column}"
+    if row is not None:
+        where += f", row {row}"
+        if path.suffix.lower() == ".csv":
+            where += f" (line {row + 1})"
+    return UserError(f"{path}: {where}: expected {expected}, got {got}")
+
+
+def _check_time(path: Path, t: np.ndarray, gaps: bool) -> None:
+    if t.size < 2:
+        raise table_error(path, "time_s", None, f"at least 2 rows at {RATE_HZ:g} Hz", f"{t.size}")
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise table_error(path, "time_s", int(bad[0]) + 1, "a finite time in s", f"{t[bad[0]]}")
+    dt = np.diff(t)
+    back = np.flatnonzero(dt <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise table_error(path, "time_s", i + 1, f"time strictly increasing (row {i} is at {t[i - 1]:.6g} s)",
+                          f"{t[i]:.6g} s")
+    tol = STEP_TOLERANCE * TICK_S
+    median = float(np.median(dt))
+    if abs(median - TICK_S) > tol:
+        i = int(np.flatnonzero(np.abs(dt - TICK_S) > tol)[0]) + 1
+        raise table_error(path, "time_s", i + 1, f"{RATE_HZ:g} Hz rows (steps of {TICK_S:g} s)",
+                          f"{1.0 / median:.4g} Hz (steps of {median:.4g} s); resample it on the {RATE_HZ:g} Hz "
+                          f"bus tick or give the CAN log")
+    ticks = np.maximum(np.round(dt / TICK_S), 1.0) if gaps else np.ones_like(dt)
+    off = np.flatnonzero(np.abs(dt - ticks * TICK_S) > tol)
+    if off.size:
+        i = int(off[0]) + 1
+        want = f"a whole number of {TICK_S:g} s ticks after row {i}" if gaps else \
+            f"one {TICK_S:g} s tick after row {i} ({RATE_HZ:g} Hz, no missing rows)"
+        raise table_error(path, "time_s", i + 1, want, f"a step of {dt[i - 1]:.6g} s")
+
+
+def _check_ranges(path: Path, table: Mapping[str, np.ndarray]) -> None:
+    for name, col in table.items():
+        s = cat.SIGNALS.get(name)
+        if s is None or s.role not in _RANGE_CHECKED:
+            continue
+        col = np.asarray(col, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            out = ~np.isnan(col) & ~((col >= s.minimum) & (col <= s.maximum))
+        bad = np.flatnonzero(out)
+        if bad.size:
+            i = int(bad[0])
+            worst = col[bad][np.argmax(np.abs(col[bad]))]
+            raise table_error(path, name, i + 1, f"{s.minimum:g} to {s.maximum:g} {s.unit} or SNA",
+                              f"{col[i]:.6g} (reaching {worst:.6g} in {bad.size} rows; wrong unit or scaling?)")
+
+
+def check_table(path: Path | str, table: Mapping[str, np.ndarray], *, targets: Sequence[str] = (),
+                gaps: bool = False) -> None:
+    """Refuse a recording's table that is not fit to read as data (see the module docstring).
+
+    Args:
+        path: the file the table came from (named in messages).
+        table: column name -> 1-D array (``time_s`` in s, catalogue units).
+        targets: columns that must be finite in every row (absent ones are the
+            caller's missing-signal check, not this one's).
+        gaps: accept steps of several ticks (missing rows: gaps the caller cuts at).
+
+    Raises:
+        UserError: the first problem found, in the one message format.
+    """
+    path = Path(path)
+    if "time_s" not in table:
+        raise table_error(path, "time_s", None, "a time column (s)", "none")
+    t = np.asarray(table["time_s"], dtype=np.float64)
+    _check_time(path, t, gaps)
+    for name, col in table.items():
+        if np.shape(col) != t.shape:
+            raise table_error(path, name, None, f"{t.size} rows like time_s", f"{np.shape(col)}")
+    _check_ranges(path, table)
+    for name in targets:
+        if name not in table:
+            continue
+        col = np.asarray(table[name], dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(col))
+        if bad.size:
+            i = int(bad[0])
+            raise table_error(path, name, i + 1, "a finite reference value in every row (a target)",
+                              f"{col[i]} ({bad.size} rows without one)")

@@ -1,0 +1,128 @@
+"""Which files are recordings, and reading one into its 20 Hz table whatever its format.
+
+A recording is a canonical CSV table (``.csv``), a CAN log (``.blf``, ``.asc``,
+``.log``, ``.trc``) or an MDF4 file (``.mf4``, ``.mdf``). Hidden files, and so
+every ``.partial-*`` file (a write not yet complete), are never recordings.
+
+A directory is read as follows:
+
+* with a campaign's in-progress marker and no manifest: refused (the campaign
+  did not complete);
+* with a manifest: exactly the manifest's runs, each present, none extra, each
+  file's sha256 as listed (:func:`virtsensor.recordings.manifest.listed_runs`);
+* otherwise: its visible files with a recording suffix, in name order.
+
+A file given by name whose directory holds a manifest must be one of its runs,
+with its listed sha256.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from virtsensor.errors import UserError
+from virtsensor.recordings.manifest import MANIFEST, incomplete_campaign, is_hidden, listed_runs
+
+TABLE_SUFFIXES = (".csv",)
+LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc")
+MDF_SUFFIXES = (".mf4", ".mdf")
+SUFFIXES = TABLE_SUFFIXES + LOG_SUFFIXES + MDF_SUFFIXES
+
+
+@dataclass(frozen=True)
+class Source:
+    """A recording file and, when it belongs to a campaign, its manifest entry."""
+
+    path: Path
+    entry: dict[str, Any] | None = None
+
+
+def _unsupported(path: Path) -> UserError:
+    return UserError(f"{path}: unsupported file type {path.suffix or '(none)'!r} "
+                     f"(a recording is one of {', '.join(SUFFIXES)})")
+
+
+def _directory(d: Path) -> list[Source]:
+    why = incomplete_campaign(d)
+    if why:
+        raise UserError(why)
+    if (d / MANIFEST).exists():
+        out = []
+        for path, entry in listed_runs(d):
+            if path.suffix.lower() not in SUFFIXES:
+                raise _unsupported(path)
+            out.append(Source(path, entry))
+        if not out:
+            raise UserError(f"{d / MANIFEST}: lists no runs")
+        return out
+    found = sorted(f for f in d.iterdir() if not is_hidden(f) and f.is_file() and f.suffix.lower() in SUFFIXES)
+    if not found:
+        raise UserError(f"{d}: no recordings ({', '.join(SUFFIXES)}) in this directory")
+    return [Source(f) for f in found]
+
+
+def _file(p: Path) -> Source:
+    if is_hidden(p):
+        kind = "an unfinished write ('.partial-*')" if p.name.startswith(".partial-") else "a hidden file"
+        raise UserError(f"{p}: {kind}, never a recording")
+    if p.suffix.lower() not in SUFFIXES:
+        raise _unsupported(p)
+    why = incomplete_campaign(p.parent)
+    if why:
+        raise UserError(why)
+    if (p.parent / MANIFEST).exists():
+        ((path, entry),) = listed_runs(p.parent, only=[p])
+        return Source(p, entry)
+    return Source(p)
+
+
+def recording_files(paths: Iterable[Path | str]) -> list[Source]:
+    """The recordings named by ``paths`` (files, or directories of them; see the module docstring).
+
+    Raises:
+        UserError: a missing path, an unsupported or hidden file, an incomplete or
+            inconsistent campaign directory, or a file given twice.
+    """
+    out: list[Source] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            out.extend(_directory(p))
+        elif p.is_file():
+            out.append(_file(p))
+        else:
+            raise UserError(f"{p}: no such file or directory")
+    seen: set[Path] = set()
+    for s in out:
+        key = s.path.resolve()
+        if key in seen:
+            raise UserError(f"{s.path}: given twice (a run must count once)")
+        seen.add(key)
+    return out
+
+
+def read_table(path: Path) -> dict[str, np.ndarray]:
+    """A recording's 20 Hz table (``time_s`` in s, then catalogue columns), by suffix:
+    CSV as written, a CAN log decoded through the DBC by the runtime's front-end,
+    an MDF4 file sampled on the ticks (:func:`virtsensor.recordings.mdf.read_mdf`).
+
+    Raises:
+        UserError: an unreadable, malformed or truncated file, naming it.
+    """
+    from virtsensor.recording import read_csv, read_log
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in TABLE_SUFFIXES:
+        return read_csv(path)
+    if suffix in MDF_SUFFIXES:
+        from virtsensor.recordings.mdf import read_mdf
+
+        return read_mdf(path)
+    if suffix in LOG_SUFFIXES:
+        return dict(read_log(path).table)
+    raise _unsupported(path)

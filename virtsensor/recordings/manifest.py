@@ -1,0 +1,163 @@
+"""A campaign directory: its manifest, written last, and its in-progress marker.
+
+A campaign (``virtsensor campaign``) writes, in this order:
+
+1. the marker :data:`MARKER` (hidden), saying a campaign is under way, how many
+   runs it plans and in which format;
+2. each run under a hidden ``.partial-*`` name, renamed to its final name by the
+   campaign's own process once every run is complete;
+3. the manifest :data:`MANIFEST` (atomically), listing every run with its file
+   name, its number of table rows and the sha256 of its bytes;
+4. then it removes the marker.
+
+So a directory with a marker and no manifest holds a campaign that did not
+complete (stopped, killed, crashed); a directory with a manifest holds exactly
+the manifest's runs, each of which can be checked. Readers apply these rules
+through :func:`listed_runs` and :func:`check_rows`; every violation is a
+:class:`~virtsensor.errors.UserError` naming the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from virtsensor.errors import UserError
+
+MANIFEST = "manifest.json"
+MARKER = ".campaign-incomplete.json"
+#: keys every run entry of a manifest carries (besides its metadata)
+ENTRY_KEYS = ("file", "rows", "sha256")
+
+
+def is_hidden(path: Path) -> bool:
+    """Hidden files (``.name``, so also every ``.partial-*`` file) are never recordings."""
+    return path.name.startswith(".")
+
+
+def file_sha256(path: Path) -> str:
+    """sha256 (hex) of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def start_marker(directory: Path, info: Mapping[str, Any]) -> Path:
+    """Write the in-progress marker of a campaign starting in ``directory`` (``info``:
+    preset, planned run count, format...)."""
+    path = Path(directory) / MARKER
+    path.write_text(json.dumps({**info, "pid": os.getpid()}))
+    return path
+
+
+def write_manifest(directory: Path, manifest: Mapping[str, Any]) -> Path:
+    """Write a campaign's manifest atomically, then remove the marker: the campaign
+    is complete. ``manifest["runs"]`` entries must carry :data:`ENTRY_KEYS`."""
+    directory = Path(directory)
+    for entry in manifest["runs"]:
+        missing = [k for k in ENTRY_KEYS if k not in entry]
+        if missing:
+            raise ValueError(f"manifest entry {entry.get('file')!r} lacks {', '.join(missing)}")
+    path = directory / MANIFEST
+    tmp = directory / f".partial-{MANIFEST}"
+    try:
+        tmp.write_text(json.dumps(manifest, indent=1))
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    (directory / MARKER).unlink(missing_ok=True)
+    return path
+
+
+def _visible_files(directory: Path) -> list[Path]:
+    return sorted(f for f in directory.iterdir() if not is_hidden(f) and f.is_file())
+
+
+def incomplete_campaign(directory: Path) -> str | None:
+    """Why ``directory`` holds an unfinished campaign (marker, no manifest), or None."""
+    directory = Path(directory)
+    marker = directory / MARKER
+    if not marker.exists() or (directory / MANIFEST).exists():
+        return None
+    try:
+        info = json.loads(marker.read_text())
+        planned = f" of {int(info['runs'])}"
+        preset = f" {info['preset']!r}"
+    except (OSError, ValueError, KeyError, TypeError):
+        planned, preset = "", ""
+    done = len(_visible_files(directory))
+    return (f"{directory}: campaign{preset} did not complete: no {MANIFEST}, {done}{planned} runs written "
+            f"(it was stopped or killed); delete the directory and run the campaign again")
+
+
+def _read_manifest(path: Path) -> list[dict[str, Any]]:
+    try:
+        runs = json.loads(path.read_text())["runs"]
+        if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
+            raise TypeError("'runs' is not a list of objects")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise UserError(f"{path}: not a campaign manifest ({exc})") from None
+    seen: set[str] = set()
+    for i, r in enumerate(runs):
+        missing = [k for k in ENTRY_KEYS if k not in r]
+        if missing:
+            raise UserError(f"{path}: run {i} ({r.get('file', '?')}) lacks {', '.join(missing)} (a manifest of an "
+                            f"older version or written by hand); run the campaign again")
+        name = r["file"]
+        if not isinstance(name, str) or Path(name).name != name or name.startswith("."):
+            raise UserError(f"{path}: run {i}: {name!r} is not a plain, visible file name")
+        if name in seen:
+            raise UserError(f"{path}: run {name} is listed twice")
+        seen.add(name)
+    return runs
+
+
+def listed_runs(directory: Path, only: Sequence[Path] | None = None) -> list[tuple[Path, dict[str, Any]]]:
+    """The runs of a campaign directory, each with its manifest entry, after checking
+    that the directory holds exactly them and that every file's sha256 matches.
+
+    Args:
+        directory: holds :data:`MANIFEST`.
+        only: check and return just these files of the directory (each must be listed).
+
+    Raises:
+        UserError: a listed run missing, a file not listed, a sha256 mismatch, a
+            malformed manifest; the message names the file.
+    """
+    directory = Path(directory)
+    manifest = directory / MANIFEST
+    entries = {r["file"]: r for r in _read_manifest(manifest)}
+    if only is None:
+        for f in _visible_files(directory):
+            if f.name != MANIFEST and f.name not in entries:
+                raise UserError(f"{f}: not listed in {manifest}; a campaign directory holds exactly its "
+                                f"manifest's runs (move the file elsewhere)")
+        names = list(entries)
+    else:
+        names = [Path(f).name for f in only]
+        for name in names:
+            if name not in entries:
+                raise UserError(f"{directory / name}: not listed in {manifest}, which lists this directory's runs")
+    out = []
+    for name in names:
+        path, entry = directory / name, entries[name]
+        if not path.is_file():
+            raise UserError(f"{path}: listed in {manifest} but missing")
+        digest = file_sha256(path)
+        if digest != entry["sha256"]:
+            raise UserError(f"{path}: sha256 {digest[:16]}... differs from the {entry['sha256'][:16]}... in "
+                            f"{manifest}: the file changed after the campaign wrote it")
+        out.append((path, entry))
+    return out
+
+
+def check_rows(path: Path, entry: Mapping[str, Any], rows: int) -> None:
+    """Refuse a run whose table does not have the rows its manifest entry lists."""
+    if int(entry["rows"]) != rows:
+        raise UserError(f"{path}: {rows} rows read, its manifest lists {int(entry['rows'])}")

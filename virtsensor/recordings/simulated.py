@@ -1,0 +1,82 @@
+"""A simulated run as data: the canonical 20 Hz table and the file that holds it.
+
+The table is what a receiver on the bus samples from the run's frames (inputs
+and reference SATs, see :func:`virtsensor.recording.simulated_recording`), with
+the simulator's truth columns (slip angles, loads, forces...) at the same ticks.
+A CSV file holds that table; a CAN log holds the frames, and reading it back
+(:func:`virtsensor.recording.read_log`) gives the same inputs and SATs at the
+same ticks.
+
+The simulator (package ``sim``) is imported only when a function here runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: suffixes written as the canonical CSV table; any other known suffix is a CAN log
+TABLE_SUFFIXES = (".csv",)
+#: CAN log suffixes a simulated run can be written as
+LOG_SUFFIXES = (".blf", ".asc", ".log")
+
+
+def run_table(sim_run: Any) -> dict[str, np.ndarray]:
+    """The canonical 20 Hz table of a simulated run (a :class:`sim.api.SimRun`):
+    ``time_s`` (s), the catalogue's inputs and reference SATs as a receiver decodes
+    them from the run's frames, then the truth columns at the same ticks."""
+    from sim.sensors import truth_at
+    from virtsensor.recording import simulated_recording
+
+    streams = sim_run.streams
+    rec = simulated_recording(streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
+                              seed=sim_run.request.seed)
+    table = dict(rec.table)
+    table.update(truth_at(sim_run.truth, table["time_s"]))
+    return table
+
+
+def write_run_file(sim_run: Any, path: Path) -> dict[str, np.ndarray]:
+    """Write a simulated run to ``path`` as it is, in the format of its suffix (not
+    atomic: on failure the file may be partial; the caller owns the name). Returns
+    the run's canonical table.
+
+    Raises:
+        ValueError: a suffix that is neither a table nor a CAN log.
+    """
+    from virtsensor.recording import write_csv, write_log
+
+    path = Path(path)
+    fmt = path.suffix.lower()
+    if fmt not in TABLE_SUFFIXES + LOG_SUFFIXES:
+        raise ValueError(f"{path}: unknown format {fmt!r}; use one of {', '.join(TABLE_SUFFIXES + LOG_SUFFIXES)}")
+    table = run_table(sim_run)
+    if fmt in TABLE_SUFFIXES:
+        write_csv(path, table)
+    else:
+        streams = sim_run.streams
+        write_log(path, streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
+                  seed=sim_run.request.seed)
+    return table
+
+
+def partial_name(out: Path) -> Path:
+    """The temporary name ``out`` is written under before it is complete
+    (``.partial-<name>`` beside it: hidden, never read as a recording)."""
+    return out.with_name(f".partial-{out.name}")
+
+
+def write_run(sim_run: Any, out: Path) -> dict[str, np.ndarray]:
+    """Write a simulated run to ``out`` (.csv table or CAN log, by suffix) atomically:
+    it is written under :func:`partial_name` and renamed when complete; on any
+    failure no file is left behind. Returns the run's canonical table."""
+    out = Path(out)
+    tmp = partial_name(out)
+    try:
+        table = write_run_file(sim_run, tmp)
+        tmp.replace(out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return table
