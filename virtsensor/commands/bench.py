@@ -6,7 +6,7 @@ Examples::
     virtsensor bench --model m.onnx --quick
     virtsensor bench --soak-ticks 10000
 
-See :mod:`virtsensor.bench` for what each figure measures.
+See :mod:`virtsensor.daemon.bench` for what each figure measures.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ HELP = "measure the daemon: per-stage and end-to-end latency, jitter, CPU/RSS, m
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from virtsensor.bench import DEFAULT_MODEL
+    from virtsensor.daemon.bench import DEFAULT_MODEL
 
     parser.add_argument("--model", metavar="FILE.onnx", default=DEFAULT_MODEL,
                         help=f"ONNX model (its .card.json beside it; default {DEFAULT_MODEL})")
@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.bench import run_bench, to_json, write_histogram, write_markdown
+    from virtsensor.daemon.bench import run_bench, to_json, write_histogram, write_markdown
 
     def say(text: str) -> None:
         if not args.quiet:

@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import logging
 
-    from virtsensor.runtime import VirtualSensor, configure_logging, load_config, log
+    from virtsensor.daemon import VirtualSensor, configure_logging, load_config, log
 
     keys = ("model", "dbc", "interface", "channel", "bitrate", "sync_id", "sync_every", "cpu", "realtime",
             "rt_priority", "duration", "timeout_cycles", "model_id", "log_level")

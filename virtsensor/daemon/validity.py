@@ -1,0 +1,176 @@
+"""The daemon's input-validity contract as pure functions: VALID / DEGRADED / INVALID / INIT.
+
+No threads, no bus, no clock: every function here is a function of its arguments (plus the explicit
+state objects it updates), so the contract is testable tick by tick (``tests/test_validity.py``).
+
+Freshness. An input value is *fresh* at tick time ``t`` only when ``0 <= t - time <= timeout`` on the
+daemon's clock (a value stamped after the tick is not fresh, whatever its age's magnitude), and only
+while its message's frames arrive in order (:class:`FrameOrder`): a frame stamped more than one cycle of
+its message ahead of the tick that follows it (*future-stamped*) or before the message's previous frame
+(*time step back*) makes the message non-fresh until its frames have been in order again for
+``timeout_cycles`` of its cycles.
+
+Per signal, per tick (:func:`assess_inputs`): *stale* = not fresh, or SNA/implausible in the latest intact
+frame; *bad* = stale, or still *recovering* (the first ``h`` fresh ticks after a stale one, ``h`` the
+history the signal's features read), or its message had an E2E error since the previous tick. The input
+status is INVALID when a critical signal is bad, DEGRADED when only non-critical ones are, else VALID.
+The health bitmap has a message's bit set when its last usable frame is fresh, in order, without E2E
+error, and none of its signals is bad. Per wheel (:func:`wheel_status`): INVALID also when the estimate
+is not finite or outside the catalogue range.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import MutableSequence, Sequence
+from dataclasses import dataclass
+
+__all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
+           "assess_inputs", "wheel_status"]
+
+#: Per-wheel status codes of ``SAT_FRONT.SAT_xx_Status`` (DBC value table).
+VALID, DEGRADED, INVALID, INIT = 0, 1, 2, 3
+STATUS_NAMES = {VALID: "VALID", DEGRADED: "DEGRADED", INVALID: "INVALID", INIT: "INIT"}
+
+_INF = math.inf
+
+
+@dataclass(frozen=True)
+class ValidityRules:
+    """Constants of :func:`assess_inputs` (index ``i``: input signal, ``j``: input message).
+
+    Attributes:
+        sig_msg: message ``j`` of each signal. sig_timeout: each signal's timeout (s).
+        sig_hist: ticks of history each signal's features read (recovery length).
+        critical: each signal's criticality. sig_bit: its message's health bit mask (0: none).
+        msg_timeout: each message's timeout (s). bitmap_msgs: ``(j, bit mask)`` of the health bitmap.
+    """
+
+    sig_msg: tuple[int, ...]
+    sig_timeout: tuple[float, ...]
+    sig_hist: tuple[int, ...]
+    critical: tuple[bool, ...]
+    sig_bit: tuple[int, ...]
+    msg_timeout: tuple[float, ...]
+    bitmap_msgs: tuple[tuple[int, int], ...]
+
+
+class ValidityState:
+    """What :func:`assess_inputs` carries from tick to tick (``recover``) and reports (``stale``, ``bad``).
+
+    Attributes:
+        recover: per signal, fresh ticks still needed before it counts as good again.
+        stale, bad: per signal, the verdicts of the latest tick.
+    """
+
+    __slots__ = ("recover", "stale", "bad")
+
+    def __init__(self, n_signals: int) -> None:
+        self.recover = [0] * n_signals
+        self.stale = [False] * n_signals
+        self.bad = [False] * n_signals
+
+
+def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool], msg_last_ok: Sequence[float],
+                  msg_err: Sequence[bool], msg_in_order: Sequence[bool], rules: ValidityRules,
+                  state: ValidityState) -> tuple[int, int]:
+    """The input status and health bitmap at tick time ``t`` (s, the daemon's clock).
+
+    Args:
+        sig_time: per signal, the time of its latest usable value (-inf: never).
+        sig_flag: per signal, SNA or implausible in its message's latest intact frame.
+        msg_last_ok: per message, the time of its latest usable frame. msg_err: E2E error since the last tick.
+        msg_in_order: per message, its frames are in order (:attr:`FrameOrder.in_order`).
+        state: updated in place (recovery counters; stale/bad verdicts of this tick).
+
+    Returns:
+        ``(status, bitmap)``: VALID, DEGRADED or INVALID, and the ``VS_InputStatus`` bits.
+    """
+    stale, bad, rec = state.stale, state.bad, state.recover
+    hist, sig_to, sig_msg, crit = rules.sig_hist, rules.sig_timeout, rules.sig_msg, rules.critical
+    any_bad = crit_bad = False
+    for i in range(len(sig_time)):
+        j = sig_msg[i]
+        # fresh: 0 <= age <= timeout (a NaN or negative age is not), in order, neither SNA nor implausible
+        st = not (0.0 <= t - sig_time[i] <= sig_to[i]) or sig_flag[i] or not msg_in_order[j]
+        r = rec[i]
+        b = r > 0 or st or msg_err[j]
+        stale[i] = st
+        bad[i] = b
+        rec[i] = hist[i] if st else (r - 1 if r > 0 else 0)
+        if b:
+            any_bad = True
+            if crit[i]:
+                crit_bad = True
+    status = INVALID if crit_bad else DEGRADED if any_bad else VALID
+    bitmap = 0
+    msg_to = rules.msg_timeout
+    for j, bit in rules.bitmap_msgs:
+        if 0.0 <= t - msg_last_ok[j] <= msg_to[j] and not msg_err[j] and msg_in_order[j]:
+            bitmap |= bit
+    if any_bad:
+        for i, bit in enumerate(rules.sig_bit):
+            if bad[i]:
+                bitmap &= ~bit
+    return status, bitmap
+
+
+def wheel_status(input_status: int, estimate: float, lo: float, hi: float) -> int:
+    """A wheel's status from the input status and its estimate: INVALID when the inputs are INVALID or the
+    estimate is not within ``[lo, hi]`` (NaN included), else the input status."""
+    if input_status == INVALID or not (lo <= estimate <= hi):
+        return INVALID
+    return input_status
+
+
+class FrameOrder:
+    """Per input message: are its frames in order on the daemon's clock?
+
+    :meth:`frame` records each frame's time (from the receive path) and reports a *time step back* (a frame
+    before the message's previous one); :meth:`tick` finds *future-stamped* latest frames (more than one
+    cycle of the message after the tick time) and sets :attr:`in_order`. After either, the message is out of
+    order until its frames have run in order for ``timeout_cycles`` cycles (measured from the offending
+    frame, on the frames' own times); a message without frames since then stays out of order.
+
+    Attributes:
+        last_t: per message, the time of its latest frame (-inf: none yet).
+        in_order: per message, the verdict of the latest :meth:`tick` (True before any disorder).
+    """
+
+    __slots__ = ("last_t", "in_order", "_run_start", "_counted", "_ahead", "_window")
+
+    def __init__(self, cycles_s: Sequence[float], timeout_cycles: float) -> None:
+        n = len(cycles_s)
+        self.last_t: list[float] = [-_INF] * n
+        self.in_order: list[bool] = [True] * n
+        self._run_start: list[float] = [-_INF] * n  # first frame of the current in-order run (-inf: always)
+        self._counted: list[float] = [math.nan] * n  # the future-stamped frame time already counted
+        self._ahead = tuple(float(c) for c in cycles_s)
+        self._window = tuple(float(timeout_cycles) * c for c in cycles_s)
+
+    def frame(self, j: int, t: float) -> bool:
+        """Record a frame of message ``j`` at time ``t``; True when it steps back (then a new run starts)."""
+        if t < self.last_t[j]:
+            self._run_start[j] = t
+            self.last_t[j] = t
+            return True
+        self.last_t[j] = t
+        return False
+
+    def tick(self, t: float, in_order: MutableSequence[bool] | None = None) -> int:
+        """Update :attr:`in_order` at tick time ``t``; returns how many frames were newly found future-stamped."""
+        out = self.in_order if in_order is None else in_order
+        last, run, counted, ahead, window = self.last_t, self._run_start, self._counted, self._ahead, self._window
+        n = 0
+        for j in range(len(last)):
+            lt = last[j]
+            if lt > t + ahead[j]:
+                if lt != counted[j]:
+                    counted[j] = lt
+                    n += 1
+                run[j] = lt  # in order again only once frames have run timeout_cycles past this one
+                out[j] = False
+            else:
+                rs = run[j]
+                out[j] = rs == -_INF or lt - rs >= window[j]
+        return n
