@@ -146,7 +146,8 @@ class FrameOrder:
         self._run_start: list[float] = [-_INF] * n  # first frame of the current in-order run (-inf: always)
         self._counted: list[float] = [math.nan] * n  # the future-stamped frame time already counted
         self._ahead = tuple(float(c) for c in cycles_s)
-        self._window = tuple(float(timeout_cycles) * c for c in cycles_s)
+        # (less 1 us: frames exactly timeout_cycles cycles apart count as far enough, whatever the rounding)
+        self._window = tuple(float(timeout_cycles) * c - 1e-6 for c in cycles_s)
 
     def frame(self, j: int, t: float) -> bool:
         """Record a frame of message ``j`` at time ``t``; True when it steps back (then a new run starts)."""
