@@ -9,12 +9,15 @@ Everything is driven by hand (``VirtualSensor.process``/``drain``/``tick``) on i
 from __future__ import annotations
 
 import collections
+import logging
 import time
 
 import can
+import numpy as np
 import pytest
 from runtime_support import SYNC_ID, synthetic_streams, train_model, with_sync
 
+from virtsensor import signals as cat
 from virtsensor.can_codec import CanMatrix
 from virtsensor.daemon import INVALID, VALID, VirtualSensor
 from virtsensor.recording import iter_frames, simulated_recording
@@ -164,3 +167,47 @@ def test_free_running_backlog_is_aged_by_its_interface_timestamps(model, frames)
     back = live(42, 56)
     assert back[-5:] == [(VALID, VALID)] * 5
     assert vs.counters["time_step_back"] == vs.counters["future_stamped"] == 0
+
+
+class _Events(logging.Handler):
+    """Collects the daemon's log events (name and fields)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.events: list[dict] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.events.append({"event": record.getMessage(), **getattr(record, "fields", {})})
+
+
+def test_vehicle_speed_disagreeing_with_the_wheel_speeds_is_not_valid_and_named(model):
+    """vx 89 m/s while the front wheels roll at 19 m/s: in range, fresh and intact, but implausible."""
+    t, sig = synthetic_streams(8.0, seed=5)
+    sig["vx_mps"] = 19.0 + 0.5 * np.sin(t)
+    for w in ("fl", "fr"):
+        sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
+    sig["vx_mps"] = np.where(t >= 4.0, 89.0, sig["vx_mps"])
+    frames = list(iter_frames(t, sig, seed=5))
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    handler = _Events()
+    logger = logging.getLogger("virtsensor.daemon")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        ticks, vs = _drive_sync(model, merged)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    cut = next(i for i, m in enumerate(merged) if m.timestamp >= 4.0)
+    _valid_before(ticks, cut)
+    after = [(tt, s, b) for p, tt, s, b in ticks if p > cut]
+    assert all(s == (INVALID, INVALID) for tt, s, _ in after if tt > 4.0 + 0.2), "vx is critical: INVALID"
+    assert not any(b & (1 << 4) for tt, _, b in after if tt > 4.0 + 0.2)  # ESC_VehicleSpeed's health bit
+    assert vs.counters["implausible_checks"] == 1
+    bad = [e for e in handler.events if e["event"] == "implausible"]
+    assert len(bad) == 1 and bad[0]["check"] == "vx_vs_front_wheel_speed" and bad[0]["subject"] == "vx_mps"
+    assert bad[0]["value"] == pytest.approx(89.0, abs=0.01)
+    change = [e for e in handler.events if e["event"] == "status_change" and e.get("implausible_checks")]
+    assert change and change[0]["implausible_checks"] == ["vx_vs_front_wheel_speed"]
+    assert "vx_mps" in change[0]["bad_inputs"]

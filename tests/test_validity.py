@@ -13,6 +13,8 @@ from virtsensor.daemon.validity import (
     INVALID,
     VALID,
     FrameOrder,
+    Plausibility,
+    PlausibilityRule,
     ValidityRules,
     ValidityState,
     assess_inputs,
@@ -138,3 +140,41 @@ def test_clock_map_follows_a_time_base_step_after_its_window():
         assert cm.offset == pytest.approx(5.0)
         cm.push(15.0)  # the interface's clock stepped back by 10 s
     assert cm.offset == pytest.approx(15.0)
+
+
+# ------------------------------------------------------------------------------------------------ plausibility
+_VX_RULE = PlausibilityRule("vx_vs_wheels", subject=0, refs=(1, 2), scale=0.3, tol_abs=1.5, tol_rel=0.15, debounce=3)
+
+
+def test_plausibility_fails_after_the_debounce_and_clears_after_it():
+    p = Plausibility([_VX_RULE], 3)
+    good, bad = [20.0, 66.0, 68.0], [89.0, 63.0, 64.0]  # 0.3 * mean(wheels) = 20.1 / 19.05 m/s
+    assert p.update(good) == 0 and p.implausible == [False] * 3
+    assert [p.update(bad) for _ in range(3)] == [0, 0, 1]  # fails on the third tick in a row, counted once
+    assert p.failing == [True] and p.implausible == [True, False, False] and p.new == [True]
+    assert p.update(bad) == 0 and p.new == [False]
+    p.update(good)
+    p.update(bad)  # one bad tick in between restarts the count
+    p.update(good)
+    p.update(good)
+    assert p.implausible[0]
+    p.update(good)
+    assert p.implausible == [False] * 3 and p.failing == [False]
+
+
+def test_plausibility_tolerance_and_unknown_values():
+    p = Plausibility([_VX_RULE], 3)
+    for _ in range(5):  # 15 % + 1.5 m/s of 30 m/s: 6 m/s allowed; never-received (NaN) inputs pass
+        assert p.update([30.0, 80.0, 80.0]) == 0 and p.update([30.0, math.nan, 80.0]) == 0
+    assert not p.failing[0]
+
+
+def test_implausible_input_is_bad_not_stale():
+    st = ValidityState(3)
+    status, bitmap = assess_inputs(T, [T] * 3, [False] * 3, [T, T], [False, False], [True, True], RULES, st,
+                                   implausible=[False, True, False])
+    assert status == DEGRADED and st.bad == [False, True, False] and not any(st.stale) and bitmap == 1
+    status, _ = assess_inputs(T, [T] * 3, [False] * 3, [T, T], [False, False], [True, True], RULES, st,
+                              implausible=[True, False, False])
+    assert status == INVALID
+    assert assess_inputs(T, [T] * 3, [False] * 3, [T, T], [False, False], [True, True], RULES, st)[0] == VALID

@@ -15,7 +15,7 @@ from typing import Any
 
 from virtsensor import signals as cat
 from virtsensor.can_codec import CanMatrix
-from virtsensor.daemon.validity import ValidityRules
+from virtsensor.daemon.validity import PlausibilityRule, ValidityRules
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 
@@ -162,6 +162,14 @@ class InputLayout:
         """Indices (into :attr:`signals`) of the inputs carried by input message ``j``."""
         name = self.input_messages[j]
         return [i for i, m in enumerate(self.signal_messages) if m == name]
+
+    def plausibility_rules(self) -> tuple[PlausibilityRule, ...]:
+        """The catalogue's redundancy checks (:data:`virtsensor.signals.REDUNDANCIES`) whose signals are all
+        inputs of this model."""
+        idx = {s: i for i, s in enumerate(self.signals)}
+        return tuple(PlausibilityRule(r.name, idx[r.subject], tuple(idx[x] for x in r.references), float(r.scale),
+                                      float(r.tolerance_abs), float(r.tolerance_rel), int(r.debounce_ticks))
+                     for r in cat.REDUNDANCIES if all(s in idx for s in (r.subject, *r.references)))
 
     def rules(self) -> ValidityRules:
         """The constants of :func:`~virtsensor.daemon.validity.assess_inputs` for this layout."""

@@ -47,7 +47,15 @@ from virtsensor.daemon.publish import Publisher
 from virtsensor.daemon.receive import ReceivePath, StageHook
 from virtsensor.daemon.runner import TICK_NS, Runner
 from virtsensor.daemon.stats import TickStats
-from virtsensor.daemon.validity import INIT, INVALID, STATUS_NAMES, ValidityState, assess_inputs, wheel_status
+from virtsensor.daemon.validity import (
+    INIT,
+    INVALID,
+    STATUS_NAMES,
+    Plausibility,
+    ValidityState,
+    assess_inputs,
+    wheel_status,
+)
 from virtsensor.e2e import E2EStatus
 from virtsensor.fastdecode import STATUS_KEYS
 from virtsensor.features import FeatureBuilder
@@ -61,7 +69,7 @@ STAGES = ("decode", "feature_vector", "inference", "encode", "send")
 _COUNTERS = ("frames", "input_frames", "other_frames", "unknown_ids", "error_frames", "remote_frames", "sync_frames",
              "crc_errors", "dlc_errors", "sna_values", "implausible_values",
              *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
-             "future_stamped", "time_step_back", "drained_frames",
+             "future_stamped", "time_step_back", "implausible_checks", "drained_frames",
              "ticks", "overruns", "tick_errors", "sent", "send_errors", "unsent", "recv_errors", "reconnects",
              "reconnect_failures", "status_changes")
 
@@ -130,6 +138,7 @@ class VirtualSensor:
         self._send_sat = hook("send", self._link.send)
         self._rules = lay.rules()
         self._state = ValidityState(len(lay.signals))
+        self._plaus = Plausibility(lay.plausibility_rules(), len(lay.signals))
         self._vals = np.full(len(lay.signals), np.nan)
         self._xzero = np.zeros(len(lay.spec.features))  # x . 0 is nan iff some feature is not finite (0 * inf)
         self._msg_err = [False] * len(lay.input_messages)  # the tick's E2E errors (for the logs)
@@ -137,7 +146,8 @@ class VirtualSensor:
         self._sync_count = 0
         #: rings of tick latency, compute time and wake-up lateness
         self.tick_stats = TickStats()
-        self._last = (INIT, INIT, -1)
+        self._statuses = [INIT] * len(lay.wheels)  # of the latest tick
+        self._last_bitmap = -1  # of the latest logged change (-1: log the first tick)
         self.last_statuses: tuple[int, ...] = (INIT,) * len(lay.wheels)
         self.last_bitmap = 0
         self._runner = Runner(self, self._link, self._stop, cpu=cpu, realtime=realtime, rt_priority=rt_priority,
@@ -258,8 +268,11 @@ class VirtualSensor:
                 self.counters["future_stamped"] += n_future
             if not self._complete:
                 self._complete = min(rx.times) > -math.inf
+            plaus = self._plaus
+            if plaus.update(rx.values):
+                _log_implausible(self, t)
             status, bitmap = assess_inputs(t, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
-                                           self._rules, self._state)
+                                           self._rules, self._state, plaus.implausible)
             self._msg_err[:] = rx.errors
             rx.clear_errors()
             self._estimate(status)
@@ -267,12 +280,18 @@ class VirtualSensor:
         finally:
             if gc_off:
                 gc.enable()
-        statuses = tuple(int(self._out.sat_values[w.status]) for w in self.layout.wheels)
-        self.last_statuses = statuses
+        sv, cur = self._out.sat_values, self._statuses
+        changed = bitmap != self._last_bitmap
+        for k, w in enumerate(self.layout.wheels):
+            s = sv[w.status]
+            if s != cur[k]:
+                cur[k] = s
+                changed = True
         self.last_bitmap = bitmap
-        if (*statuses, bitmap) != self._last:
-            self._log_change(t, statuses, bitmap, status)
-            self._last = (*statuses, bitmap)
+        if changed:  # (a new tuple and a log line only when something changed)
+            self._last_bitmap = bitmap
+            self.last_statuses = tuple(int(s) for s in cur)
+            _log_change(self, t, self.last_statuses, bitmap, status)
 
     def _estimate(self, status: int) -> None:
         """Features, model and per-wheel status into the SAT_FRONT values."""
@@ -304,21 +323,6 @@ class VirtualSensor:
         c["ticks"] += 1
         if self.sync_id is not None and lat_us * 1000 > TICK_NS:
             c["overruns"] += 1
-
-    def _log_change(self, t: float, statuses: tuple[int, ...], bitmap: int, in_status: int) -> None:
-        self.counters["status_changes"] += 1
-        if not log.isEnabledFor(logging.INFO):
-            return
-        lay, st = self.layout, self._state
-        order = self.inputs.order.in_order
-        event(logging.INFO, "status_change", t=round(t, 6),
-              **{w.estimate.lower(): STATUS_NAMES[s] for w, s in zip(lay.wheels, statuses, strict=True)},
-              inputs=STATUS_NAMES[in_status], input_bitmap=f"0x{bitmap:02X}",
-              bad_inputs=[s for i, s in enumerate(lay.signals) if st.bad[i]],
-              stale_inputs=[s for i, s in enumerate(lay.signals) if st.stale[i]],
-              e2e_error_messages=[m for j, m in enumerate(lay.input_messages) if self._msg_err[j]],
-              out_of_order_messages=[m for j, m in enumerate(lay.input_messages) if not order[j]],
-              missing_messages=[m for m, b in lay.bitmap_bits.items() if not bitmap >> b & 1])
 
     # ------------------------------------------------------------------------------------------ threads
     def start(self) -> None:
@@ -352,3 +356,31 @@ class VirtualSensor:
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+def _log_implausible(self: VirtualSensor, t: float) -> None:
+    """Count and log the checks that just failed (their names, the values they compared)."""
+    plaus, vals, sig = self._plaus, self.inputs.values, self.layout.signals
+    for k, r in enumerate(plaus.rules):
+        if plaus.new[k]:
+            self.counters["implausible_checks"] += 1
+            event(logging.WARNING, "implausible", t=round(t, 6), check=r.name, subject=sig[r.subject],
+                  value=vals[r.subject], references={sig[i]: vals[i] for i in r.refs},
+                  implausible_checks=self.counters["implausible_checks"])
+
+def _log_change(self: VirtualSensor, t: float, statuses: tuple[int, ...], bitmap: int, in_status: int) -> None:
+    """Count a status change; log it with its causes."""
+    self.counters["status_changes"] += 1
+    if not log.isEnabledFor(logging.INFO):
+        return
+    lay, st = self.layout, self._state
+    order = self.inputs.order.in_order
+    event(logging.INFO, "status_change", t=round(t, 6),
+          **{w.estimate.lower(): STATUS_NAMES[s] for w, s in zip(lay.wheels, statuses, strict=True)},
+          inputs=STATUS_NAMES[in_status], input_bitmap=f"0x{bitmap:02X}",
+          bad_inputs=[s for i, s in enumerate(lay.signals) if st.bad[i]],
+          stale_inputs=[s for i, s in enumerate(lay.signals) if st.stale[i]],
+          e2e_error_messages=[m for j, m in enumerate(lay.input_messages) if self._msg_err[j]],
+          implausible_checks=[r.name for k, r in enumerate(self._plaus.rules) if self._plaus.failing[k]],
+          out_of_order_messages=[m for j, m in enumerate(lay.input_messages) if not order[j]],
+          missing_messages=[m for m, b in lay.bitmap_bits.items() if not bitmap >> b & 1])

@@ -11,7 +11,8 @@ its message ahead of the tick that follows it (*future-stamped*) or before the m
 ``timeout_cycles`` of its cycles.
 
 Per signal, per tick (:func:`assess_inputs`): *stale* = not fresh, or SNA/implausible in the latest intact
-frame; *bad* = stale, or still *recovering* (the first ``h`` fresh ticks after a stale one, ``h`` the
+frame; *bad* = stale, or *implausible* (:class:`Plausibility`: it disagrees with redundant signals), or still
+*recovering* (the first ``h`` fresh ticks after a stale one, ``h`` the
 history the signal's features read), or its message had an E2E error since the previous tick. The input
 status is INVALID when a critical signal is bad, DEGRADED when only non-critical ones are, else VALID.
 The health bitmap has a message's bit set when its last usable frame is fresh, in order, without E2E
@@ -26,7 +27,7 @@ from collections.abc import MutableSequence, Sequence
 from dataclasses import dataclass
 
 __all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
-           "assess_inputs", "wheel_status"]
+           "PlausibilityRule", "Plausibility", "assess_inputs", "wheel_status"]
 
 #: Per-wheel status codes of ``SAT_FRONT.SAT_xx_Status`` (DBC value table).
 VALID, DEGRADED, INVALID, INIT = 0, 1, 2, 3
@@ -63,17 +64,18 @@ class ValidityState:
         stale, bad: per signal, the verdicts of the latest tick.
     """
 
-    __slots__ = ("recover", "stale", "bad")
+    __slots__ = ("recover", "stale", "bad", "never")
 
     def __init__(self, n_signals: int) -> None:
         self.recover = [0] * n_signals
         self.stale = [False] * n_signals
         self.bad = [False] * n_signals
+        self.never = (False,) * n_signals  # (no signal implausible)
 
 
 def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool], msg_last_ok: Sequence[float],
                   msg_err: Sequence[bool], msg_in_order: Sequence[bool], rules: ValidityRules,
-                  state: ValidityState) -> tuple[int, int]:
+                  state: ValidityState, implausible: Sequence[bool] | None = None) -> tuple[int, int]:
     """The input status and health bitmap at tick time ``t`` (s, the daemon's clock).
 
     Args:
@@ -82,6 +84,8 @@ def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool],
         msg_last_ok: per message, the time of its latest usable frame. msg_err: E2E error since the last tick.
         msg_in_order: per message, its frames are in order (:attr:`FrameOrder.in_order`).
         state: updated in place (recovery counters; stale/bad verdicts of this tick).
+        implausible: per signal, a plausibility check against redundant signals fails (:attr:`Plausibility.
+            implausible`; None: none does). An implausible signal is bad, not stale (no recovery period).
 
     Returns:
         ``(status, bitmap)``: VALID, DEGRADED or INVALID, and the ``VS_InputStatus`` bits.
@@ -89,12 +93,13 @@ def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool],
     stale, bad, rec = state.stale, state.bad, state.recover
     hist, sig_to, sig_msg, crit = rules.sig_hist, rules.sig_timeout, rules.sig_msg, rules.critical
     any_bad = crit_bad = False
+    imp = implausible if implausible is not None else state.never
     for i in range(len(sig_time)):
         j = sig_msg[i]
         # fresh: 0 <= age <= timeout (a NaN or negative age is not), in order, neither SNA nor implausible
         st = not (0.0 <= t - sig_time[i] <= sig_to[i]) or sig_flag[i] or not msg_in_order[j]
         r = rec[i]
-        b = r > 0 or st or msg_err[j]
+        b = r > 0 or st or msg_err[j] or imp[i]
         stale[i] = st
         bad[i] = b
         rec[i] = hist[i] if st else (r - 1 if r > 0 else 0)
@@ -175,3 +180,67 @@ class FrameOrder:
                 rs = run[j]
                 out[j] = rs == -_INF or lt - rs >= window[j]
         return n
+
+
+@dataclass(frozen=True)
+class PlausibilityRule:
+    """One check between redundant input signals (indices into the daemon's inputs), from a catalogue
+    :class:`~virtsensor.signals.Redundancy`: ``|v[subject] - scale * mean(v[refs])| <= tol_abs + tol_rel *
+    |v[subject]|``, failed after ``debounce`` consecutive failing ticks, passed after as many passing ones."""
+
+    name: str
+    subject: int
+    refs: tuple[int, ...]
+    scale: float
+    tol_abs: float
+    tol_rel: float
+    debounce: int
+
+
+class Plausibility:
+    """Debounced plausibility checks, fed the latest input values once per tick (:meth:`update`).
+
+    A failing check marks its *subject* implausible (:attr:`implausible`); a NaN among the values (an input
+    never received) passes: staleness is judged elsewhere.
+
+    Attributes:
+        rules: the checks. failing: per check, its debounced verdict. implausible: per input signal.
+        new: per check, it failed at the latest :meth:`update`.
+    """
+
+    __slots__ = ("rules", "failing", "implausible", "new", "_run")
+
+    def __init__(self, rules: Sequence[PlausibilityRule], n_signals: int) -> None:
+        self.rules = tuple(rules)
+        self.failing = [False] * len(self.rules)
+        self.implausible = [False] * n_signals
+        self.new = [False] * len(self.rules)
+        self._run = [0] * len(self.rules)  # consecutive ticks disagreeing with the current verdict
+
+    def update(self, values: Sequence[float]) -> int:
+        """Run every check on ``values`` (per input signal); returns how many checks newly failed."""
+        n_new = 0
+        failing, run, imp, new = self.failing, self._run, self.implausible, self.new
+        for k, r in enumerate(self.rules):
+            new[k] = False
+            v = values[r.subject]
+            ref = 0.0
+            for i in r.refs:
+                ref += values[i]
+            ok = not (abs(v - r.scale * ref / len(r.refs)) > r.tol_abs + r.tol_rel * abs(v))
+            if ok == failing[k]:  # the verdict is contradicted: count the run
+                n = run[k] + 1
+                if n >= r.debounce:
+                    failing[k] = not ok
+                    new[k] = not ok
+                    n_new += not ok
+                    n = 0
+                run[k] = n
+            else:
+                run[k] = 0
+        for r in self.rules:
+            imp[r.subject] = False
+        for k, r in enumerate(self.rules):
+            if failing[k]:
+                imp[r.subject] = True
+        return n_new
