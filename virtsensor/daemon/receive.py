@@ -80,7 +80,9 @@ class ReceivePath:
         self.counters = counters
         self._e2e = [matrix.receivers[name] for name in layout.input_messages]
         self.by_id = matrix.by_id
+        #: sync mode: frames with this id call :attr:`on_sync` (None: free-running)
         self.sync_id = sync_id
+        self.on_sync: Callable[[Any], None] = lambda msg: None
         #: frame id -> (generated handler ``rx(data, t)``, message index)
         self.receivers: dict[int, tuple[Callable[[Any, float], None], int]] = {}
         for j, name in enumerate(layout.input_messages):
@@ -91,21 +93,27 @@ class ReceivePath:
                                   self.last_ok, self.errors, counters)
             self.receivers[mc.frame_id] = (hook("decode", rx) if hook is not None else rx, j)
 
-    def handle(self, msg: Any, t: float) -> bool:
-        """Count and decode one received frame at time ``t`` (s, the daemon's clock); True when it is a
-        (standard, data) frame with the sync id (decoded first when the sync id is also an input)."""
+    def handle(self, msg: Any, rx_time: float | None = None) -> None:
+        """Count and decode one received frame. Its time (s, the daemon's clock) is ``msg.timestamp`` in
+        sync mode (``sync_id`` set), else ``rx_time`` (default ``time.monotonic()``). A (standard, data)
+        frame with the sync id then calls :attr:`on_sync` with it (after decoding it, if also an input)."""
+        sync_id = self.sync_id
+        if sync_id is not None:
+            t = float(msg.timestamp)
+        else:
+            t = time.monotonic() if rx_time is None else rx_time
         c = self.counters
         c["frames"] += 1
         if msg.is_error_frame:
             c["error_frames"] += 1
-            return False
+            return
         if msg.is_remote_frame:
             c["remote_frames"] += 1
-            return False
+            return
         fid = msg.arbitration_id
         if msg.is_extended_id:
             c["unknown_ids"] += 1
-            return False
+            return
         entry = self.receivers.get(fid)
         if entry is not None:
             c["input_frames"] += 1
@@ -117,13 +125,14 @@ class ReceivePath:
             else:
                 self._last_t[j] = t
             rx(msg.data, t)
-        elif fid == self.sync_id:
-            return True
+        elif fid == sync_id:
+            pass
         elif fid in self.by_id:
             c["other_frames"] += 1
         else:
             c["unknown_ids"] += 1
-        return fid == self.sync_id
+        if fid == sync_id:
+            self.on_sync(msg)
 
     def drain(self, bus: Any) -> int:
         """Read every frame ``bus`` has queued (``recv(0)`` until None) and handle it at its interface

@@ -130,6 +130,8 @@ class VirtualSensor:
         hook = stage_hook or (lambda name, fn: fn)
         #: the receive path (sample-and-hold lists, frame order, clock map)
         self.inputs = ReceivePath(lay, self.matrix, self.counters, stage_hook, sync_id)
+        self.inputs.on_sync = self._on_sync
+        self.process = self.inputs.handle  # type: ignore[method-assign]  # (see process)
         self._out = Publisher(lay, self.matrix, stage_hook)
         self._stop = threading.Event()
         self._link = BusLink(bus, bus_factory, self.counters, self._stop, reconnect_backoff_s, reconnect_max_s)
@@ -146,6 +148,7 @@ class VirtualSensor:
         self._sync_count = 0
         #: rings of tick latency, compute time and wake-up lateness
         self.tick_stats = TickStats()
+        self._wheels = tuple((w.output, w.estimate, w.status, w.lo, w.hi) for w in lay.wheels)
         self._statuses = [INIT] * len(lay.wheels)  # of the latest tick
         self._last_bitmap = -1  # of the latest logged change (-1: log the first tick)
         self.last_statuses: tuple[int, ...] = (INIT,) * len(lay.wheels)
@@ -211,16 +214,17 @@ class VirtualSensor:
         """Handle one received python-can ``Message`` (decode, E2E, store; a sync frame then ticks).
 
         ``rx_time``: its time (s) on the daemon's clock when free-running (default ``time.monotonic()``);
-        sync mode uses ``msg.timestamp``.
+        sync mode uses ``msg.timestamp``. (Each instance binds this name straight to its receive path's
+        :meth:`~virtsensor.daemon.receive.ReceivePath.handle`, one call less per frame.)
         """
-        if self.sync_id is None:
-            self.inputs.handle(msg, time.monotonic() if rx_time is None else rx_time)
-        elif self.inputs.handle(msg, float(msg.timestamp)):  # the sync frame, after its own data if an input
-            self.counters["sync_frames"] += 1
-            k = self._sync_count
-            self._sync_count = k + 1
-            if k % self.sync_every == 0:
-                self._safe_tick(float(msg.timestamp), time.monotonic_ns())
+        self.inputs.handle(msg, rx_time)
+
+    def _on_sync(self, msg: Any) -> None:
+        self.counters["sync_frames"] += 1
+        k = self._sync_count
+        self._sync_count = k + 1
+        if k % self.sync_every == 0:
+            self._safe_tick(float(msg.timestamp), time.monotonic_ns())
 
     def drain(self) -> int:
         """Handle every frame the bus has queued (free-running, at each tick); returns how many. A receive
@@ -282,8 +286,8 @@ class VirtualSensor:
                 gc.enable()
         sv, cur = self._out.sat_values, self._statuses
         changed = bitmap != self._last_bitmap
-        for k, w in enumerate(self.layout.wheels):
-            s = sv[w.status]
+        for k, w in enumerate(self._wheels):
+            s = sv[w[2]]
             if s != cur[k]:
                 cur[k] = s
                 changed = True
@@ -299,17 +303,17 @@ class VirtualSensor:
         self._vals[:] = self.inputs.values
         x = self._push(self._vals) if self._complete else None
         if x is None:
-            for w in self.layout.wheels:
-                sv[w.estimate] = math.nan
-                sv[w.status] = INIT
+            for _, est, st, _, _ in self._wheels:
+                sv[est] = math.nan
+                sv[st] = INIT
             return
         x_ok = x.dot(self._xzero) == 0.0  # every feature finite (one call instead of isfinite + all)
         y = self._predict(x) if x_ok else None
-        for w in self.layout.wheels:
-            v = float(y[w.output]) if (y is not None and w.output >= 0) else math.nan
-            s = wheel_status(status, v, w.lo, w.hi)
-            sv[w.estimate] = math.nan if s == INVALID else v  # nan -> SNA on the bus
-            sv[w.status] = s
+        for k, est, st, lo, hi in self._wheels:
+            v = float(y[k]) if (y is not None and k >= 0) else math.nan
+            s = wheel_status(status, v, lo, hi)
+            sv[est] = math.nan if s == INVALID else v  # nan -> SNA on the bus
+            sv[st] = s
 
     def _publish(self, start_ns: int, bitmap: int) -> None:
         out = self._out

@@ -23,7 +23,7 @@ is not finite or outside the catalogue range.
 from __future__ import annotations
 
 import math
-from collections.abc import MutableSequence, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 __all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
@@ -142,7 +142,7 @@ class FrameOrder:
         in_order: per message, the verdict of the latest :meth:`tick` (True before any disorder).
     """
 
-    __slots__ = ("last_t", "in_order", "_run_start", "_counted", "_ahead", "_window")
+    __slots__ = ("last_t", "in_order", "_run_start", "_counted", "_ahead", "_window", "_min_ahead", "_dirty")
 
     def __init__(self, cycles_s: Sequence[float], timeout_cycles: float) -> None:
         n = len(cycles_s)
@@ -153,19 +153,24 @@ class FrameOrder:
         self._ahead = tuple(float(c) for c in cycles_s)
         # (less 1 us: frames exactly timeout_cycles cycles apart count as far enough, whatever the rounding)
         self._window = tuple(float(timeout_cycles) * c - 1e-6 for c in cycles_s)
+        self._min_ahead = min(self._ahead, default=0.0)
+        self._dirty = False  # some message out of order, or a step back since the last tick
 
     def frame(self, j: int, t: float) -> bool:
         """Record a frame of message ``j`` at time ``t``; True when it steps back (then a new run starts)."""
         if t < self.last_t[j]:
+            self._dirty = True
             self._run_start[j] = t
             self.last_t[j] = t
             return True
         self.last_t[j] = t
         return False
 
-    def tick(self, t: float, in_order: MutableSequence[bool] | None = None) -> int:
+    def tick(self, t: float) -> int:
         """Update :attr:`in_order` at tick time ``t``; returns how many frames were newly found future-stamped."""
-        out = self.in_order if in_order is None else in_order
+        if not self._dirty and max(self.last_t, default=-_INF) <= t + self._min_ahead:
+            return 0  # nothing out of order, no frame ahead: in_order is all True already
+        out = self.in_order
         last, run, counted, ahead, window = self.last_t, self._run_start, self._counted, self._ahead, self._window
         n = 0
         for j in range(len(last)):
@@ -179,6 +184,7 @@ class FrameOrder:
             else:
                 rs = run[j]
                 out[j] = rs == -_INF or lt - rs >= window[j]
+        self._dirty = not all(out)
         return n
 
 
