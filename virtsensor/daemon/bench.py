@@ -233,6 +233,13 @@ def _stage_timer(rec: dict[str, list[float]], xs: list[np.ndarray]) -> Callable[
                 return r
             return timed_push
 
+        if stage == "decode":  # per input frame: the generated receiver's own (data, t) signature
+            def timed_decode(data: Any, t: float) -> None:
+                t0 = pc()
+                fn(data, t)
+                out.append((pc() - t0) / 1e3)
+            return timed_decode
+
         def timed(*a: Any) -> Any:
             t0 = pc()
             r = fn(*a)
