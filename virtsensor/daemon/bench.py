@@ -562,7 +562,7 @@ def run_bench(model_path: str | os.PathLike, *, quick: bool = False, soak_ticks:
     from virtsensor.onnx_model import OnnxModel
 
     say = progress or (lambda s: None)
-    counts = dict(QUICK if quick else FULL)
+    counts: dict[str, Any] = dict(QUICK if quick else FULL)
     if soak_ticks is not None:
         if soak_ticks < 1:
             raise UserError("--soak-ticks must be at least 1")
@@ -593,7 +593,8 @@ def run_bench(model_path: str | os.PathLike, *, quick: bool = False, soak_ticks:
 
     say(f"end to end in process: {counts['e2e_ticks']} ticks")
     e2e_in = measure_e2e_in_process(model, matrix, inputs, counts["e2e_ticks"])
-    xproc, reason = (None, "disabled (--no-cross-process)")
+    xproc: dict | None = None
+    reason: str | None = "disabled (--no-cross-process)"
     if cross_process:
         say(f"end to end across processes (udp_multicast, private netns): {counts['xproc_ticks']} ticks")
         from virtsensor.daemon.xproc import measure_e2e_cross_process

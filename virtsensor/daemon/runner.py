@@ -78,6 +78,7 @@ class Runner:
         self._started = True
         self._tune_os()
         vs = self._sensor
+        targets: tuple[tuple[Any, str], ...]
         if vs.sync_id is None:
             targets = ((self._tick_loop, "virtsensor-tick"), (self._supervise_loop, "virtsensor-bus"))
             if self._link.bus is None:
@@ -240,6 +241,6 @@ class Runner:
                     break
         finally:
             self.stop()
-            for s, h in old.items():
-                signal.signal(s, h)
+            for signum, handler in old.items():
+                signal.signal(signum, handler)
         return rc

@@ -149,7 +149,7 @@ class VirtualSensor:
         #: rings of tick latency, compute time and wake-up lateness
         self.tick_stats = TickStats()
         self._wheels = tuple((w.output, w.estimate, w.status, w.lo, w.hi) for w in lay.wheels)
-        self._statuses = [INIT] * len(lay.wheels)  # of the latest tick
+        self._statuses: list[float] = [INIT] * len(lay.wheels)  # of the latest tick
         self._last_bitmap = -1  # of the latest logged change (-1: log the first tick)
         self.last_statuses: tuple[int, ...] = (INIT,) * len(lay.wheels)
         self.last_bitmap = 0
@@ -181,17 +181,18 @@ class VirtualSensor:
             cfg = load_config(config)
         else:
             cfg = config if isinstance(config, RuntimeConfig) else load_config(None, config)
-        model = OnnxModel.load(cfg.model)
+        model = OnnxModel.load(str(cfg.model))  # (load_config checked model, interface, channel are set)
         matrix = CanMatrix.load(cfg.dbc)
+        opener: Callable[[], Any] | None = bus_factory
         if bus is None:
             def factory() -> Any:
-                return open_bus(cfg.interface, cfg.channel, cfg.bitrate)
-            bus_factory = bus_factory or factory
+                return open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate)
+            opener = bus_factory or factory
         sensor = cls(bus, model, matrix, sync_id=cfg.sync_id, sync_every=cfg.sync_every,
-                     timeout_cycles=cfg.timeout_cycles, model_id=cfg.model_id, bus_factory=bus_factory,
+                     timeout_cycles=cfg.timeout_cycles, model_id=cfg.model_id, bus_factory=opener,
                      cpu=cfg.cpu, realtime=cfg.realtime, rt_priority=cfg.rt_priority, **kwargs)
-        if bus is None:  # everything checked: now open the bus (UserError when it cannot be opened)
-            sensor._link.bus = bus_factory()
+        if opener is not None and bus is None:  # everything checked: now open the bus (UserError if it cannot)
+            sensor._link.bus = opener()
         sensor.config = cfg
         return sensor
 
