@@ -54,7 +54,8 @@ def train_model(tables: Sequence[Mapping[str, np.ndarray]], path: Path, spec: Fe
 
 
 def synthetic_streams(duration_s: float, seed: int = 0, rate_hz: float = 100.0):
-    """Smooth in-range input signals and SAT-like outputs on a ``rate_hz`` grid (no simulator needed)."""
+    """Smooth in-range input signals and SAT-like outputs on a ``rate_hz`` grid (no simulator needed); the
+    front wheel speeds agree with the vehicle speed (``signals.REDUNDANCIES``)."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration_s, 1.0 / rate_hz)
     sig: dict[str, np.ndarray] = {}
@@ -64,6 +65,9 @@ def synthetic_streams(duration_s: float, seed: int = 0, rate_hz: float = 100.0):
         f1, f2 = rng.uniform(0.1, 0.6, 2)
         p1, p2 = rng.uniform(0, 2 * np.pi, 2)
         sig[name] = mid + 0.3 * half * (0.7 * np.sin(2 * np.pi * f1 * t + p1) + 0.3 * np.sin(2 * np.pi * f2 * t + p2))
+    # the front wheels roll at the vehicle speed (the catalogue's redundancy check holds), within 1 %
+    for w in ("fl", "fr"):
+        sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M * (1.0 + 0.01 * np.sin(0.7 * t + len(w)))
     steer = sig["steer_angle_rad"] / 4.0
     sig["sat_fl_nm"] = -60.0 * np.tanh(steer) + 2.0 * sig["ay_mps2"]
     sig["sat_fr_nm"] = -50.0 * np.tanh(steer) - 2.0 * sig["ay_mps2"]

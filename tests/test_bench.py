@@ -91,3 +91,24 @@ def test_bench_quick_json_complete_and_sane(tiny_model, tmp_path):
     assert r["model"]["file"] == str(tiny_model) and len(r["model"]["sha256"]) == 64
     assert set(r["targets"]) >= {"tick_compute_p99_us", "e2e_in_process_p99_us", "max_tick_rate_hz"}
     assert md.read_text().startswith("# virtsensor bench") and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cross_process_run_takes_any_model_path_without_a_shell(tiny_model, tmp_path):
+    """The cross-process run starts its subprocesses from argument lists: a model path with a double quote
+    and a command substitution is a path, never shell code."""
+    import shutil
+
+    from virtsensor.daemon.xproc import measure_e2e_cross_process
+    from virtsensor.model import card_path_for
+
+    d = tmp_path / 'we"ird $(touch pwned) `touch pwned2`'
+    d.mkdir()
+    model = d / "tiny.onnx"
+    shutil.copy(tiny_model, model)
+    shutil.copy(card_path_for(tiny_model), card_path_for(model))
+    res, reason = measure_e2e_cross_process(model, 30)
+    assert not list(tmp_path.rglob("pwned*")) and not list(Path.cwd().glob("pwned*"))
+    if res is None and reason and ("not permitted" in reason or "needs" in reason):
+        pytest.skip(reason)
+    assert res is not None, reason
+    assert res["n"] >= 20 and res["p50"] > 0

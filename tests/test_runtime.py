@@ -1,4 +1,4 @@
-"""The real-time daemon (``virtsensor run`` / :class:`virtsensor.runtime.VirtualSensor`) on python-can's
+"""The real-time daemon (``virtsensor run`` / :class:`virtsensor.daemon.VirtualSensor`) on python-can's
 in-process ``virtual`` bus: offline equality, tracking, validity statuses, E2E faults, random frames,
 bus errors with reconnect, SIGTERM, start-up refusals, configuration."""
 
@@ -24,11 +24,11 @@ from runtime_support import SYNC_ID, train_model, with_sync
 from virtsensor import cli
 from virtsensor.canbus.codec import CanMatrix
 from virtsensor.canbus.e2e import COUNTER_MAX, USABLE, E2EStatus, frame_crc, next_counter
+from virtsensor.daemon import DEGRADED, INIT, INVALID, VALID, VirtualSensor, load_config
 from virtsensor.features import FeatureSpec
 from virtsensor.model import OnnxModel, card_path_for
 from virtsensor.recording import iter_frames, simulated_recording
 from virtsensor.replay import replay
-from virtsensor.runtime import DEGRADED, INIT, INVALID, VALID, VirtualSensor, load_config
 
 ROOT = Path(__file__).resolve().parent.parent
 MATRIX = CanMatrix.load()
@@ -420,7 +420,7 @@ def test_sync_on_an_input_message_decodes_it_then_ticks(model, test_frames):
         if f.arbitration_id == imu:
             n_imu += 1
             if vs.counters["ticks"] > ticks:  # this frame ticked: the tick's snapshot holds its own value
-                assert vs._t_times[ax] == f.timestamp
+                assert vs.inputs.times[ax] == f.timestamp
     c = vs.counters
     assert c["sync_frames"] == n_imu > 100 and c["ticks"] == (n_imu + 4) // 5
     assert c["input_frames"] == sum(f.arbitration_id in inputs for f in sub)

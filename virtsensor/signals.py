@@ -211,6 +211,41 @@ CAN_SIGNALS: tuple[str, ...] = tuple(s.name for s in _ALL if s.message is not No
 TABLE_RATE_HZ = 20.0
 
 
+@dataclass(frozen=True)
+class Redundancy:
+    """A plausibility check between redundant signals: ``subject`` must agree with ``scale`` times the mean
+    of ``references`` within ``tolerance_abs + tolerance_rel * |subject|`` (in the subject's unit).
+
+    A receiver flags the subject implausible after ``debounce_ticks`` consecutive failing 20 Hz ticks and
+    clears it after as many passing ones (a skid or a wheel spin of a few ticks is not a fault).
+
+    Attributes:
+        name: the check's name (logs, counters). subject: the signal under test.
+        references: the signals that should agree with it. scale: references -> subject unit.
+    """
+
+    name: str
+    subject: str
+    references: tuple[str, ...]
+    scale: float
+    tolerance_abs: float
+    tolerance_rel: float
+    debounce_ticks: int = 3
+
+
+#: Rolling radius (m) the redundancy of vehicle speed and front wheel speeds assumes: the catalogue car's
+#: tyre loaded statically (the simulator's effective rolling radius is 0.304-0.307 m in its manoeuvres).
+ROLLING_RADIUS_M = 0.305
+
+#: Plausibility checks between redundant signals on the bus.
+REDUNDANCIES: tuple[Redundancy, ...] = (
+    # the ESC speed against the front wheels: 15 % covers wheel slip under traction/braking and the
+    # outer/inner wheel paths in a turn; 1.5 m/s covers the quantisation and lags at walking speed
+    Redundancy("vx_vs_front_wheel_speed", "vx_mps", ("wheel_speed_fl_radps", "wheel_speed_fr_radps"),
+               ROLLING_RADIUS_M, tolerance_abs=1.5, tolerance_rel=0.15),
+)
+
+
 def signal(name: str) -> Signal:
     """Return the catalogue entry for ``name``.
 
@@ -234,3 +269,4 @@ def by_message(message: str) -> tuple[Signal, ...]:
 
 assert len(INPUTS) == 12, INPUTS
 assert OUTPUTS == ("sat_fl_nm", "sat_fr_nm"), OUTPUTS
+assert all(n in SIGNALS for r in REDUNDANCIES for n in (r.subject, *r.references)), REDUNDANCIES

@@ -6,7 +6,7 @@ Examples::
     virtsensor bench --model m.onnx --quick
     virtsensor bench --soak-ticks 10000
 
-See :mod:`virtsensor.bench` for what each figure measures.
+See :mod:`virtsensor.daemon.bench` for what each figure measures.
 """
 
 from __future__ import annotations
@@ -18,11 +18,10 @@ HELP = "measure the daemon: per-stage and end-to-end latency, jitter, CPU/RSS, m
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from virtsensor.bench import DEFAULT_MODEL
     from virtsensor.commands import _types as t
 
-    parser.add_argument("--model", metavar="FILE.onnx", default=DEFAULT_MODEL, type=t.existing_file(".onnx"),
-                        help=f"ONNX model (its .card.json beside it; default {DEFAULT_MODEL})")
+    parser.add_argument("--model", metavar="FILE.onnx", default=None, type=t.existing_file(".onnx"),
+                        help="ONNX model (its .card.json beside it; default: the shipped improved model)")
     parser.add_argument("--json", metavar="FILE", type=t.output_file(), help="write the figures as JSON")
     parser.add_argument("--markdown", metavar="FILE", type=t.output_file(), help="write a Markdown summary")
     parser.add_argument("--histogram", metavar="PNG", type=t.output_file(".png"),
@@ -36,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.bench import run_bench, to_json, write_histogram, write_markdown
+    from virtsensor.daemon.bench import run_bench, to_json, write_histogram, write_markdown
 
     def say(text: str) -> None:
         if not args.quiet:

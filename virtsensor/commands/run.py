@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from virtsensor.commands import _types as t
 
     parser.add_argument("--model", metavar="FILE.onnx", type=t.existing_file(".onnx"),
-                        help="ONNX model (its .card.json beside it)")
+                        help="ONNX model (its .card.json beside it; default: the shipped improved model)")
     parser.add_argument("--dbc", metavar="FILE.dbc", type=t.existing_file(".dbc"),
                         help="CAN matrix (default: the bundled dbc/virtsensor.dbc)")
     parser.add_argument("--interface", "-i", help="python-can interface: socketcan, virtual, udp_multicast, pcan...")
@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import logging
 
-    from virtsensor.runtime import VirtualSensor, configure_logging, load_config, log
+    from virtsensor.daemon import VirtualSensor, configure_logging, load_config, log
 
     keys = ("model", "dbc", "interface", "channel", "bitrate", "sync_id", "sync_every", "cpu", "realtime",
             "rt_priority", "duration", "timeout_cycles", "model_id", "log_level")

@@ -1,6 +1,6 @@
 """``virtsensor bench``: latency, jitter, throughput, CPU/RSS and soak figures of the daemon (issue 6).
 
-Everything runs a real :class:`~virtsensor.runtime.VirtualSensor` on python-can's in-process ``virtual``
+Everything runs a real :class:`~virtsensor.daemon.VirtualSensor` on python-can's in-process ``virtual``
 bus, fed with a replayed simulated manoeuvre (``sim.api.simulate``; the *bench* imports the simulator,
 the runtime never does). The manoeuvre's frames are encoded exactly as :func:`virtsensor.recording.iter_frames`
 writes them, with a sync frame (id ``SYNC_ID``) just after each 20 Hz grid instant, and a window of
@@ -44,10 +44,6 @@ import json
 import math
 import os
 import platform
-import shutil
-import subprocess
-import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -57,11 +53,12 @@ from typing import Any
 
 import numpy as np
 
+from virtsensor import assets
 from virtsensor.errors import UserError
 
-__all__ = ["run_bench", "write_markdown", "write_histogram", "percentiles", "DEFAULT_MODEL", "SYNC_ID"]
+__all__ = ["run_bench", "write_markdown", "write_histogram", "percentiles", "await_frame", "Inputs", "SYNC_ID"]
 
-DEFAULT_MODEL = "models/improved.onnx"
+
 #: sync frame id of the bench (not in the DBC)
 SYNC_ID = 0x7F0
 #: sync frames go this long after each 20 Hz grid instant (after the frames stamped at the instant)
@@ -72,7 +69,6 @@ LOOP_S = 3.2
 WINDOW_START_S = 1.0
 BUDGET_US = 50_000.0
 MANOEUVRE = ("steering-pulse", 60.0, 1.0, 7)
-MULTICAST_GROUP = "239.74.163.9"
 
 #: counts of a full run and of ``--quick``
 FULL = {"stage_ticks": 5000, "e2e_ticks": 2000, "jitter_s": 10.0, "soak_ticks": 72_000, "xproc_ticks": 400}
@@ -83,7 +79,7 @@ QUICK = {"stage_ticks": 200, "e2e_ticks": 100, "jitter_s": 1.5, "soak_ticks": 1_
 # helpers
 # ---------------------------------------------------------------------------------------------------------------
 
-def _await_frame(bus, frame_id: int, timeout_s: float = 1.0) -> bool:
+def await_frame(bus, frame_id: int, timeout_s: float = 1.0) -> bool:
     """Wait up to ``timeout_s`` for a standard frame ``frame_id`` on ``bus``; True when it came."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -128,18 +124,6 @@ def machine_info() -> dict[str, Any]:
         usable = None
     return {"platform": platform.platform(), "python": platform.python_version(), "cpu_model": cpu,
             "cores": os.cpu_count(), "usable_cores": usable}
-
-
-class _Proxy:
-    """Forwards every attribute to ``target``; the methods in ``timed`` are timed into lists (us)."""
-
-    def __init__(self, target: Any, timed: dict[str, Callable[..., Any]]) -> None:
-        object.__setattr__(self, "_target", target)
-        for name, fn in timed.items():
-            object.__setattr__(self, name, fn)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(object.__getattribute__(self, "_target"), name)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -213,12 +197,12 @@ def _virtual_channel() -> str:
 
 
 def _sensor(model: Any, matrix: Any, bus: Any, **kw: Any) -> Any:
-    from virtsensor.runtime import VirtualSensor
+    from virtsensor.daemon.sensor import VirtualSensor
 
     return VirtualSensor(bus, model, matrix, **kw)
 
 
-def _sync_rig(model: Any, matrix: Any) -> tuple[str, Any, Any, int]:
+def _sync_rig(model: Any, matrix: Any, **kw: Any) -> tuple[str, Any, Any, int]:
     """A sync-mode daemon on a fresh virtual channel (driven from this thread, or started) and a listener
     on the same channel: ``(channel, listener, daemon, SAT_FRONT id)``. The daemon owns its bus
     (``stop()`` shuts it down); the channel lets a caller add its own buses."""
@@ -227,57 +211,53 @@ def _sync_rig(model: Any, matrix: Any) -> tuple[str, Any, Any, int]:
     ch = _virtual_channel()
     bus = can.Bus(interface="virtual", channel=ch)
     listener = can.Bus(interface="virtual", channel=ch)
-    vs = _sensor(model, matrix, bus, sync_id=SYNC_ID)
+    vs = _sensor(model, matrix, bus, sync_id=SYNC_ID, **kw)
     return ch, listener, vs, vs.matrix.messages["SAT_FRONT"].frame_id
 
 
-def measure_stages(model: Any, matrix: Any, inputs: Inputs, n_ticks: int) -> tuple[dict[str, Any], np.ndarray]:
-    """Per-stage times (us) of a sync-mode daemon driven in this thread; also returns the feature vectors."""
-    _, listener, vs, sat_id = _sync_rig(model, matrix)
+def _stage_timer(rec: dict[str, list[float]], xs: list[np.ndarray]) -> Callable[[str, Callable[..., Any]], Any]:
+    """A ``stage_hook`` of :class:`VirtualSensor` timing each stage call into ``rec[stage]`` (us, with
+    ``perf_counter_ns``; each figure includes the ~0.1-0.3 us of the wrapper call) and keeping the
+    feature vectors in ``xs``."""
     pc = time.perf_counter_ns
-    rec: dict[str, list[float]] = {"decode": [], "feature_vector": [], "inference": [], "encode": [], "send": []}
-    xs: list[np.ndarray] = []
-    b_real, mod_real, send_real, enc_real = vs._builder, vs.model, vs._send, vs._encode_sat
-    decode_list = rec["decode"]
 
-    def timed_receiver(rx: Callable[[Any, float], None]) -> Callable[[Any, float], None]:
-        def decode(data: Any, t: float) -> None:
+    def hook(stage: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        out = rec.setdefault(stage, [])
+        if stage == "feature_vector":
+            def timed_push(values: Any) -> Any:
+                t0 = pc()
+                r = fn(values)
+                out.append((pc() - t0) / 1e3)
+                if r is not None:
+                    xs.append(np.array(r, dtype=float))
+                return r
+            return timed_push
+
+        if stage == "decode":  # per input frame: the generated receiver's own (data, t) signature
+            def timed_decode(data: Any, t: float) -> None:
+                t0 = pc()
+                fn(data, t)
+                out.append((pc() - t0) / 1e3)
+            return timed_decode
+
+        def timed(*a: Any) -> Any:
             t0 = pc()
-            rx(data, t)
-            decode_list.append((pc() - t0) / 1e3)
-        return decode
+            r = fn(*a)
+            out.append((pc() - t0) / 1e3)
+            return r
+        return timed
 
-    def encode(*a: Any, **k: Any) -> Any:
-        t0 = pc()
-        r = enc_real(*a, **k)
-        rec["encode"].append((pc() - t0) / 1e3)
-        return r
+    return hook
 
-    def push(values: Any) -> Any:
-        t0 = pc()
-        r = b_real.push(values)
-        rec["feature_vector"].append((pc() - t0) / 1e3)
-        if r is not None:
-            xs.append(np.array(r, dtype=float))
-        return r
 
-    def predict_one(x: Any) -> Any:
-        t0 = pc()
-        r = mod_real.predict_one(x)
-        rec["inference"].append((pc() - t0) / 1e3)
-        return r
+def measure_stages(model: Any, matrix: Any, inputs: Inputs, n_ticks: int) -> tuple[dict[str, Any], np.ndarray]:
+    """Per-stage times (us) of a sync-mode daemon driven in this thread, through its ``stage_hook``; also
+    returns the feature vectors."""
+    from virtsensor.daemon.sensor import STAGES
 
-    def send(msg: Any) -> None:
-        t0 = pc()
-        send_real(msg)
-        if msg.arbitration_id == sat_id:
-            rec["send"].append((pc() - t0) / 1e3)
-
-    vs._receivers = {fid: timed_receiver(rx) for fid, rx in vs._receivers.items()}
-    vs._encode_sat = encode
-    vs._builder = _Proxy(b_real, {"push": push})
-    vs.model = _Proxy(mod_real, {"predict_one": predict_one})
-    vs._send = send
+    rec: dict[str, list[float]] = {k: [] for k in STAGES}
+    xs: list[np.ndarray] = []
+    _, listener, vs, _ = _sync_rig(model, matrix, stage_hook=_stage_timer(rec, xs))
     try:
         for k in range(n_ticks):
             batch, sync = inputs.tick(k)
@@ -323,7 +303,7 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
                 tx.send(batch[-1])
             tx.send(sync)
             sent += 1 + bool(batch)
-            got = _await_frame(listener, sat_id)
+            got = await_frame(listener, sat_id)
             t1 = pc()
             if got:
                 lat.append((t1 - t0) / 1e3)
@@ -339,19 +319,19 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
     return out
 
 
-def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float) -> dict[str, Any]:
-    """The daemon on its own 20 Hz timer, inputs fed in real time: jitter, CPU (daemon threads, process), RSS."""
-    import can
+def _thread_cpu_s(threads: Any) -> list[float]:
+    """CPU time (s) of each thread (``pthread_getcpuclockid``; nan where unavailable)."""
+    out = []
+    for th in threads:
+        try:
+            out.append(time.clock_gettime(time.pthread_getcpuclockid(th.ident)))
+        except (AttributeError, OSError, TypeError):
+            out.append(math.nan)
+    return out
 
-    from virtsensor.runtime import SPIN_S
 
-    ch = _virtual_channel()
-    bus = can.Bus(interface="virtual", channel=ch)
-    tx = can.Bus(interface="virtual", channel=ch)
-    listener = can.Bus(interface="virtual", channel=ch)
-    vs = _sensor(model, matrix, bus)
-    stop = threading.Event()
-
+def _feeder(tx: Any, inputs: Inputs, stop: threading.Event) -> threading.Thread:
+    """A thread sending each tick's input frames at the real 20 Hz pace (interface timestamps: the send time)."""
     def feed() -> None:
         k = 0
         t0 = time.monotonic()
@@ -364,49 +344,40 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
             if rem > 0 and stop.wait(rem):
                 break
 
+    return threading.Thread(target=feed, name="bench-feeder", daemon=True)
+
+
+def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float) -> dict[str, Any]:
+    """The daemon on its own 20 Hz timer, inputs fed in real time: jitter, CPU (daemon threads, process), RSS."""
+    import can
+
+    from virtsensor.daemon.runner import SPIN_S
+
+    ch = _virtual_channel()
+    tx = can.Bus(interface="virtual", channel=ch)
+    listener = can.Bus(interface="virtual", channel=ch)
+    vs = _sensor(model, matrix, can.Bus(interface="virtual", channel=ch))
+    stop = threading.Event()
+    feeder = _feeder(tx, inputs, stop)
+
     def drain() -> None:
         while not stop.is_set():
             listener.recv(0.05)
 
-    feeder = threading.Thread(target=feed, name="bench-feeder", daemon=True)
     drainer = threading.Thread(target=drain, name="bench-drain", daemon=True)
     feeder.start()
     drainer.start()
     time.sleep(0.5)  # the inputs flow before the daemon starts
     vs.start()
     time.sleep(0.5)  # settle: history filled, first ticks done
-    threads = [th for th in (vs._rx_thread, vs._tick_thread) if th is not None]
-
-    def per_thread() -> list[float]:
-        out = []
-        for th in threads:
-            try:
-                out.append(time.clock_gettime(time.pthread_getcpuclockid(th.ident)))
-            except (AttributeError, OSError, TypeError):
-                out.append(math.nan)
-        return out
-
-    def thread_cpu() -> float:
-        return float(sum(per_thread()))
-
-    n_jit0 = vs._n_jit
-    ticks0 = vs.counters["ticks"]
-    ov0 = vs.counters["overruns"]
-    pt0 = per_thread()
-    c0, p0, w0 = thread_cpu(), os.times(), time.monotonic()
-    rss0 = rss_mb()
+    threads, ts = vs.threads, vs.tick_stats
+    wakes0, ticks0, ov0 = ts.wakes, vs.counters["ticks"], vs.counters["overruns"]
+    pt0, p0, w0, rss0 = _thread_cpu_s(threads), os.times(), time.monotonic(), rss_mb()
     time.sleep(seconds)
-    c1, p1, w1 = thread_cpu(), os.times(), time.monotonic()
-    pt1 = per_thread()
-    rss1 = rss_mb()
-    n_jit1 = vs._n_jit
-    ticks = vs.counters["ticks"] - ticks0
-    overruns = vs.counters["overruns"] - ov0
-    ring = vs._jit_us
-    n = min(n_jit1 - n_jit0, ring.shape[0])
-    jit = np.array([ring[i % ring.shape[0]] for i in range(n_jit1 - n, n_jit1)])
+    pt1, p1, w1, rss1 = _thread_cpu_s(threads), os.times(), time.monotonic(), rss_mb()
+    jit = ts.wake_late_us(wakes0)
+    ticks, overruns = vs.counters["ticks"] - ticks0, vs.counters["overruns"] - ov0
     st = vs.stats()
-    statuses = st["statuses"]
     vs.stop()
     stop.set()
     feeder.join(2)
@@ -415,17 +386,18 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
     listener.shutdown()
     wall = w1 - w0
     proc = (p1.user - p0.user) + (p1.system - p0.system)
-    out = {"jitter_us": percentiles(jit), "ticks": ticks, "overruns": overruns, "wall_s": round(wall, 3),
-           "tick_rate_hz": round(ticks / wall, 3) if wall > 0 else None,
-           "cpu_percent_daemon_threads": round(100 * (c1 - c0) / wall, 3) if math.isfinite(c1 - c0) else None,
-           "cpu_percent_process": round(100 * proc / wall, 3), "rss_mb": round(max(rss0, rss1), 3),
-           "cpu_percent_per_thread": {th.name: (round(100 * (b - a) / wall, 3) if math.isfinite(b - a) else None)
-                                      for th, a, b in zip(threads, pt0, pt1, strict=True)},
-           "spin_budget_percent": round(100 * SPIN_S * 20, 3),
-           "tick_compute_p50_us": st.get("compute_p50_us"), "tick_compute_p99_us": st.get("compute_p99_us"),
-           "tick_latency_p50_us": st.get("latency_p50_us"), "tick_latency_p99_us": st.get("latency_p99_us"),
-           "statuses_at_end": statuses}
-    return out
+    cpu = sum(pt1) - sum(pt0)
+    return {"jitter_us": percentiles(jit), "ticks": ticks, "overruns": overruns, "wall_s": round(wall, 3),
+            "tick_rate_hz": round(ticks / wall, 3) if wall > 0 else None,
+            "cpu_percent_daemon_threads": round(100 * cpu / wall, 3) if math.isfinite(cpu) else None,
+            "cpu_percent_process": round(100 * proc / wall, 3), "rss_mb": round(max(rss0, rss1), 3),
+            "cpu_percent_per_thread": {th.name: (round(100 * (b - a) / wall, 3) if math.isfinite(b - a) else None)
+                                       for th, a, b in zip(threads, pt0, pt1, strict=True)},
+            "spin_budget_percent": round(100 * SPIN_S * 20, 3),
+            "frames_drained_per_tick": round(st["drained_frames"] / max(st["ticks"], 1), 2),
+            "tick_compute_p50_us": st.get("compute_p50_us"), "tick_compute_p99_us": st.get("compute_p99_us"),
+            "tick_latency_p50_us": st.get("latency_p50_us"), "tick_latency_p99_us": st.get("latency_p99_us"),
+            "statuses_at_end": st["statuses"]}
 
 
 def _sklearn_pipeline(weights: dict[str, Any]) -> Any:
@@ -521,8 +493,6 @@ def run_soak(model: Any, matrix: Any, inputs: Inputs, n_ticks: int,
     """``n_ticks`` ticks as fast as possible (sync mode, this thread): compute of every tick, missed ticks,
     RSS every 1,000 ticks, ticks/s."""
     _, listener, vs, sat_id = _sync_rig(model, matrix)
-    ring = vs._cmp_us
-    rn = ring.shape[0]
     compute = np.empty(n_ticks)
     rss_samples: list[tuple[int, float]] = [(0, rss_mb())]
     sat_seen = 0
@@ -537,10 +507,9 @@ def run_soak(model: Any, matrix: Any, inputs: Inputs, n_ticks: int,
                 break
             if m.arbitration_id == sat_id:
                 sat_seen += 1
-        ticks = vs.counters["ticks"]
-        for i in range(done, ticks):
-            compute[i] = ring[i % rn]
-        done = ticks
+        got = vs.tick_stats.compute_us(done)
+        compute[done:done + len(got)] = got
+        done += len(got)
         rss_samples.append((upto, rss_mb()))
 
     gc.collect()
@@ -584,136 +553,21 @@ def run_soak(model: Any, matrix: Any, inputs: Inputs, n_ticks: int,
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# cross-process (udp_multicast in a private network namespace)
-# ---------------------------------------------------------------------------------------------------------------
-def _netns_prefix() -> tuple[list[str] | None, str | None]:
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return None, "needs unshare(1) and ip(8) to make a private network namespace"
-    tried = []
-    for prefix in (["unshare", "-n"], ["unshare", "-rn"]):
-        try:
-            r = subprocess.run([*prefix, "ip", "link", "set", "lo", "up"], capture_output=True, text=True,
-                               timeout=20)
-        except (OSError, subprocess.TimeoutExpired) as exc:
-            tried.append(f"{' '.join(prefix)}: {exc}")
-            continue
-        if r.returncode == 0:
-            return prefix, None
-        tried.append(f"{' '.join(prefix)}: {r.stderr.strip() or r.returncode}")
-    return None, "private network namespaces are not permitted here (" + "; ".join(tried) + ")"
-
-
-def measure_e2e_cross_process(model_path: Path, n_ticks: int,
-                              timeout_s: float = 120.0) -> tuple[dict | None, str | None]:
-    """Daemon (``virtsensor run`` in its own process) and this module's driver in another, on udp_multicast
-    inside ``unshare -n``. Returns (percentiles, None) or (None, reason)."""
-    try:
-        import msgpack  # noqa: F401 - python-can's udp_multicast needs it
-    except ImportError:
-        return None, "python-can's udp_multicast interface needs msgpack"
-    prefix, reason = _netns_prefix()
-    if prefix is None:
-        return None, reason
-    root = Path(__file__).resolve().parent.parent
-    model_path = Path(model_path).resolve()
-    py = sys.executable
-    with tempfile.TemporaryDirectory(prefix="vs-bench-") as d:
-        out = Path(d) / "xproc.json"
-        script = Path(d) / "xproc.sh"
-        script.write_text(f"""set -u
-cd "{d}"
-ip link set lo up
-ip link set lo multicast on
-ip route add 224.0.0.0/4 dev lo
-"{py}" -m virtsensor.cli run --model "{model_path}" --interface udp_multicast --channel {MULTICAST_GROUP} \\
-    --sync-id 0x{SYNC_ID:X} --log-level info 2> daemon.log &
-D=$!
-for i in $(seq 1 300); do grep -q '"event":"started"' daemon.log && break; sleep 0.1; done
-"{py}" -m virtsensor.bench --_xproc-driver "{out}" {int(n_ticks)} > driver.log 2>&1
-echo "driver_rc=$?"
-kill -TERM $D
-wait $D
-echo "daemon_rc=$?"
-""")
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")])
-        try:
-            r = subprocess.run([*prefix, "bash", str(script)], capture_output=True, text=True, timeout=timeout_s,
-                               env=env)
-        except subprocess.TimeoutExpired:
-            return None, f"the cross-process run did not finish within {timeout_s:.0f} s"
-        if not out.exists():
-            logs = {n: (Path(d) / n).read_text()[-500:] for n in ("daemon.log", "driver.log")
-                    if (Path(d) / n).exists()}
-            return None, f"the cross-process run failed (rc {r.returncode}): {r.stdout[-300:]} {logs}"
-        res = json.loads(out.read_text())
-        if not res.get("n"):
-            daemon_log = (Path(d) / "daemon.log").read_text()[-600:] if (Path(d) / "daemon.log").exists() else ""
-            return None, f"no SAT_FRONT came back across processes ({res.get('lost')} lost): {daemon_log}"
-    return res, None
-
-
-def _xproc_driver(out_path: str, n_ticks: int) -> int:
-    """Inside the netns: send the ticks' frames on udp_multicast, time last input frame -> SAT_FRONT."""
-    import can
-
-    from virtsensor.canbus.codec import CanMatrix
-
-    sat_id = CanMatrix.load().messages["SAT_FRONT"].frame_id
-    inputs = Inputs()
-    tx = can.Bus(interface="udp_multicast", channel=MULTICAST_GROUP)
-    rx = can.Bus(interface="udp_multicast", channel=MULTICAST_GROUP)
-    time.sleep(0.3)
-    lat: list[float] = []
-    lost = run_lost = 0
-    pc = time.perf_counter_ns
-    try:
-        for k in range(n_ticks):
-            batch, sync = inputs.tick(k)
-            for m in batch[:-1]:
-                tx.send(m)
-            time.sleep(0.002)  # let the daemon consume them
-            while rx.recv(0) is not None:
-                pass
-            t0 = pc()
-            if batch:
-                tx.send(batch[-1])
-            tx.send(sync)
-            got = _await_frame(rx, sat_id)
-            t1 = pc()
-            if got:
-                lat.append((t1 - t0) / 1e3)
-                run_lost = 0
-            else:
-                lost += 1
-                run_lost += 1
-                if run_lost >= 5:
-                    break
-    finally:
-        tx.shutdown()
-        rx.shutdown()
-    res = percentiles(lat) or {}
-    res["lost"] = lost
-    Path(out_path).write_text(json.dumps(res))
-    return 0
-
-
-# ---------------------------------------------------------------------------------------------------------------
 # the whole bench
 # ---------------------------------------------------------------------------------------------------------------
-def run_bench(model_path: str | os.PathLike, *, quick: bool = False, soak_ticks: int | None = None,
+def run_bench(model_path: str | os.PathLike | None = None, *, quick: bool = False, soak_ticks: int | None = None,
               cross_process: bool = True, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run every measurement; returns the JSON-able result (plus ``_samples`` for the histogram)."""
     from virtsensor.canbus.codec import CanMatrix
     from virtsensor.model.onnx import OnnxModel
 
     say = progress or (lambda s: None)
-    counts = dict(QUICK if quick else FULL)
+    counts: dict[str, Any] = dict(QUICK if quick else FULL)
     if soak_ticks is not None:
         if soak_ticks < 1:
             raise UserError("--soak-ticks must be at least 1")
         counts["soak_ticks"] = int(soak_ticks)
-    model_path = Path(model_path)
+    model_path = assets.model_path() if model_path is None else Path(model_path)
     if not model_path.exists():
         raise UserError(f"model {model_path} not found (give one with --model)")
     model = OnnxModel.load(model_path)
@@ -739,9 +593,12 @@ def run_bench(model_path: str | os.PathLike, *, quick: bool = False, soak_ticks:
 
     say(f"end to end in process: {counts['e2e_ticks']} ticks")
     e2e_in = measure_e2e_in_process(model, matrix, inputs, counts["e2e_ticks"])
-    xproc, reason = (None, "disabled (--no-cross-process)")
+    xproc: dict | None = None
+    reason: str | None = "disabled (--no-cross-process)"
     if cross_process:
         say(f"end to end across processes (udp_multicast, private netns): {counts['xproc_ticks']} ticks")
+        from virtsensor.daemon.xproc import measure_e2e_cross_process
+
         xproc, reason = measure_e2e_cross_process(model_path, counts["xproc_ticks"])
     result["e2e_latency_us"] = {k: e2e_in.get(k) for k in ("p50", "p99", "p999", "max", "mean", "n")}
     result["e2e_latency_us"].update(
@@ -881,14 +738,7 @@ def write_histogram(r: dict[str, Any], path: str | os.PathLike) -> None:
 
 
 def to_json(r: dict[str, Any]) -> str:
-    from virtsensor.runtime import _json_safe
+    from virtsensor.daemon.jsonlog import json_safe
 
     clean = {k: v for k, v in r.items() if not k.startswith("_")}
-    return json.dumps(_json_safe(clean), indent=2, allow_nan=False) + "\n"
-
-
-if __name__ == "__main__":  # the cross-process driver (inside the private netns)
-    if len(sys.argv) == 4 and sys.argv[1] == "--_xproc-driver":
-        sys.exit(_xproc_driver(sys.argv[2], int(sys.argv[3])))
-    print("use: virtsensor bench", file=sys.stderr)
-    sys.exit(2)
+    return json.dumps(json_safe(clean), indent=2, allow_nan=False) + "\n"

@@ -1,0 +1,213 @@
+"""Reliability of the daemon's verdicts under hostile timing: inputs whose timestamps lie cannot look fresh.
+
+Sync mode: a critical message's last frame stamped 10 s ahead and then silence, or a time base that steps
+back, must not keep SAT_FRONT VALID past the input timeout. Free-running: a backlog the interface releases
+late is aged by its own timestamps (mapped onto the daemon's clock), not by its arrival.
+Everything is driven by hand (``VirtualSensor.process``/``drain``/``tick``) on in-memory buses.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import time
+
+import can
+import numpy as np
+import pytest
+from runtime_support import SYNC_ID, synthetic_streams, train_model, with_sync
+
+from virtsensor import signals as cat
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.daemon import INVALID, VALID, VirtualSensor
+from virtsensor.recording import iter_frames, simulated_recording
+
+MATRIX = CanMatrix.load()
+EPAS = MATRIX.messages["EPAS_Steering"].frame_id  # critical inputs, 10 ms cycle
+EPAS_BIT = 1 << 1
+EPAS_TIMEOUT_S = 3 * MATRIX.messages["EPAS_Steering"].cycle_s
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    from virtsensor.model.onnx import OnnxModel
+
+    t, sig = synthetic_streams(20.0, seed=11)
+    path = tmp_path_factory.mktemp("rel") / "m.onnx"
+    train_model([simulated_recording(t, sig, seed=11).table], path, hidden=(6,), max_iter=60)
+    return OnnxModel.load(path)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    t, sig = synthetic_streams(8.0, seed=5)
+    return list(iter_frames(t, sig, seed=5))
+
+
+class _QueueBus(can.BusABC):
+    """An in-memory bus: ``put`` queues frames for ``recv``; what the daemon sends is kept in ``sent``."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="queue")
+        self.queue: collections.deque = collections.deque()
+        self.sent: list[can.Message] = []
+
+    def put(self, msg: can.Message, timestamp: float) -> None:
+        self.queue.append(can.Message(timestamp=timestamp, arbitration_id=msg.arbitration_id,
+                                      is_extended_id=False, data=bytes(msg.data)))
+
+    def send(self, msg, timeout=None) -> None:
+        self.sent.append(msg)
+
+    def _recv_internal(self, timeout):
+        return (self.queue.popleft() if self.queue else None), False
+
+
+def _restamp(m: can.Message, ts: float) -> can.Message:
+    return can.Message(timestamp=ts, arbitration_id=m.arbitration_id, is_extended_id=m.is_extended_id,
+                       data=bytes(m.data), dlc=m.dlc)
+
+
+def _drive_sync(model, stream) -> tuple[list[tuple[int, float, tuple, int]], VirtualSensor]:
+    """Feed ``stream`` to a sync-mode daemon by hand; per tick: (position in the stream, tick time,
+    statuses, health bitmap)."""
+    vs = VirtualSensor(_QueueBus(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
+    out = []
+    for pos, m in enumerate(stream):
+        n = vs.counters["ticks"]
+        vs.process(m)
+        if vs.counters["ticks"] > n:
+            out.append((pos, m.timestamp, vs.last_statuses, vs.last_bitmap))
+    assert vs.counters["tick_errors"] == 0
+    return out, vs
+
+
+def _valid_before(ticks, pos: int) -> None:
+    before = [s for p, _, s, _ in ticks if p < pos]
+    assert before[-20:] and all(s == (VALID, VALID) for s in before[-20:]), "the run must be VALID before the fault"
+
+
+def test_future_stamped_last_frame_then_silence_is_not_valid_past_the_timeout(model, frames):
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    t_cut = frames[0].timestamp + 4.0
+    epas = [i for i, m in enumerate(merged) if m.arbitration_id == EPAS and m.timestamp < t_cut]
+    last, t_in_order = epas[-1], merged[epas[-2]].timestamp
+    stream = list(merged)
+    stream[last] = _restamp(merged[last], merged[last].timestamp + 10.0)  # 10 s ahead, then silence
+    stream = [m for i, m in enumerate(stream) if not (m.arbitration_id == EPAS and i > last)]
+    ticks, vs = _drive_sync(model, stream)
+    _valid_before(ticks, last)
+    late = [(t, s, b) for p, t, s, b in ticks if p > last and t > t_in_order + EPAS_TIMEOUT_S]
+    assert len(late) > 50
+    assert all(s == (INVALID, INVALID) for _, s, _ in late), "VALID after the steering input timed out"
+    assert not any(b & EPAS_BIT for _, _, b in late)
+    assert vs.counters["future_stamped"] == 1
+
+
+def test_time_base_stepping_back_with_a_silent_message_is_not_valid(model, frames):
+    """Every timestamp after ``t_step`` is 10 s earlier (sync frames too) and the steering goes silent:
+    its last frame now looks 10 s in the future of every tick."""
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    t_step = frames[0].timestamp + 4.0
+    step = next(i for i, m in enumerate(merged) if m.timestamp >= t_step)
+    t_last = max(m.timestamp for m in merged[:step] if m.arbitration_id == EPAS)
+    stream = merged[:step] + [_restamp(m, m.timestamp - 10.0) for m in merged[step:] if m.arbitration_id != EPAS]
+    ticks, vs = _drive_sync(model, stream)
+    _valid_before(ticks, step)
+    after = [(p, t + 10.0, s) for p, t, s, _ in ticks if p >= step]
+    assert len(after) > 50
+    assert not any(s[0] == VALID or s[1] == VALID for _, t, s in after if t > t_last + EPAS_TIMEOUT_S)
+    assert all(s == (INVALID, INVALID) for *_, s in after)
+    assert vs.counters["time_step_back"] == len(vs.input_messages) - 1  # every message but the silent one
+
+
+def test_time_base_step_back_recovers_once_frames_run_in_order(model, frames):
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    step = next(i for i, m in enumerate(merged) if m.timestamp >= frames[0].timestamp + 4.0)
+    stream = merged[:step] + [_restamp(m, m.timestamp - 0.02) for m in merged[step:]]  # 20 ms back: ages look fine
+    ticks, vs = _drive_sync(model, stream)
+    _valid_before(ticks, step)
+    after = [s for p, _, s, _ in ticks if p >= step]
+    assert after[0] == (INVALID, INVALID)  # out of order: not fresh although within the timeout
+    assert all(s == (VALID, VALID) for s in after[6:]), after[:8]  # 3 cycles in order + the history, then VALID
+    # the 10 ms messages step back; a 20 ms message's next frame lands on its previous one's stamp (not behind)
+    assert vs.counters["time_step_back"] == sum(c < 0.02 for c in vs.layout.cycles_s) == 3
+
+
+def test_free_running_backlog_is_aged_by_its_interface_timestamps(model, frames):
+    """Free-running, frames drained at each tick, in real time: a backlog the interface held back and
+    released late is stale (INVALID), although it has just arrived; live frames then bring VALID back."""
+    bus = _QueueBus()
+    vs = VirtualSensor(bus, model, MATRIX, freeze_gc=False, timeout_cycles=10)  # timeouts 100/200 ms
+    t0 = frames[0].timestamp
+    w0 = time.time() + 0.01  # wall time of stream time t0: the interface stamps frames on the wall clock
+
+    def put(a: float, b: float) -> None:  # the frames of stream times (a, b], stamped when the interface got them
+        for m in frames:
+            if t0 + a < m.timestamp <= t0 + b:
+                bus.put(m, w0 + (m.timestamp - t0))
+
+    def live(k0: int, k1: int) -> list[tuple]:
+        seen = []
+        for k in range(k0, k1):
+            time.sleep(max(0.0, w0 + (k + 1) * 0.05 - time.time()))
+            put(k * 0.05, (k + 1) * 0.05)
+            vs.drain()
+            seen.append(vs.tick())
+        return seen
+
+    assert live(0, 30)[-5:] == [(VALID, VALID)] * 5
+    # the interface stalls from 1.5 s to 2.1 s, then releases the frames it got from 1.5 s to 1.7 s
+    time.sleep(max(0.0, w0 + 2.1 - time.time()))
+    put(1.5, 1.7)
+    n = len(bus.queue)
+    assert n > 50 and time.time() - (w0 + 1.7) >= 0.4
+    assert vs.drain() == n
+    assert vs.tick() == (INVALID, INVALID), "a backlog 0.4 s old must not count as fresh"
+    back = live(42, 56)
+    assert back[-5:] == [(VALID, VALID)] * 5
+    assert vs.counters["time_step_back"] == vs.counters["future_stamped"] == 0
+
+
+class _Events(logging.Handler):
+    """Collects the daemon's log events (name and fields)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.events: list[dict] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.events.append({"event": record.getMessage(), **getattr(record, "fields", {})})
+
+
+def test_vehicle_speed_disagreeing_with_the_wheel_speeds_is_not_valid_and_named(model):
+    """vx 89 m/s while the front wheels roll at 19 m/s: in range, fresh and intact, but implausible."""
+    t, sig = synthetic_streams(8.0, seed=5)
+    sig["vx_mps"] = 19.0 + 0.5 * np.sin(t)
+    for w in ("fl", "fr"):
+        sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
+    sig["vx_mps"] = np.where(t >= 4.0, 89.0, sig["vx_mps"])
+    frames = list(iter_frames(t, sig, seed=5))
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    handler = _Events()
+    logger = logging.getLogger("virtsensor.daemon")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        ticks, vs = _drive_sync(model, merged)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    cut = next(i for i, m in enumerate(merged) if m.timestamp >= 4.0)
+    _valid_before(ticks, cut)
+    after = [(tt, s, b) for p, tt, s, b in ticks if p > cut]
+    assert all(s == (INVALID, INVALID) for tt, s, _ in after if tt > 4.0 + 0.2), "vx is critical: INVALID"
+    assert not any(b & (1 << 4) for tt, _, b in after if tt > 4.0 + 0.2)  # ESC_VehicleSpeed's health bit
+    assert vs.counters["implausible_checks"] == 1
+    bad = [e for e in handler.events if e["event"] == "implausible"]
+    assert len(bad) == 1 and bad[0]["check"] == "vx_vs_front_wheel_speed" and bad[0]["subject"] == "vx_mps"
+    assert bad[0]["value"] == pytest.approx(89.0, abs=0.01)
+    change = [e for e in handler.events if e["event"] == "status_change" and e.get("implausible_checks")]
+    assert change and change[0]["implausible_checks"] == ["vx_vs_front_wheel_speed"]
+    assert "vx_mps" in change[0]["bad_inputs"]

@@ -1,0 +1,180 @@
+"""The daemon's input-validity contract as pure functions (:mod:`virtsensor.daemon.validity`) and the clock
+mapping of drained frames (:class:`virtsensor.daemon.receive.ClockMap`): no threads, no bus, no model."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from virtsensor.daemon.receive import ClockMap
+from virtsensor.daemon.validity import (
+    DEGRADED,
+    INVALID,
+    VALID,
+    FrameOrder,
+    Plausibility,
+    PlausibilityRule,
+    ValidityRules,
+    ValidityState,
+    assess_inputs,
+    wheel_status,
+)
+
+# three signals: 0 critical (message 0, history 2), 1 non-critical (message 1), 2 critical (message 1)
+RULES = ValidityRules(sig_msg=(0, 1, 1), sig_timeout=(0.03, 0.06, 0.06), sig_hist=(2, 0, 0),
+                      critical=(True, False, True), sig_bit=(1, 2, 2), msg_timeout=(0.03, 0.06),
+                      bitmap_msgs=((0, 1), (1, 2)))
+T = 100.0
+
+
+def _assess(times, flags=(False,) * 3, last_ok=None, err=(False, False), in_order=(True, True), state=None,
+            t=T):
+    state = state or ValidityState(3)
+    last_ok = list(last_ok) if last_ok is not None else [times[0], max(times[1], times[2])]
+    return (*assess_inputs(t, list(times), list(flags), last_ok, list(err), list(in_order), RULES, state), state)
+
+
+def test_fresh_inputs_are_valid_with_every_bit():
+    status, bitmap, st = _assess([T - 0.01, T - 0.05, T])
+    assert status == VALID and bitmap == 3 and not any(st.stale) and not any(st.bad)
+
+
+@pytest.mark.parametrize("age", [0.0, 0.0299])
+def test_ages_from_zero_to_the_timeout_are_fresh(age):
+    assert _assess([T - age, T, T])[0] == VALID
+
+
+@pytest.mark.parametrize("stamp", [T + 1e-6, T + 10.0, T - 0.0301, -math.inf, math.nan])
+def test_future_stale_never_seen_or_nan_critical_input_is_invalid(stamp):
+    """An age below 0 (stamped after the tick) is as unusable as one beyond the timeout."""
+    status, bitmap, st = _assess([stamp, T, T], last_ok=[stamp, T])
+    assert status == INVALID and st.stale[0] and not bitmap & 1 and bitmap & 2
+
+
+def test_non_critical_bad_input_degrades_and_clears_its_message_bit():
+    status, bitmap, st = _assess([T, T - 0.07, T], last_ok=[T, T])
+    assert status == DEGRADED and st.bad == [False, True, False]
+    assert bitmap == 1  # message 1 delivered, but one of its inputs is stale: its bit is cleared
+
+
+def test_sna_flag_and_e2e_error_make_inputs_bad():
+    assert _assess([T, T, T], flags=(False, True, False))[0] == DEGRADED
+    assert _assess([T, T, T], flags=(True, False, False))[0] == INVALID
+    status, bitmap, st = _assess([T, T, T], err=(False, True))
+    assert status == INVALID and bitmap == 1 and st.bad == [False, True, True] and not any(st.stale)
+
+
+def test_out_of_order_message_is_not_fresh():
+    status, bitmap, st = _assess([T, T, T], in_order=(False, True))
+    assert status == INVALID and st.stale[0] and bitmap == 2
+
+
+def test_recovery_lasts_the_signals_history():
+    st = ValidityState(3)
+    assert _assess([T - 1.0, T, T], state=st)[0] == INVALID  # stale
+    seen = [_assess([T + k * 0.05, T + k * 0.05, T + k * 0.05], state=st, t=T + k * 0.05)[0] for k in range(1, 5)]
+    assert seen == [INVALID, INVALID, VALID, VALID]  # history 2: two fresh ticks still bad
+
+
+def test_wheel_status():
+    assert wheel_status(VALID, 10.0, -300, 300) == VALID
+    assert wheel_status(DEGRADED, 10.0, -300, 300) == DEGRADED
+    assert wheel_status(VALID, 301.0, -300, 300) == INVALID
+    assert wheel_status(VALID, math.nan, -300, 300) == INVALID
+    assert wheel_status(INVALID, 10.0, -300, 300) == INVALID
+
+
+# ------------------------------------------------------------------------------------------------ frame order
+def test_time_step_back_holds_the_message_out_of_order_for_the_window():
+    fo = FrameOrder([0.01], timeout_cycles=3)
+    for k in range(5):
+        assert not fo.frame(0, 1.0 + 0.01 * k)
+    assert fo.tick(1.05) == 0 and fo.in_order == [True]
+    assert fo.frame(0, 1.035)  # behind the previous frame (1.04)
+    fo.tick(1.05)
+    assert fo.in_order == [False]
+    for k, t in enumerate((1.045, 1.055, 1.065)):
+        assert not fo.frame(0, t)
+        fo.tick(t + 0.001)
+        assert fo.in_order == [k == 2]  # in order again once frames ran 3 cycles (30 ms) past the step
+
+
+def test_future_stamped_frame_is_counted_once_and_silence_keeps_it_out_of_order():
+    fo = FrameOrder([0.01, 0.02], timeout_cycles=3)
+    fo.frame(0, 1.0)
+    fo.frame(1, 1.0)
+    fo.frame(0, 11.0)  # 10 s ahead
+    assert fo.tick(1.05) == 1 and fo.in_order == [False, True]
+    assert fo.tick(1.10) == 0 and fo.in_order == [False, True]  # silence: still out of order, not recounted
+    assert fo.tick(11.0) == 0 and fo.in_order == [False, True]  # the clock reaching it does not help
+    assert fo.frame(0, 1.11)  # frames resume on the true time base: a step back
+    for t in (1.12, 1.13, 1.14):
+        fo.frame(0, t)
+    fo.tick(1.15)
+    assert fo.in_order == [True, True]
+
+
+def test_slightly_ahead_frame_within_one_cycle_is_in_order():
+    fo = FrameOrder([0.01], timeout_cycles=3)
+    fo.frame(0, 1.0)
+    fo.frame(0, 1.059)  # 9 ms after the tick at 1.05: within one cycle
+    assert fo.tick(1.05) == 0 and fo.in_order == [True]
+
+
+# ------------------------------------------------------------------------------------------------ clock map
+def test_clock_map_takes_the_tightest_bound_and_ignores_a_backlog():
+    cm = ClockMap(window=4)
+    assert cm.offset == math.inf
+    for d in (5.0002, 5.0001, 5.0003):
+        cm.push(d)
+    assert cm.offset == pytest.approx(5.0001)
+    cm.push(5.3)  # a backlog: read 300 ms after its stamps; the offset keeps the earlier, tighter bound
+    assert cm.offset == pytest.approx(5.0001)
+
+
+def test_clock_map_follows_a_time_base_step_after_its_window():
+    cm = ClockMap(window=3)
+    cm.push(5.0)
+    for _ in range(3):
+        assert cm.offset == pytest.approx(5.0)
+        cm.push(15.0)  # the interface's clock stepped back by 10 s
+    assert cm.offset == pytest.approx(15.0)
+
+
+# ------------------------------------------------------------------------------------------------ plausibility
+_VX_RULE = PlausibilityRule("vx_vs_wheels", subject=0, refs=(1, 2), scale=0.3, tol_abs=1.5, tol_rel=0.15, debounce=3)
+
+
+def test_plausibility_fails_after_the_debounce_and_clears_after_it():
+    p = Plausibility([_VX_RULE], 3)
+    good, bad = [20.0, 66.0, 68.0], [89.0, 63.0, 64.0]  # 0.3 * mean(wheels) = 20.1 / 19.05 m/s
+    assert p.update(good) == 0 and p.implausible == [False] * 3
+    assert [p.update(bad) for _ in range(3)] == [0, 0, 1]  # fails on the third tick in a row, counted once
+    assert p.failing == [True] and p.implausible == [True, False, False] and p.new == [True]
+    assert p.update(bad) == 0 and p.new == [False]
+    p.update(good)
+    p.update(bad)  # one bad tick in between restarts the count
+    p.update(good)
+    p.update(good)
+    assert p.implausible[0]
+    p.update(good)
+    assert p.implausible == [False] * 3 and p.failing == [False]
+
+
+def test_plausibility_tolerance_and_unknown_values():
+    p = Plausibility([_VX_RULE], 3)
+    for _ in range(5):  # 15 % + 1.5 m/s of 30 m/s: 6 m/s allowed; never-received (NaN) inputs pass
+        assert p.update([30.0, 80.0, 80.0]) == 0 and p.update([30.0, math.nan, 80.0]) == 0
+    assert not p.failing[0]
+
+
+def test_implausible_input_is_bad_not_stale():
+    st = ValidityState(3)
+    status, bitmap = assess_inputs(T, [T] * 3, [False] * 3, [T, T], [False, False], [True, True], RULES, st,
+                                   implausible=[False, True, False])
+    assert status == DEGRADED and st.bad == [False, True, False] and not any(st.stale) and bitmap == 1
+    status, _ = assess_inputs(T, [T] * 3, [False] * 3, [T, T], [False, False], [True, True], RULES, st,
+                              implausible=[True, False, False])
+    assert status == INVALID
+    assert assess_inputs(T, [T] * 3, [False] * 3, [T, T], [False, False], [True, True], RULES, st)[0] == VALID

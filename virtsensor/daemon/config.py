@@ -1,0 +1,163 @@
+"""Settings of ``virtsensor run``: a checked :class:`RuntimeConfig` from a TOML file and overrides.
+
+CLI options and TOML keys share the field names (``-`` or ``_``); an unknown key or a bad value raises
+:class:`~virtsensor.errors.UserError` naming the file (or the option) and the key.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from virtsensor.daemon.jsonlog import LOG_LEVELS
+from virtsensor import assets
+from virtsensor.errors import UserError
+
+__all__ = ["RuntimeConfig", "load_config", "read_config_file"]
+
+
+@dataclass
+class RuntimeConfig:
+    """Settings of ``virtsensor run`` (CLI options and TOML keys share these names, ``-`` or ``_``).
+
+    Attributes:
+        model: ONNX file (its card beside it; None: the shipped model). dbc: DBC file (None: bundled).
+        interface, channel, bitrate: python-can bus.
+        sync_id: CAN id whose frames trigger the ticks (None: free-running 20 Hz).
+        sync_every: tick on every n-th sync frame (e.g. 5 for a 100 Hz frame), counted from the first.
+        cpu: pin the daemon to this CPU. realtime: ask for SCHED_FIFO at ``rt_priority``.
+        duration: stop after this many seconds (None: until SIGTERM/SIGINT).
+        log_level: debug, info, warning or error.
+        timeout_cycles: an input message is stale after this many of its cycles without a usable frame.
+        model_id: the VS_ModelId byte (None: the card's ``model_id``, else the first byte of its sha256).
+    """
+
+    model: str | None = None
+    dbc: str | None = None
+    interface: str | None = None
+    channel: str | None = None
+    bitrate: int | None = None
+    sync_id: int | None = None
+    sync_every: int = 1
+    cpu: int | None = None
+    realtime: bool = False
+    rt_priority: int = 50
+    duration: float | None = None
+    log_level: str = "info"
+    timeout_cycles: float = 3.0
+    model_id: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+_PATH_KEYS = ("model", "dbc")
+
+
+def _coerce(key: str, value: Any, where: str) -> Any:
+    """Check and convert one setting; ``where`` names its source in errors."""
+    def bad(expect: str) -> UserError:
+        return UserError(f"{where}: {key} must be {expect}, got {value!r}")
+
+    if value is None:
+        return None
+    if key in ("model", "dbc", "interface", "channel", "log_level"):
+        if not isinstance(value, (str, os.PathLike)) or not str(value):
+            raise bad("a non-empty string")
+        value = str(value)
+        if key == "log_level" and value.lower() not in LOG_LEVELS:
+            raise bad(f"one of {', '.join(LOG_LEVELS)}")
+        return value.lower() if key == "log_level" else value
+    if key == "sync_id":
+        try:
+            v = int(value, 0) if isinstance(value, str) else value
+        except ValueError:
+            raise bad("a CAN id such as 0x7F0") from None
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 0x7FF:
+            raise bad("an 11-bit CAN id 0x000..0x7FF")
+        return v
+    if key in ("bitrate", "sync_every", "cpu", "rt_priority", "model_id"):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad("an integer")
+        lo, hi = {"bitrate": (1, 10_000_000), "sync_every": (1, 1000), "cpu": (0, 4095),
+                  "rt_priority": (1, 99), "model_id": (0, 255)}[key]
+        if not lo <= value <= hi:
+            raise bad(f"in {lo}..{hi}")
+        return value
+    if key == "realtime":
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    if key in ("duration", "timeout_cycles"):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            raise bad("a positive number")
+        if key == "timeout_cycles" and value < 1:
+            raise bad("at least 1")
+        return float(value)
+    raise UserError(f"{where}: unknown setting {key!r}")  # pragma: no cover - keys are checked first
+
+
+_KEYS = tuple(f.name for f in fields(RuntimeConfig))
+
+
+def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
+    """The settings of a TOML config file (keys checked, paths relative to the file made absolute).
+
+    Raises:
+        UserError: unreadable file, invalid TOML, unknown key (named with the file) or a bad value.
+    """
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise UserError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise UserError(f"config file {path} is not UTF-8 text") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"config file {path} is not valid TOML: {exc}") from None
+    out: dict[str, Any] = {}
+    for raw_key, value in data.items():
+        key = raw_key.replace("-", "_")
+        if key not in _KEYS:
+            raise UserError(f"{path}: unknown key {raw_key!r} (known: {', '.join(_KEYS)})")
+        if key in out:
+            raise UserError(f"{path}: key {raw_key!r} given twice")
+        value = _coerce(key, value, str(path))
+        if key in _PATH_KEYS and value is not None and not Path(value).is_absolute():
+            value = str((path.parent / value).resolve())
+        out[key] = value
+    return out
+
+
+def load_config(file: str | os.PathLike | None = None, overrides: Mapping[str, Any] | None = None) -> RuntimeConfig:
+    """Merge a TOML file and overrides (e.g. CLI options; None values are ignored) into a checked config.
+
+    Raises:
+        UserError: see :func:`read_config_file`; a missing ``model``, ``interface`` or ``channel``.
+    """
+    merged: dict[str, Any] = read_config_file(file) if file is not None else {}
+    for key, value in (overrides or {}).items():
+        k = key.replace("-", "_")
+        if k not in _KEYS:
+            raise UserError(f"unknown setting {key!r}")
+        if value is not None:
+            merged[k] = _coerce(k, value, f"--{k.replace('_', '-')}")
+    if merged.get("model") is None:  # the shipped model, whatever the working directory
+        merged["model"] = str(assets.model_path())
+    cfg = RuntimeConfig(**merged)
+    missing = [k for k in ("interface", "channel") if getattr(cfg, k) is None]
+    if missing:
+        src = f" (not in {file} either)" if file is not None else ""
+        raise UserError(f"missing setting(s) {', '.join('--' + k for k in missing)}{src}")
+    return cfg

@@ -1,0 +1,186 @@
+"""The daemon's input and output layout, read once at start-up from the model card and the DBC.
+
+Which signals the model reads (the card's ``feature_spec``, never code), which are critical (the card's
+``inputs[].critical``, default the catalogue's flag), which messages carry them, their cycle times and
+timeouts, which bit of ``VS_Health.VS_InputStatus`` each message owns (read from that signal's DBC
+comment), and the ``SAT_FRONT`` estimate/status signal pairs per model output.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from virtsensor import signals as cat
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.daemon.validity import PlausibilityRule, ValidityRules
+from virtsensor.errors import UserError
+from virtsensor.features import FeatureSpec
+
+__all__ = ["OUTPUT_SIGNALS", "InputLayout", "Wheel", "bitmap_order", "read_feature_spec"]
+
+#: Catalogue output -> (estimate, status) signal of SAT_FRONT.
+OUTPUT_SIGNALS = {"sat_fl_nm": ("SAT_FL", "SAT_FL_Status"), "sat_fr_nm": ("SAT_FR", "SAT_FR_Status")}
+
+
+@dataclass(frozen=True)
+class Wheel:
+    """One published estimate: model output index (-1: the model lacks it), SAT_FRONT signal names,
+    catalogue range (Nm) an estimate must lie in to be sent."""
+
+    output: int
+    estimate: str
+    status: str
+    lo: float
+    hi: float
+
+
+def bitmap_order(matrix: CanMatrix) -> dict[str, int]:
+    """Message -> bit of ``VS_Health.VS_InputStatus``, from the signal's DBC comment ("bit 0 IMU_Motion, ...")."""
+    try:
+        comment = matrix.db.get_message_by_name("VS_Health").get_signal_by_name("VS_InputStatus").comment or ""
+    except (KeyError, AttributeError):
+        return {}
+    return {name: int(bit) for bit, name in re.findall(r"\bbit\s+(\d+)\s+([A-Za-z_]\w*)", comment)
+            if name in matrix.messages and int(bit) < 8}
+
+
+def read_feature_spec(model: Any) -> FeatureSpec:
+    """The model card's ``feature_spec``, checked against the model's input names.
+
+    Raises:
+        UserError: no or invalid ``feature_spec``, or feature names that differ from the model's inputs.
+    """
+    card = model.card
+    where = str(getattr(model, "card_path", "model card"))
+    if not isinstance(card.get("feature_spec"), Mapping):
+        raise UserError(f"{where}: the model card has no feature_spec (re-export the model with virtsensor train)")
+    try:
+        spec = FeatureSpec.from_json(card["feature_spec"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{where}: invalid feature_spec: {exc}") from None
+    if tuple(model.input_names) != spec.names:
+        raise UserError(f"{where}: feature_names {list(model.input_names)} differ from the feature_spec's "
+                        f"{list(spec.names)}")
+    return spec
+
+
+def _critical(card: Mapping[str, Any], signals: tuple[str, ...]) -> tuple[bool, ...]:
+    crit: dict[str, bool] = {}
+    for entry in card.get("inputs") or ():
+        if isinstance(entry, Mapping) and "critical" in entry:
+            s = entry.get("signal", entry.get("name"))
+            crit[s] = bool(entry["critical"]) or crit.get(s, False)
+    return tuple(crit.get(s, cat.SIGNALS[s].critical) for s in signals)
+
+
+def _wheels(model: Any, matrix: CanMatrix) -> tuple[Wheel, ...]:
+    sat_names = {s.name for s in matrix.messages["SAT_FRONT"].signals}
+    outs = tuple(model.outputs)
+    wheels = []
+    for out_name, (est, st) in OUTPUT_SIGNALS.items():
+        if est not in sat_names or st not in sat_names:
+            raise UserError(f"{matrix.source}: SAT_FRONT lacks {est}/{st}")
+        spec = cat.SIGNALS[out_name]
+        wheels.append(Wheel(outs.index(out_name) if out_name in outs else -1, est, st, spec.minimum, spec.maximum))
+    if not any(w.output >= 0 for w in wheels):
+        where = str(getattr(model, "card_path", "model card"))
+        raise UserError(f"{where}: the model's outputs {list(outs)} include neither sat_fl_nm nor sat_fr_nm")
+    return tuple(wheels)
+
+
+@dataclass(frozen=True)
+class InputLayout:
+    """What the daemon decodes and publishes (built by :meth:`from_model`; immutable).
+
+    Attributes:
+        spec: the card's feature spec. signals: its input signals (catalogue names), in spec order.
+        critical: per signal, a bad value makes the estimate INVALID (else DEGRADED).
+        signal_messages: per signal, the DBC message carrying it.
+        input_messages: messages decoded (carrying inputs, or owning a health bit), by frame id.
+        cycles_s: per input message, its DBC cycle time (s).
+        bitmap_bits: message -> its bit of ``VS_Health.VS_InputStatus``.
+        wheels: the published estimates. model_id: the ``VS_ModelId`` byte.
+        timeout_cycles: a message is stale after this many of its cycles without a usable frame.
+    """
+
+    spec: FeatureSpec
+    signals: tuple[str, ...]
+    critical: tuple[bool, ...]
+    signal_messages: tuple[str, ...]
+    input_messages: tuple[str, ...]
+    cycles_s: tuple[float, ...]
+    bitmap_bits: dict[str, int]
+    wheels: tuple[Wheel, ...]
+    model_id: int
+    timeout_cycles: float
+
+    @classmethod
+    def from_model(cls, model: Any, matrix: CanMatrix, timeout_cycles: float = 3.0,
+                   model_id: int | None = None) -> InputLayout:
+        """Read the layout from ``model.card``/``model.input_names``/``model.outputs`` and the DBC.
+
+        Raises:
+            UserError: unusable card (see :func:`read_feature_spec`); an input the DBC lacks or whose message
+                has no cycle time; SAT_FRONT/VS_Health missing or lacking the estimate/status signals.
+        """
+        spec = read_feature_spec(model)
+        for name in ("SAT_FRONT", "VS_Health"):
+            if name not in matrix.messages:
+                raise UserError(f"{matrix.source}: the DBC has no {name} message, which the daemon sends")
+        sig_msgs = []
+        for s in spec.signals:
+            m = matrix.message_of(s)
+            if m is None:
+                home = cat.SIGNALS[s].message if s in cat.SIGNALS else None
+                raise UserError(f"model input {s} (message {home}) is not in the DBC {matrix.source}")
+            if not matrix.messages[m].cycle_s > 0:
+                raise UserError(f"{matrix.source}: message {m} (carrying model input {s}) has no GenMsgCycleTime")
+            sig_msgs.append(m)
+        bit_of = bitmap_order(matrix)
+        if not bit_of:  # no documented order: the input messages by frame id
+            ordered = sorted(set(sig_msgs), key=lambda m: matrix.messages[m].frame_id)
+            bit_of = {m: i for i, m in enumerate(ordered[:8])}
+        messages = tuple(sorted(set(sig_msgs) | set(bit_of), key=lambda m: matrix.messages[m].frame_id))
+        card = model.card
+        if model_id is None:
+            cid = card.get("model_id")
+            model_id = cid if isinstance(cid, int) and 0 <= cid <= 255 else int(str(card.get("sha256", "00"))[:2], 16)
+        return cls(spec=spec, signals=spec.signals, critical=_critical(card, spec.signals),
+                   signal_messages=tuple(sig_msgs), input_messages=messages,
+                   cycles_s=tuple(float(matrix.messages[m].cycle_s) for m in messages),
+                   bitmap_bits=dict(bit_of), wheels=_wheels(model, matrix), model_id=int(model_id),
+                   timeout_cycles=float(timeout_cycles))
+
+    def message_index(self) -> dict[str, int]:
+        """Input message name -> its index in :attr:`input_messages`."""
+        return {m: j for j, m in enumerate(self.input_messages)}
+
+    def signal_slots(self, j: int) -> list[int]:
+        """Indices (into :attr:`signals`) of the inputs carried by input message ``j``."""
+        name = self.input_messages[j]
+        return [i for i, m in enumerate(self.signal_messages) if m == name]
+
+    def plausibility_rules(self) -> tuple[PlausibilityRule, ...]:
+        """The catalogue's redundancy checks (:data:`virtsensor.signals.REDUNDANCIES`) whose signals are all
+        inputs of this model."""
+        idx = {s: i for i, s in enumerate(self.signals)}
+        return tuple(PlausibilityRule(r.name, idx[r.subject], tuple(idx[x] for x in r.references), float(r.scale),
+                                      float(r.tolerance_abs), float(r.tolerance_rel), int(r.debounce_ticks))
+                     for r in cat.REDUNDANCIES if all(s in idx for s in (r.subject, *r.references)))
+
+    def rules(self) -> ValidityRules:
+        """The constants of :func:`~virtsensor.daemon.validity.assess_inputs` for this layout."""
+        mi = self.message_index()
+        tc = self.timeout_cycles
+        cyc = dict(zip(self.input_messages, self.cycles_s, strict=True))
+        return ValidityRules(
+            sig_msg=tuple(mi[m] for m in self.signal_messages),
+            sig_timeout=tuple(tc * cyc[m] for m in self.signal_messages),
+            sig_hist=tuple(max(f.history for f in self.spec.features if f.signal == s) for s in self.signals),
+            critical=self.critical,
+            sig_bit=tuple(1 << self.bitmap_bits[m] if m in self.bitmap_bits else 0 for m in self.signal_messages),
+            msg_timeout=tuple(tc * c for c in self.cycles_s),
+            bitmap_msgs=tuple((mi[m], 1 << b) for m, b in self.bitmap_bits.items()))

@@ -1,0 +1,82 @@
+"""The daemon's output frames: ``SAT_FRONT`` and ``VS_Health``, preallocated, encoded by generated encoders.
+
+:func:`virtsensor.canbus.codec.compile_encoder` gives, byte for byte, what :meth:`CanMatrix.encode` gives with
+the message's layout unrolled. Each message's E2E alive counter advances in :meth:`Publisher.fill_sat` /
+:meth:`Publisher.fill_health` only, through :func:`next_counter` (a send that fails still advances it, so a
+receiver sees the lost frame as a counter gap).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.daemon.layout import InputLayout
+from virtsensor.daemon.receive import StageHook
+from virtsensor.daemon.validity import INIT
+from virtsensor.canbus.codec import compile_encoder
+from virtsensor.canbus.e2e import next_counter
+
+__all__ = ["Publisher"]
+
+
+class _Payload(bytearray):
+    """The data of the daemon's preallocated output frames: a ``bytearray`` that deep-copies as one C call.
+
+    python-can's ``virtual`` bus deep-copies every sent message once per receiving bus; a plain bytearray
+    goes through the generic ``copy._reconstruct`` path. Other interfaces only read the bytes.
+    """
+
+    __slots__ = ()
+
+    def __deepcopy__(self, memo: Any) -> bytearray:
+        return bytearray(self)
+
+
+class Publisher:
+    """Preallocated ``can.Message`` objects and value dicts of SAT_FRONT and VS_Health, and their counters.
+
+    Attributes:
+        sat_values: SAT_FRONT signal -> value (estimate in Nm, nan -> SNA; status code), written by the tick.
+        health_values: VS_Health signal -> value (``VS_ModelId`` fixed).
+        sat_msg, health_msg: the frames (their ``data`` rewritten in place by the fill methods).
+    """
+
+    def __init__(self, layout: InputLayout, matrix: CanMatrix, hook: StageHook | None = None) -> None:
+        import can
+
+        sat_m, health_m = matrix.messages["SAT_FRONT"], matrix.messages["VS_Health"]
+        enc = compile_encoder(sat_m)
+        self._encode_sat = hook("encode", enc) if hook is not None else enc
+        self._encode_health = compile_encoder(health_m)
+        self.sat_msg = can.Message(arbitration_id=sat_m.frame_id, is_extended_id=False, dlc=sat_m.length,
+                                   data=_Payload(sat_m.length))
+        self.health_msg = can.Message(arbitration_id=health_m.frame_id, is_extended_id=False, dlc=health_m.length,
+                                      data=_Payload(health_m.length))
+        self.sat_values: dict[str, float] = {}
+        for w in layout.wheels:
+            self.sat_values[w.estimate] = math.nan
+            self.sat_values[w.status] = INIT
+        self.health_values: dict[str, float] = {"VS_TickOverruns": 0, "VS_TickLatency": 0, "VS_InputStatus": 0,
+                                                "VS_ModelId": layout.model_id}
+        self._sat_ctr = 0
+        self._health_ctr = 0
+
+    def fill_sat(self) -> Any:
+        """Encode :attr:`sat_values` into :attr:`sat_msg` with the next alive counter; returns the message."""
+        m = self.sat_msg
+        m.data[:] = self._encode_sat(self.sat_values, self._sat_ctr)
+        self._sat_ctr = next_counter(self._sat_ctr)
+        return m
+
+    def fill_health(self, overruns: int, latency_us: int, bitmap: int) -> Any:
+        """Encode VS_Health (values saturate at the DBC's raw range) with the next counter; returns it."""
+        hv = self.health_values
+        hv["VS_TickOverruns"] = overruns
+        hv["VS_TickLatency"] = latency_us
+        hv["VS_InputStatus"] = bitmap
+        m = self.health_msg
+        m.data[:] = self._encode_health(hv, self._health_ctr)
+        self._health_ctr = next_counter(self._health_ctr)
+        return m

@@ -1,0 +1,169 @@
+"""The daemon's receive path: frame accounting, the generated per-message receivers, frame order, and the
+mapping of interface timestamps onto the daemon's clock when frames are drained at the tick.
+
+The sample-and-hold store (the semantics of :class:`~virtsensor.frontend.SampleHoldStore`) is a set of
+plain lists written per frame by receivers generated from the DBC (:func:`virtsensor.canbus.codec.
+compile_receiver`: DLC, CRC, E2E check, decode; a list item store avoids numpy's per-scalar conversion).
+Everything here runs in one thread (the daemon's tick thread, or its receive thread in sync mode).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.daemon.layout import InputLayout
+from virtsensor.daemon.validity import FrameOrder
+from virtsensor.canbus.codec import compile_receiver
+
+__all__ = ["ClockMap", "ReceivePath", "StageHook"]
+
+#: ``hook(stage, fn) -> fn``: wraps one of the daemon's stage callables (e.g. to time it); see VirtualSensor.
+StageHook = Callable[[str, Callable[..., Any]], Callable[..., Any]]
+
+_INF = math.inf
+
+
+class ClockMap:
+    """Maps an interface's frame timestamps (s, any clock) onto the daemon's ``time.monotonic`` clock.
+
+    A frame cannot be read before it arrived, so ``read_time - timestamp`` bounds the clock offset from
+    above for every frame; the offset is the smallest such bound over the last ``window`` drains that got
+    frames (drains without frames leave it alone, so an interface that stalls and then releases a
+    backlog has the backlog aged by its own timestamps). A time base that steps back is followed after
+    ``window`` drains with frames; until then its frames look old (stale). Mapped times are never later
+    than the time the frame was read.
+    """
+
+    __slots__ = ("offset", "_ring", "_k")
+
+    def __init__(self, window: int = 20) -> None:
+        if window < 1:
+            raise ValueError("window must be >= 1")
+        self._ring = [_INF] * window
+        self._k = 0
+        #: current offset estimate (s; inf before the first frame)
+        self.offset = _INF
+
+    def push(self, batch_min: float) -> None:
+        """Close a drain whose smallest ``read_time - timestamp`` was ``batch_min``."""
+        ring = self._ring
+        ring[self._k] = batch_min
+        self._k = (self._k + 1) % len(ring)
+        self.offset = min(ring)
+
+
+class ReceivePath:
+    """Frame accounting and decoding into the sample-and-hold lists (one instance per daemon).
+
+    Attributes (lists mutated in place, never rebound; ``i`` input signal, ``j`` input message):
+        values, times, flags: latest usable value per signal, its time (-inf: never), SNA/implausible flag.
+        last_ok: per message, time of the latest usable frame. errors: E2E error since :meth:`clear_errors`.
+        order: the messages' :class:`~virtsensor.daemon.validity.FrameOrder`. clock: the drain's ClockMap.
+    """
+
+    def __init__(self, layout: InputLayout, matrix: CanMatrix, counters: dict[str, int],
+                 hook: StageHook | None = None, sync_id: int | None = None) -> None:
+        n, m = len(layout.signals), len(layout.input_messages)
+        self.values: list[float] = [math.nan] * n
+        self.times: list[float] = [-_INF] * n
+        self.flags: list[bool] = [False] * n
+        self.last_ok: list[float] = [-_INF] * m
+        self.errors: list[bool] = [False] * m
+        self._no_err = [False] * m
+        self.order = FrameOrder(layout.cycles_s, layout.timeout_cycles)
+        self._last_t = self.order.last_t
+        self.clock = ClockMap()
+        self.counters = counters
+        self._e2e = [matrix.receivers[name] for name in layout.input_messages]
+        self.by_id = matrix.by_id
+        #: sync mode: frames with this id call :attr:`on_sync` (None: free-running)
+        self.sync_id = sync_id
+        self.on_sync: Callable[[Any], None] = lambda msg: None
+        #: frame id -> (generated handler ``rx(data, t)``, message index)
+        self.receivers: dict[int, tuple[Callable[[Any, float], None], int]] = {}
+        for j, name in enumerate(layout.input_messages):
+            mc = matrix.messages[name]
+            slots = [(next(s for s in mc.signals if s.catalogue == layout.signals[i]), i)
+                     for i in layout.signal_slots(j)]
+            rx = compile_receiver(mc, matrix.receivers[name], j, slots, self.values, self.times, self.flags,
+                                  self.last_ok, self.errors, counters)
+            self.receivers[mc.frame_id] = (hook("decode", rx) if hook is not None else rx, j)
+
+    def handle(self, msg: Any, rx_time: float | None = None) -> None:
+        """Count and decode one received frame. Its time (s, the daemon's clock) is ``msg.timestamp`` in
+        sync mode (``sync_id`` set), else ``rx_time`` (default ``time.monotonic()``). A (standard, data)
+        frame with the sync id then calls :attr:`on_sync` with it (after decoding it, if also an input)."""
+        sync_id = self.sync_id
+        if sync_id is not None:
+            t = float(msg.timestamp)
+        else:
+            t = time.monotonic() if rx_time is None else rx_time
+        c = self.counters
+        c["frames"] += 1
+        if msg.is_error_frame:
+            c["error_frames"] += 1
+            return
+        if msg.is_remote_frame:
+            c["remote_frames"] += 1
+            return
+        fid = msg.arbitration_id
+        if msg.is_extended_id:
+            c["unknown_ids"] += 1
+            return
+        entry = self.receivers.get(fid)
+        if entry is not None:
+            c["input_frames"] += 1
+            rx, j = entry
+            if t < self._last_t[j]:  # behind the message's previous frame (FrameOrder.frame, inlined)
+                self.order.frame(j, t)
+                c["time_step_back"] += 1
+                self._e2e[j].reset()  # its alive-counter timeout must not be measured across the step
+            else:
+                self._last_t[j] = t
+            rx(msg.data, t)
+        elif fid == sync_id:
+            pass
+        elif fid in self.by_id:
+            c["other_frames"] += 1
+        else:
+            c["unknown_ids"] += 1
+        if fid == sync_id:
+            self.on_sync(msg)
+
+    def drain(self, bus: Any) -> int:
+        """Read every frame ``bus`` has queued (``recv(0)`` until None) and handle it at its interface
+        timestamp mapped by :attr:`clock` (the read time when the frame has no timestamp, ``<= 0``).
+        Returns the number of frames read; interface errors propagate."""
+        recv = bus.recv
+        mono = time.monotonic
+        off = self.clock.offset
+        bmin = _INF
+        n = 0
+        while True:
+            msg = recv(0.0)
+            if msg is None:
+                break
+            n += 1
+            now = mono()
+            ts = msg.timestamp
+            if ts > 0.0:
+                d = now - ts
+                if d < bmin:
+                    bmin = d
+                    if d < off:
+                        off = d
+                t = ts + off
+            else:
+                t = now
+            self.handle(msg, t)
+        if bmin < _INF:
+            self.clock.push(bmin)
+        return n
+
+    def clear_errors(self) -> None:
+        """Start a new tick window of E2E errors (no allocation)."""
+        self.errors[:] = self._no_err

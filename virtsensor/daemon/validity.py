@@ -1,0 +1,252 @@
+"""The daemon's input-validity contract as pure functions: VALID / DEGRADED / INVALID / INIT.
+
+No threads, no bus, no clock: every function here is a function of its arguments (plus the explicit
+state objects it updates), so the contract is testable tick by tick (``tests/test_validity.py``).
+
+Freshness. An input value is *fresh* at tick time ``t`` only when ``0 <= t - time <= timeout`` on the
+daemon's clock (a value stamped after the tick is not fresh, whatever its age's magnitude), and only
+while its message's frames arrive in order (:class:`FrameOrder`): a frame stamped more than one cycle of
+its message ahead of the tick that follows it (*future-stamped*) or before the message's previous frame
+(*time step back*) makes the message non-fresh until its frames have been in order again for
+``timeout_cycles`` of its cycles.
+
+Per signal, per tick (:func:`assess_inputs`): *stale* = not fresh, or SNA/implausible in the latest intact
+frame; *bad* = stale, or *implausible* (:class:`Plausibility`: it disagrees with redundant signals), or still
+*recovering* (the first ``h`` fresh ticks after a stale one, ``h`` the
+history the signal's features read), or its message had an E2E error since the previous tick. The input
+status is INVALID when a critical signal is bad, DEGRADED when only non-critical ones are, else VALID.
+The health bitmap has a message's bit set when its last usable frame is fresh, in order, without E2E
+error, and none of its signals is bad. Per wheel (:func:`wheel_status`): INVALID also when the estimate
+is not finite or outside the catalogue range.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+__all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
+           "PlausibilityRule", "Plausibility", "assess_inputs", "wheel_status"]
+
+#: Per-wheel status codes of ``SAT_FRONT.SAT_xx_Status`` (DBC value table).
+VALID, DEGRADED, INVALID, INIT = 0, 1, 2, 3
+STATUS_NAMES = {VALID: "VALID", DEGRADED: "DEGRADED", INVALID: "INVALID", INIT: "INIT"}
+
+_INF = math.inf
+
+
+@dataclass(frozen=True)
+class ValidityRules:
+    """Constants of :func:`assess_inputs` (index ``i``: input signal, ``j``: input message).
+
+    Attributes:
+        sig_msg: message ``j`` of each signal. sig_timeout: each signal's timeout (s).
+        sig_hist: ticks of history each signal's features read (recovery length).
+        critical: each signal's criticality. sig_bit: its message's health bit mask (0: none).
+        msg_timeout: each message's timeout (s). bitmap_msgs: ``(j, bit mask)`` of the health bitmap.
+    """
+
+    sig_msg: tuple[int, ...]
+    sig_timeout: tuple[float, ...]
+    sig_hist: tuple[int, ...]
+    critical: tuple[bool, ...]
+    sig_bit: tuple[int, ...]
+    msg_timeout: tuple[float, ...]
+    bitmap_msgs: tuple[tuple[int, int], ...]
+
+
+class ValidityState:
+    """What :func:`assess_inputs` carries from tick to tick (``recover``) and reports (``stale``, ``bad``).
+
+    Attributes:
+        recover: per signal, fresh ticks still needed before it counts as good again.
+        stale, bad: per signal, the verdicts of the latest tick.
+    """
+
+    __slots__ = ("recover", "stale", "bad", "never")
+
+    def __init__(self, n_signals: int) -> None:
+        self.recover = [0] * n_signals
+        self.stale = [False] * n_signals
+        self.bad = [False] * n_signals
+        self.never = (False,) * n_signals  # (no signal implausible)
+
+
+def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool], msg_last_ok: Sequence[float],
+                  msg_err: Sequence[bool], msg_in_order: Sequence[bool], rules: ValidityRules,
+                  state: ValidityState, implausible: Sequence[bool] | None = None) -> tuple[int, int]:
+    """The input status and health bitmap at tick time ``t`` (s, the daemon's clock).
+
+    Args:
+        sig_time: per signal, the time of its latest usable value (-inf: never).
+        sig_flag: per signal, SNA or implausible in its message's latest intact frame.
+        msg_last_ok: per message, the time of its latest usable frame. msg_err: E2E error since the last tick.
+        msg_in_order: per message, its frames are in order (:attr:`FrameOrder.in_order`).
+        state: updated in place (recovery counters; stale/bad verdicts of this tick).
+        implausible: per signal, a plausibility check against redundant signals fails (:attr:`Plausibility.
+            implausible`; None: none does). An implausible signal is bad, not stale (no recovery period).
+
+    Returns:
+        ``(status, bitmap)``: VALID, DEGRADED or INVALID, and the ``VS_InputStatus`` bits.
+    """
+    stale, bad, rec = state.stale, state.bad, state.recover
+    hist, sig_to, sig_msg, crit = rules.sig_hist, rules.sig_timeout, rules.sig_msg, rules.critical
+    any_bad = crit_bad = False
+    imp = implausible if implausible is not None else state.never
+    for i in range(len(sig_time)):
+        j = sig_msg[i]
+        # fresh: 0 <= age <= timeout (a NaN or negative age is not), in order, neither SNA nor implausible
+        st = not (0.0 <= t - sig_time[i] <= sig_to[i]) or sig_flag[i] or not msg_in_order[j]
+        r = rec[i]
+        b = r > 0 or st or msg_err[j] or imp[i]
+        stale[i] = st
+        bad[i] = b
+        rec[i] = hist[i] if st else (r - 1 if r > 0 else 0)
+        if b:
+            any_bad = True
+            if crit[i]:
+                crit_bad = True
+    status = INVALID if crit_bad else DEGRADED if any_bad else VALID
+    bitmap = 0
+    msg_to = rules.msg_timeout
+    for j, bit in rules.bitmap_msgs:
+        if 0.0 <= t - msg_last_ok[j] <= msg_to[j] and not msg_err[j] and msg_in_order[j]:
+            bitmap |= bit
+    if any_bad:
+        for i, bit in enumerate(rules.sig_bit):
+            if bad[i]:
+                bitmap &= ~bit
+    return status, bitmap
+
+
+def wheel_status(input_status: int, estimate: float, lo: float, hi: float) -> int:
+    """A wheel's status from the input status and its estimate: INVALID when the inputs are INVALID or the
+    estimate is not within ``[lo, hi]`` (NaN included), else the input status."""
+    if input_status == INVALID or not (lo <= estimate <= hi):
+        return INVALID
+    return input_status
+
+
+class FrameOrder:
+    """Per input message: are its frames in order on the daemon's clock?
+
+    :meth:`frame` records each frame's time (from the receive path) and reports a *time step back* (a frame
+    before the message's previous one); :meth:`tick` finds *future-stamped* latest frames (more than one
+    cycle of the message after the tick time) and sets :attr:`in_order`. After either, the message is out of
+    order until its frames have run in order for ``timeout_cycles`` cycles (measured from the offending
+    frame, on the frames' own times); a message without frames since then stays out of order.
+
+    Attributes:
+        last_t: per message, the time of its latest frame (-inf: none yet).
+        in_order: per message, the verdict of the latest :meth:`tick` (True before any disorder).
+    """
+
+    __slots__ = ("last_t", "in_order", "_run_start", "_counted", "_ahead", "_window", "_min_ahead", "_dirty")
+
+    def __init__(self, cycles_s: Sequence[float], timeout_cycles: float) -> None:
+        n = len(cycles_s)
+        self.last_t: list[float] = [-_INF] * n
+        self.in_order: list[bool] = [True] * n
+        self._run_start: list[float] = [-_INF] * n  # first frame of the current in-order run (-inf: always)
+        self._counted: list[float] = [math.nan] * n  # the future-stamped frame time already counted
+        self._ahead = tuple(float(c) for c in cycles_s)
+        # (less 1 us: frames exactly timeout_cycles cycles apart count as far enough, whatever the rounding)
+        self._window = tuple(float(timeout_cycles) * c - 1e-6 for c in cycles_s)
+        self._min_ahead = min(self._ahead, default=0.0)
+        self._dirty = False  # some message out of order, or a step back since the last tick
+
+    def frame(self, j: int, t: float) -> bool:
+        """Record a frame of message ``j`` at time ``t``; True when it steps back (then a new run starts)."""
+        if t < self.last_t[j]:
+            self._dirty = True
+            self._run_start[j] = t
+            self.last_t[j] = t
+            return True
+        self.last_t[j] = t
+        return False
+
+    def tick(self, t: float) -> int:
+        """Update :attr:`in_order` at tick time ``t``; returns how many frames were newly found future-stamped."""
+        if not self._dirty and max(self.last_t, default=-_INF) <= t + self._min_ahead:
+            return 0  # nothing out of order, no frame ahead: in_order is all True already
+        out = self.in_order
+        last, run, counted, ahead, window = self.last_t, self._run_start, self._counted, self._ahead, self._window
+        n = 0
+        for j in range(len(last)):
+            lt = last[j]
+            if lt > t + ahead[j]:
+                if lt != counted[j]:
+                    counted[j] = lt
+                    n += 1
+                run[j] = lt  # in order again only once frames have run timeout_cycles past this one
+                out[j] = False
+            else:
+                rs = run[j]
+                out[j] = rs == -_INF or lt - rs >= window[j]
+        self._dirty = not all(out)
+        return n
+
+
+@dataclass(frozen=True)
+class PlausibilityRule:
+    """One check between redundant input signals (indices into the daemon's inputs), from a catalogue
+    :class:`~virtsensor.signals.Redundancy`: ``|v[subject] - scale * mean(v[refs])| <= tol_abs + tol_rel *
+    |v[subject]|``, failed after ``debounce`` consecutive failing ticks, passed after as many passing ones."""
+
+    name: str
+    subject: int
+    refs: tuple[int, ...]
+    scale: float
+    tol_abs: float
+    tol_rel: float
+    debounce: int
+
+
+class Plausibility:
+    """Debounced plausibility checks, fed the latest input values once per tick (:meth:`update`).
+
+    A failing check marks its *subject* implausible (:attr:`implausible`); a NaN among the values (an input
+    never received) passes: staleness is judged elsewhere.
+
+    Attributes:
+        rules: the checks. failing: per check, its debounced verdict. implausible: per input signal.
+        new: per check, it failed at the latest :meth:`update`.
+    """
+
+    __slots__ = ("rules", "failing", "implausible", "new", "_run")
+
+    def __init__(self, rules: Sequence[PlausibilityRule], n_signals: int) -> None:
+        self.rules = tuple(rules)
+        self.failing = [False] * len(self.rules)
+        self.implausible = [False] * n_signals
+        self.new = [False] * len(self.rules)
+        self._run = [0] * len(self.rules)  # consecutive ticks disagreeing with the current verdict
+
+    def update(self, values: Sequence[float]) -> int:
+        """Run every check on ``values`` (per input signal); returns how many checks newly failed."""
+        n_new = 0
+        failing, run, imp, new = self.failing, self._run, self.implausible, self.new
+        for k, r in enumerate(self.rules):
+            new[k] = False
+            v = values[r.subject]
+            ref = 0.0
+            for i in r.refs:
+                ref += values[i]
+            ok = not (abs(v - r.scale * ref / len(r.refs)) > r.tol_abs + r.tol_rel * abs(v))
+            if ok == failing[k]:  # the verdict is contradicted: count the run
+                n = run[k] + 1
+                if n >= r.debounce:
+                    failing[k] = not ok
+                    new[k] = not ok
+                    n_new += not ok
+                    n = 0
+                run[k] = n
+            else:
+                run[k] = 0
+        for r in self.rules:
+            imp[r.subject] = False
+        for k, r in enumerate(self.rules):
+            if failing[k]:
+                imp[r.subject] = True
+        return n_new
