@@ -8,8 +8,8 @@ import pytest
 from sim.api import simulate
 from sim.params import car_parameters
 from virtsensor import signals as cat
-from virtsensor.recordings.simulated import write_run
 from virtsensor.recording import read_csv, read_log
+from virtsensor.recordings.simulated import write_run
 
 
 @pytest.fixture(scope="module")

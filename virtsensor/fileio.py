@@ -60,7 +60,7 @@ def _fsync_dir(folder: Path) -> None:
             os.close(fd)
 
 
-def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], None]) -> None:
+def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object]) -> None:
     """Call ``write(tmp)`` to fill a temporary file beside ``path`` (same suffix), then rename it over ``path``.
 
     The temporary file keeps ``path``'s suffix, so writers that choose the format by suffix (python-can's

@@ -13,8 +13,8 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from virtsensor.daemon.jsonlog import LOG_LEVELS
 from virtsensor import assets
+from virtsensor.daemon.jsonlog import LOG_LEVELS
 from virtsensor.errors import UserError
 
 __all__ = ["RuntimeConfig", "load_config", "read_config_file"]

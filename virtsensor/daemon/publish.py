@@ -11,12 +11,11 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from virtsensor.canbus.codec import CanMatrix
+from virtsensor.canbus.codec import CanMatrix, compile_encoder
+from virtsensor.canbus.e2e import next_counter
 from virtsensor.daemon.layout import InputLayout
 from virtsensor.daemon.receive import StageHook
 from virtsensor.daemon.validity import INIT
-from virtsensor.canbus.codec import compile_encoder
-from virtsensor.canbus.e2e import next_counter
 
 __all__ = ["Publisher"]
 

@@ -14,10 +14,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from virtsensor.canbus.codec import CanMatrix
+from virtsensor.canbus.codec import CanMatrix, compile_receiver
 from virtsensor.daemon.layout import InputLayout
 from virtsensor.daemon.validity import FrameOrder
-from virtsensor.canbus.codec import compile_receiver
 
 __all__ = ["ClockMap", "ReceivePath", "StageHook"]
 

@@ -38,7 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from virtsensor.canbus.codec import CanMatrix
+from virtsensor.canbus.codec import STATUS_KEYS, CanMatrix
+from virtsensor.canbus.e2e import E2EStatus
 from virtsensor.daemon.buslink import BusLink
 from virtsensor.daemon.config import RuntimeConfig, load_config
 from virtsensor.daemon.jsonlog import event, log
@@ -56,8 +57,6 @@ from virtsensor.daemon.validity import (
     assess_inputs,
     wheel_status,
 )
-from virtsensor.canbus.e2e import E2EStatus
-from virtsensor.canbus.codec import STATUS_KEYS
 from virtsensor.features import FeatureBuilder
 
 __all__ = ["VirtualSensor", "STAGES"]
