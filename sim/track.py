@@ -22,10 +22,24 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["Track", "TrackSample", "load_magny_cours", "speed_profile", "lap_time"]
+__all__ = ["Track", "TrackSample", "TrackError", "BUNDLED_TRACKS", "load_magny_cours", "load_track",
+           "speed_profile", "lap_time"]
 
 COLUMNS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm")
 MAGNY_COURS_CSV = "magny_cours_centreline.csv"
+#: circuits bundled with the package, by name: file under ``sim/data`` (derived centrelines,
+#: provenance in each file's header and in NOTICE). Magny-Cours is the report circuit: it is
+#: never used for training or tuning; the others are for development.
+BUNDLED_TRACKS: dict[str, str] = {
+    "magny-cours": MAGNY_COURS_CSV,
+    "hungaroring": "tracks/hungaroring.csv",
+    "zandvoort": "tracks/zandvoort.csv",
+    "red-bull-ring": "tracks/red_bull_ring.csv",
+}
+
+
+class TrackError(ValueError):
+    """A centreline that cannot be driven: unreadable, open, crossing itself, too short or too tight."""
 
 
 class TrackSample(NamedTuple):
@@ -167,8 +181,42 @@ class Track:
 
 def load_magny_cours() -> Track:
     """Load the bundled Magny-Cours centreline (4445 m, clockwise, start/finish straight at s = 0)."""
-    text = resources.files("sim").joinpath("data", MAGNY_COURS_CSV).read_text(encoding="utf-8")
-    return Track._from_text(text, f"sim/data/{MAGNY_COURS_CSV}")
+    return load_track("magny-cours")
+
+
+def load_track(spec: str | Path, **derive_options: float) -> Track:
+    """A circuit by bundled name (:data:`BUNDLED_TRACKS`) or from a file.
+
+    Files: a derived centreline CSV (header ``s_m,x_m,y_m,heading_rad,curvature_1pm``,
+    used as is), or a loop of surveyed points, a CSV with header ``x_m,y_m`` or a GeoJSON
+    LineString of lon/lat, closed, smoothed and resampled by :mod:`sim.centreline`
+    (``derive_options``: ``ds``, ``smoothing_length``) in the direction listed.
+
+    Raises:
+        TrackError: unknown name, missing or malformed file, or a centreline that is
+            open, crosses itself or is too short.
+    """
+    name = str(spec)
+    if name in BUNDLED_TRACKS:
+        rel = BUNDLED_TRACKS[name]
+        text = resources.files("sim").joinpath("data", *rel.split("/")).read_text(encoding="utf-8")
+        return Track._from_text(text, f"sim/data/{rel}")
+    path = Path(name)
+    if path.suffix == "" and not path.exists():
+        raise TrackError(f"unknown circuit {name!r}: name one of {', '.join(BUNDLED_TRACKS)} or give a .csv or "
+                         ".geojson file")
+    if path.suffix.lower() == ".csv" and path.is_file():
+        text = path.read_text(encoding="utf-8", errors="replace")
+        header = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
+        if tuple(c.strip() for c in header.split(",")) == COLUMNS:
+            try:
+                return Track._from_text(text, str(path))
+            except ValueError as exc:
+                raise TrackError(str(exc)) from None
+    from sim.centreline import read_points, track_from_points
+
+    points, _ = read_points(path)
+    return track_from_points(points, str(path), **derive_options)
 
 
 # ---------------------------------------------------------------------- speed profile
