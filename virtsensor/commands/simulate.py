@@ -18,9 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("manoeuvre", metavar="MANOEUVRE",
                         help="free-steer, steering-pulse, double-lane-change, steady-state-circular, "
                              "single-sine, random-steer, braking-in-turn, fishhook, sine-with-dwell, "
-                             "brake-accel, magny-cours, or recorded (with --inputs)")
+                             "brake-accel, magny-cours, circuit (with --track), or recorded (with --inputs)")
     parser.add_argument("--speed", type=float, metavar="KMH",
-                        help="entry speed in km/h (magny-cours: top speed); not with 'recorded'")
+                        help="entry speed in km/h (magny-cours, circuit: top speed); not with 'recorded'")
     parser.add_argument("--mu", type=float, required=True, help="road friction coefficient (magny-cours: dry lap)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the manoeuvre's levels and the sensor noise")
     parser.add_argument("--out", required=True, metavar="FILE", help="output: .csv table or .blf/.asc/.log CAN log")
@@ -29,6 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "speed (or motor torque) drive the re-simulation")
     parser.add_argument("--longitudinal", choices=("speed", "torque"), default="speed",
                         help="for 'recorded': follow the recorded speed (default) or apply the recorded motor torque")
+    parser.add_argument("--track", metavar="FILE",
+                        help="for 'circuit': a bundled circuit (magny-cours, hungaroring, zandvoort, red-bull-ring) "
+                             "or a closed centreline, .csv with header x_m,y_m or .geojson LineString of lon/lat")
+    parser.add_argument("--laps", type=int, default=None, metavar="N", help="for 'circuit': laps to drive (default 1)")
     add_car_arguments(parser)
 
 
@@ -49,17 +53,48 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{args.manoeuvre}: --speed KMH is required")
         if args.inputs is not None:
             raise UserError("--inputs goes with the manoeuvre 'recorded' only")
+        if args.manoeuvre != "circuit" and (args.track is not None or args.laps is not None):
+            raise UserError("--track and --laps go with the manoeuvre 'circuit' only")
         with sim_errors():
             check(args.manoeuvre, args.speed, args.mu)
         params = car_from_args(args)
         with sim_errors():
-            sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params)
+            sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params,
+                               track=args.track, laps=args.laps)
     table = write_run(sim_run, out)
     n = len(table["time_s"])
+    _write_metadata(sim_run, out, table)
     speed = f"{args.speed:g} km/h" if args.speed is not None else f"recorded inputs of {args.inputs}"
     print(f"{args.manoeuvre} at {speed}, mu {args.mu:g}: {n} samples at 20 Hz "
-          f"({table['time_s'][-1]:.2f} s) -> {out}", file=sys.stderr)
+          f"({table['time_s'][-1]:.2f} s), {_outcome_text(sim_run.outcome)} -> {out}", file=sys.stderr)
     return 0
+
+
+def _write_metadata(sim_run, out: Path, table: dict) -> None:
+    """The run's metadata (request, outcome, plan label) as JSON beside it: ``<out stem>.json``."""
+    import json
+
+    from sim.campaign import manifest_entry
+
+    t = table["time_s"]
+    entry = manifest_entry(sim_run, out, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
+    meta = out.with_suffix(".json")
+    tmp = meta.with_name(f".partial-{meta.name}")
+    try:
+        tmp.write_text(json.dumps(entry, indent=1) + "\n", encoding="utf-8")
+        tmp.replace(meta)
+    except OSError as exc:
+        out.unlink(missing_ok=True)
+        raise UserError(f"{meta}: cannot write the run's metadata: {exc.strerror or exc}") from None
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _outcome_text(outcome: dict) -> str:
+    status = outcome.get("status", "completed")
+    if status == "completed":
+        return "completed"
+    return f"{status.upper()} at t={outcome['at_s']:.2f} s of {outcome['planned_s']:.2f} s planned (run cut short)"
 
 
 def _resimulate(args: argparse.Namespace):
