@@ -136,9 +136,10 @@ def run_campaign(
 def manifest_entry(run: SimRun, path: Path, samples: int, duration_s: float) -> dict[str, Any]:
     """What a campaign's manifest says about one written run.
 
-    ``outcome`` says how the run ended: ``{"status": "completed"}`` or, for a run cut
-    short, ``"spun"`` or ``"stopped"`` with the time ``at_s`` (s) and the plan's
-    ``planned_s``, so a short run never passes for a complete one.
+    ``outcome`` says how the run ended (:meth:`sim.engine.BatchResult.outcome`):
+    ``"completed"`` or, for a run cut short, ``"spun"``, ``"stopped"`` or ``"off-track"``,
+    with the time ``at_s`` (s) it ended and the plan's ``planned_s``, so a short run
+    never passes for a complete one.
     """
     request = {k: v for k, v in asdict(run.request).items() if k not in ("track", "laps") or v is not None}
     return {

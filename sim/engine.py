@@ -51,11 +51,12 @@ class BatchResult:
     ended_by: np.ndarray | None = None
 
     def outcome(self, i: int) -> dict[str, Any]:
-        """How run ``i`` ended: ``{"status": "completed" | "spun" | "stopped", "at_s": t, "planned_s": T}``.
+        """How run ``i`` ended: ``{"status": s, "at_s": t, "planned_s": T}``, ``s`` in :data:`OUTCOMES`.
 
         ``at_s`` is the time of the run's last valid sample (s); ``planned_s`` the
-        plan's duration. A spun (body side-slip beyond ``ABORT_SIDESLIP_RAD``) or
-        stopped (speed below ``ABORT_SPEED_MPS``) run ends there, short of its plan.
+        plan's duration. A spun (body side-slip beyond ``ABORT_SIDESLIP_RAD``), stopped
+        (speed below ``ABORT_SPEED_MPS``) or off-track (farther from the path it follows
+        than its plan's ``track_half_width_m``) run ends there, short of its plan.
         """
         code = 0 if self.ended_by is None else int(self.ended_by[i])
         n = int(self.n_valid[i])
@@ -125,7 +126,7 @@ def simulate_batch(
             k1, aux = veh.derivatives(x, u)
             if s == 0 and k % rec_every == 0:
                 _record(rec, j, x, aux, u, drv, veh)
-                aborted_at = _update_abort(aborted_at, ended_by, rec, j, n_rec)
+                aborted_at = _update_abort(aborted_at, ended_by, rec, j, n_rec, drv.off_track(k))
                 j += 1
             veh.commit(aux)
             if k == n_ctl - 1:
@@ -160,22 +161,24 @@ def simulate_batch(
 ABORT_SPEED_MPS = 3.0
 ABORT_SIDESLIP_RAD = np.deg2rad(30.0)
 #: how a run ended (index: ``BatchResult.ended_by``)
-OUTCOMES = ("completed", "spun", "stopped")
+OUTCOMES = ("completed", "spun", "stopped", "off-track")
 
 
 def _update_abort(aborted_at: np.ndarray, ended_by: np.ndarray, rec: Mapping[str, np.ndarray], j: int,
-                  never: int) -> np.ndarray:
+                  never: int, off_track: np.ndarray | None = None) -> np.ndarray:
     """``aborted_at`` with recorded sample ``j`` taken into account; ``ended_by`` updated in place.
 
-    Per run, the first recorded sample at which the run is no longer a test (stopped or
-    spinning), or ``never``. Callers use ``max(aborted_at, 1)``: a run keeps its first sample.
-    A car sliding sideways beyond the side-slip limit has spun, whatever its speed.
+    Per run, the first recorded sample at which the run is no longer a test (stopped,
+    spinning, or, per ``off_track`` (B,) bool, off the track it follows), or ``never``.
+    Callers use ``max(aborted_at, 1)``: a run keeps its first sample. A car sliding
+    sideways beyond the side-slip limit has spun, whatever its speed or place.
     """
     vx, vy = rec["vx_true_mps"][:, j], rec["vy_mps"][:, j]
     spun = np.abs(np.arctan2(vy, np.abs(vx))) > ABORT_SIDESLIP_RAD
     stopped = vx < ABORT_SPEED_MPS
-    new = (aborted_at == never) & (spun | stopped)
-    ended_by[new] = np.where(spun[new], 1, 2)
+    off = np.zeros_like(spun) if off_track is None else off_track
+    new = (aborted_at == never) & (spun | stopped | off)
+    ended_by[new] = np.where(spun[new], 1, np.where(stopped[new], 2, 3))
     return np.where(new, j, aborted_at)
 
 

@@ -48,6 +48,16 @@ TRACK_AY_FRACTION = 0.62
 #: front brake balance the front wheels lock near 0.85 g, and a locked front cannot
 #: steer into the next corner.
 TRACK_BRAKE_FRACTION = 0.5
+#: acceleration share of the friction limit on the track: the driven front axle carries
+#: 60 % of the weight and less as the car squats; more spins the front wheels on a wet
+#: road and the car runs wide, off the line (the powertrain's 3 m/s^2 caps it on a dry one)
+TRACK_ACCEL_FRACTION = 0.3
+#: longitudinal shares of the friction the track driver never exceeds (drive, brake):
+#: the planned ones with room for the speed loop's corrections
+TRACK_GRIP = (0.4, 0.65)
+#: circuits are 12 to 15 m wide: a car whose centre is 7.5 m off the centreline has left
+#: the track, and the run ends there (outcome "off-track")
+TRACK_HALF_WIDTH_M = 7.5
 
 
 @dataclass(frozen=True)
@@ -279,18 +289,23 @@ def _track_plan(name: str, tr: Any, laps: int, mu_laps: tuple[float, ...], v: fl
     """
     from sim import track as trk
 
-    path = tr.laps(laps).aligned_to_start()
+    # the path runs on past the line by a lap: the run lasts the laps and one second more,
+    # and the follower's preview point needs road ahead of the car to the very end
+    path = tr.laps(laps + 1).aligned_to_start()
     s = path.s
     mu_s = np.asarray(mu_laps, dtype=float)[np.minimum((s // tr.length).astype(int), laps - 1)]
     vprof = trk.speed_profile(path.curvature, s, mu_s, v_max_mps=v, ay_frac=TRACK_AY_FRACTION,
-                              ax_brake_frac=TRACK_BRAKE_FRACTION)
+                              ax_brake_frac=TRACK_BRAKE_FRACTION, ax_accel_frac=TRACK_ACCEL_FRACTION)
     ds = float(s[1] - s[0])
-    duration = float(np.sum(ds / np.maximum(vprof, 1.0))) + 1.0
+    n_laps = int(round(laps * tr.length / ds))
+    duration = float(np.sum(ds / np.maximum(vprof[:n_laps], 1.0))) + 1.0
     _, plan = _base(name, duration, float(vprof[0]), mu_laps[0], label)
     plan.steer_mode[:] = STEER_PATH
     plan.path, plan.path_ds, plan.path_speed = np.stack([path.x, path.y], axis=1), ds, vprof
     plan.mu_dist = tuple(tr.length * np.arange(1, laps))
     plan.mu_values = tuple(float(m) for m in mu_laps)
+    plan.path_grip = TRACK_GRIP
+    plan.track_half_width_m = TRACK_HALF_WIDTH_M
     return plan
 
 

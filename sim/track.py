@@ -229,6 +229,7 @@ def speed_profile(
     ay_frac: float = 0.85,
     ax_accel_mps2: float = 3.0,
     ax_brake_frac: float = 0.8,
+    ax_accel_frac: float | None = None,
     g: float = 9.81,
     v_start_mps: float | None = None,
     v_end_mps: float | None = None,
@@ -240,7 +241,9 @@ def speed_profile(
     1. cornering limit ``v_lim = min(v_max, sqrt(ay_lim / |kappa|))`` with the lateral
        budget ``ay_lim = ay_frac * mu * g`` (0.85 of the friction limit by default);
     2. forward pass (acceleration): ``v[i+1]^2 <= v[i]^2 + 2 * ax * ds`` with
-       ``ax = ax_accel_mps2 * sqrt(1 - (ay / ay_lim)^2)``, ``ay = v[i]^2 |kappa[i]|``;
+       ``ax = ax_max * sqrt(1 - (ay / ay_lim)^2)``, ``ay = v[i]^2 |kappa[i]|``, where
+       ``ax_max = min(ax_accel_mps2, ax_accel_frac * mu * g)``: the powertrain's limit
+       or, on a slippery road, the driven wheels' grip;
     3. backward pass (braking): ``v[i]^2 <= v[i+1]^2 + 2 * ab * ds`` with
        ``ab = ax_brake_frac * mu * g * sqrt(1 - (ay / ay_lim)^2)``, ``ay = v[i+1]^2 |kappa[i+1]|``,
 
@@ -260,6 +263,8 @@ def speed_profile(
         ay_frac: fraction of the friction used laterally at the cornering limit (-).
         ax_accel_mps2: acceleration available from the powertrain (m/s^2).
         ax_brake_frac: braking deceleration as a fraction of ``mu * g`` (-).
+        ax_accel_frac: acceleration at most this fraction of ``mu * g`` (-), what the
+            driven axle's tyres transmit (None: the powertrain's limit only).
         g: gravity (m/s^2).
         v_start_mps: speed at ``s[0]`` (None: as fast as the limits allow, a flying start).
         v_end_mps: speed required at ``s[-1]`` (None: unconstrained).
@@ -288,6 +293,9 @@ def speed_profile(
     mu_seg = np.minimum(mu_arr[:-1], mu_arr[1:])
     ay_lim_seg = ay_frac * mu_seg * g
     brake_seg = ax_brake_frac * mu_seg * g
+    accel_seg = np.full(len(ds), float(ax_accel_mps2))
+    if ax_accel_frac is not None:
+        accel_seg = np.minimum(accel_seg, ax_accel_frac * mu_seg * g)
 
     def ellipse(v: float, k: float, ay_max: float) -> float:
         r = (v * v * k) / ay_max
@@ -300,7 +308,7 @@ def speed_profile(
         v[-1] = min(v[-1], float(v_end_mps))
     n = len(v)
     for i in range(n - 1):  # forward: acceleration limit
-        ax = ax_accel_mps2 * ellipse(v[i], abs_k[i], ay_lim_seg[i])
+        ax = accel_seg[i] * ellipse(v[i], abs_k[i], ay_lim_seg[i])
         v[i + 1] = min(v[i + 1], np.sqrt(v[i] * v[i] + 2.0 * ax * ds[i]))
     for i in range(n - 2, -1, -1):  # backward: braking limit
         ab = brake_seg[i] * ellipse(v[i + 1], abs_k[i + 1], ay_lim_seg[i])

@@ -221,6 +221,16 @@ def test_a_stopped_run_says_so() -> None:
     assert run.outcome["status"] == "stopped" and run.outcome["at_s"] < 5.0
 
 
+def test_a_car_off_the_track_ends_the_run(tmp_path: Path) -> None:
+    from sim.manoeuvres import TRACK_HALF_WIDTH_M, build_plan
+
+    track = write_xy(tmp_path / "oval.csv", stadium())
+    plan = build_plan("circuit", 60.0, 1.0, 0, car_parameters(), track=str(track))
+    plan.path = plan.path + np.array([0.0, TRACK_HALF_WIDTH_M + 2.0])  # the car starts beside the track
+    run = simulate_plan(plan)
+    assert run.outcome["status"] == "off-track" and run.outcome["at_s"] < 0.5
+
+
 def test_a_complete_run_says_so() -> None:
     run = simulate_plan(_open_loop_plan(2.0, 20.0, 0.2, 0.0, 1.0))
     assert run.outcome == {"status": "completed", "at_s": 2.0, "planned_s": 2.0}
