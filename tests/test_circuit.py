@@ -12,7 +12,7 @@ import pytest
 from sim.api import simulate, simulate_plan
 from sim.campaign import manifest_entry
 from sim.centreline import derive, equirectangular, track_from_points
-from sim.driver import SPEED_OPEN, Plan
+from sim.driver import SPEED_OPEN, STEER_PATH, Plan
 from sim.params import car_parameters
 from sim.track import BUNDLED_TRACKS, TrackError, load_track
 from virtsensor.cli import main
@@ -192,6 +192,30 @@ def test_refuses_bad_options(tmp_path: Path, capsys, argv_tail: list[str], fragm
 def test_library_refusal_names_the_origin() -> None:
     with pytest.raises(TrackError, match="my-loop: .*open"):
         track_from_points(np.array([(100 * np.cos(a), 100 * np.sin(a)) for a in np.linspace(0, 3, 50)]), "my-loop")
+
+
+def _straight_plan(mu: float, grip: tuple[float, float] | None) -> Plan:
+    """4 s along a straight whose speed profile asks for 3 m/s^2, on a road of friction ``mu``."""
+    ds = 2.0
+    s = np.arange(0.0, 300.0, ds)
+    t = Plan.grid(4.0)
+    n = len(t)
+    return Plan("straight", 4.0, 8.0, np.full(n, STEER_PATH, np.int8), np.zeros(n), np.zeros(n, np.int8),
+                np.full(n, 8.0), np.zeros(n), np.zeros(n), path=np.column_stack([s, np.zeros_like(s)]),
+                path_speed=np.minimum(np.sqrt(64.0 + 6.0 * s), 30.0), path_ds=ds, mu_values=(mu,), path_grip=grip)
+
+
+def test_the_track_driver_does_not_spin_the_driven_wheels_on_a_wet_road() -> None:
+    """Asked for more acceleration than a wet road gives the front axle, the track driver
+    feathers the throttle (``path_grip``); the same plan without it spins the front wheels."""
+    from sim.manoeuvres import TRACK_GRIP
+
+    for grip, spins in ((None, True), (TRACK_GRIP, False)):
+        run = simulate_plan(_straight_plan(0.2, grip))
+        slip = np.maximum(np.abs(run.truth["kappa_fl"]), np.abs(run.truth["kappa_fr"]))
+        assert (slip.max() > 0.3) == spins, (grip, slip.max())
+    assert run.truth["ax_true_mps2"].max() < 0.5 * 0.2 * 9.81  # within the front axle's grip (60 % of the load)
+    assert run.truth["vx_true_mps"][-1] > 8.0 + 2.0  # it still gains speed
 
 
 # ---------------------------------------------------------------------- outcome
