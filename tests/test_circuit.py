@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sim import track as track_module
 from sim.api import simulate, simulate_plan
 from sim.campaign import manifest_entry
-from sim.centreline import derive, equirectangular, track_from_points
+from sim.centreline import derive, equirectangular, read_points, track_from_points
 from sim.driver import SPEED_OPEN, STEER_PATH, Plan
 from sim.params import car_parameters
 from sim.track import BUNDLED_TRACKS, TrackError, load_track
@@ -74,6 +75,38 @@ def test_derive_can_force_a_direction() -> None:
     cols, facts = derive(pts, direction="clockwise")
     assert facts["input_order"] == "counter-clockwise"
     assert cols["heading_rad"][-1] - cols["heading_rad"][0] == pytest.approx(-2 * np.pi, abs=1e-6)
+
+
+SOURCES = Path(__file__).resolve().parent / "data" / "circuits"  # bacinger/f1-circuits GeoJSON (MIT, see NOTICE)
+SOURCE_OF = {"magny-cours": "fr-1960", "hungaroring": "hu-1986", "zandvoort": "nl-1948", "red-bull-ring": "at-1969"}
+
+
+@pytest.mark.parametrize("name", sorted(SOURCE_OF))
+def test_bundled_circuits_are_the_librarys_derivation_of_their_source(name: str) -> None:
+    """Every data row of a bundled centreline is what sim.centreline derives from its GeoJSON today."""
+    import io
+
+    points, _ = read_points(SOURCES / f"{SOURCE_OF[name]}.geojson")
+    cols, _ = derive(points, direction="clockwise")
+    buf = io.StringIO()
+    np.savetxt(buf, np.column_stack([cols[c] for c in ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm")]),
+               fmt=["%.4f", "%.4f", "%.4f", "%.8f", "%.8f"], delimiter=",")
+    bundled = (Path(track_module.__file__).parent / "data" / BUNDLED_TRACKS[name]).read_text().splitlines()
+    rows = [ln for ln in bundled if not ln.startswith("#")][1:]
+    assert buf.getvalue().splitlines() == rows
+
+
+def test_derive_track_tool_reproduces_the_magny_cours_file(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    src = tmp_path / "magny-cours_fr-1960.geojson"
+    src.write_bytes((SOURCES / "fr-1960.geojson").read_bytes())
+    out = tmp_path / "sim" / "data" / "magny_cours_centreline.csv"
+    root = Path(__file__).resolve().parent.parent
+    subprocess.run([sys.executable, str(root / "tools" / "derive_track.py"), str(src),
+                    "sim/data/magny_cours_centreline.csv"], cwd=tmp_path, check=True, capture_output=True, timeout=120)
+    assert out.read_bytes() == (root / "sim" / "data" / "magny_cours_centreline.csv").read_bytes()
 
 
 @pytest.mark.parametrize("name", sorted(BUNDLED_TRACKS))
