@@ -32,11 +32,16 @@ from sim.params import car_parameters  # noqa: E402
 
 
 def lap_figures(run: SimRun) -> dict[str, float]:
-    """Largest distance from the path (m), largest side-slip (deg), p99 front longitudinal slip (-)."""
+    """Largest distance across the path (m), largest side-slip (deg), p99 front longitudinal slip (-)."""
     from scipy.spatial import cKDTree
 
     t, path = run.truth, run.plan.path
-    off, _ = cKDTree(path).query(np.column_stack([t["x_m"], t["y_m"]]))
+    _, j = cKDTree(path).query(np.column_stack([t["x_m"], t["y_m"]]))
+    # distance across the path at the nearest vertex (the vertices are 2 m apart: the distance
+    # to the vertex itself would read up to 1 m for a car right on the line)
+    step = np.diff(path, axis=0)
+    heading = np.arctan2(step[:, 1], step[:, 0])[np.minimum(j, len(step) - 1)]
+    off = np.abs(-(t["x_m"] - path[j, 0]) * np.sin(heading) + (t["y_m"] - path[j, 1]) * np.cos(heading))
     beta = np.degrees(np.arctan2(t["vy_mps"], np.abs(t["vx_true_mps"])))
     slip = np.maximum(np.abs(t["kappa_fl"]), np.abs(t["kappa_fr"]))
     return {"off_path_max_m": float(off.max()), "sideslip_max_deg": float(np.abs(beta).max()),
