@@ -10,7 +10,7 @@ canonical 20 Hz table is what a CAN receiver samples from those streams
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -24,12 +24,22 @@ from sim.sensors import check_specs, make_streams
 
 @dataclass(frozen=True)
 class Request:
-    """One run to simulate: manoeuvre, entry speed (km/h), road friction, seed."""
+    """One run to simulate: manoeuvre, entry speed (km/h), road friction, seed.
+
+    ``track`` and ``laps`` go with the manoeuvre ``circuit`` only: a bundled circuit's
+    name or a centreline file (:func:`sim.track.load_track`) and the number of laps.
+    """
 
     manoeuvre: str
     speed_kmh: float
     mu: float
     seed: int = 0
+    track: str | None = None
+    laps: int | None = None
+
+    def options(self) -> dict[str, Any]:
+        """The manoeuvre's own options (``track``, ``laps``) that are set."""
+        return {k: v for k, v in (("track", self.track), ("laps", self.laps)) if v is not None}
 
 
 @dataclass
@@ -42,6 +52,8 @@ class SimRun:
         params: the full parameter tree of the car.
         truth: truth channels on the 100 Hz base grid (``time_s`` first).
         streams: the car's signals as its sensors deliver them, on the same grid.
+        outcome: how the run ended (:meth:`sim.engine.BatchResult.outcome`): completed,
+            or spun or stopped at a time short of the plan.
     """
 
     request: Request
@@ -49,6 +61,7 @@ class SimRun:
     params: Mapping[str, Any]
     truth: dict[str, np.ndarray]
     streams: dict[str, np.ndarray]
+    outcome: dict[str, Any] = field(default_factory=lambda: {"status": "completed"})
 
 
 def with_pressure(params: Mapping[str, Any], pressure_bar: float | None) -> dict[str, Any]:
@@ -88,7 +101,7 @@ def simulate_many(
     for r in requests:
         check(r.manoeuvre, r.speed_kmh, r.mu)
     if plans is None:
-        plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, tree)
+        plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, tree, **r.options())
                  for r, tree in zip(requests, trees, strict=True)]
     elif len(plans) != len(requests):
         raise ValueError("one plan per request")
@@ -98,7 +111,7 @@ def simulate_many(
         truth = result.run(i)
         # sensor noise is seeded apart from the manoeuvre's own randomness
         streams = make_streams(truth, tree, seed=int(np.random.SeedSequence([req.seed, 1]).generate_state(1)[0]))
-        runs.append(SimRun(req, plans[i], tree, truth, streams))
+        runs.append(SimRun(req, plans[i], tree, truth, streams, result.outcome(i)))
     return runs
 
 
@@ -106,16 +119,18 @@ def simulate_plan(plan: Plan, params: Mapping[str, Any] | None = None, seed: int
     """Simulate one ready-made plan (e.g. :func:`sim.manoeuvres.from_recording`)."""
     params = car_parameters() if params is None else params
     check_specs(params)
-    truth = simulate_batch([plan], [params]).run(0)
+    result = simulate_batch([plan], [params])
+    truth = result.run(0)
     streams = make_streams(truth, params, seed=int(np.random.SeedSequence([seed, 1]).generate_state(1)[0]))
     mu = float(plan.mu_values[0])
-    return SimRun(Request(plan.name, float(plan.speed0_mps * 3.6), mu, seed), plan, params, truth, streams)
+    return SimRun(Request(plan.name, float(plan.speed0_mps * 3.6), mu, seed), plan, params, truth, streams,
+                  result.outcome(0))
 
 
 def simulate(manoeuvre: str, speed_kmh: float, mu: float, seed: int = 0,
-             params: Mapping[str, Any] | None = None) -> SimRun:
-    """Simulate one run (see :func:`simulate_many`)."""
-    return simulate_many([Request(manoeuvre, speed_kmh, mu, seed)], params)[0]
+             params: Mapping[str, Any] | None = None, **options: Any) -> SimRun:
+    """Simulate one run (see :func:`simulate_many`); ``options``: ``track``, ``laps`` for ``circuit``."""
+    return simulate_many([Request(manoeuvre, speed_kmh, mu, seed, **options)], params)[0]
 
 
 def simulate_streams(manoeuvre: str, *, speed_kmh: float, mu: float, seed: int = 0,

@@ -42,7 +42,7 @@ from sim.manoeuvres import MANOEUVRES, build_plan
 
 PAPER_MU = (1.0, 0.7, 0.5, 0.3, 0.2)
 PAPER_SPEEDS_PER_MANOEUVRE = 4
-PAPER_MANOEUVRES = tuple(n for n in MANOEUVRES if n != "magny-cours")
+PAPER_MANOEUVRES = tuple(n for n in MANOEUVRES if n not in ("magny-cours", "circuit"))
 
 
 def paper_preset(seed: int = 0) -> list[Request]:
@@ -184,7 +184,7 @@ def run_campaign(
         return []
     # plans are built once, here (the FMVSS 126 amplitude needs a simulated test per car),
     # and shipped to the workers with their requests
-    plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, params) for r in requests]
+    plans = [build_plan(r.manoeuvre, r.speed_kmh, r.mu, r.seed, params, **r.options()) for r in requests]
     n_batches = max(1, int(np.ceil(len(requests) / batch_size)))
     groups = _batches(plans, n_batches)
     results: list[Any] = [None] * len(requests)
@@ -218,11 +218,19 @@ def _backend_config(backend: str | None, parent_pid: int):
 
 
 def manifest_entry(run: SimRun, path: Path, samples: int, duration_s: float) -> dict[str, Any]:
-    """What a campaign's manifest says about one written run."""
+    """What a campaign's manifest says about one written run.
+
+    ``outcome`` says how the run ended (:meth:`sim.engine.BatchResult.outcome`):
+    ``"completed"`` or, for a run cut short, ``"spun"``, ``"stopped"`` or ``"off-track"``,
+    with the time ``at_s`` (s) it ended and the plan's ``planned_s``, so a short run
+    never passes for a complete one.
+    """
+    request = {k: v for k, v in asdict(run.request).items() if k not in ("track", "laps") or v is not None}
     return {
         "file": path.name,
-        **asdict(run.request),
+        **request,
         "samples": samples,
         "duration_s": duration_s,
+        "outcome": dict(run.outcome),
         "label": json.loads(json.dumps(run.plan.label, default=float)),
     }

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.vehicle import IOM, IPSI, IS, ISW, IVX, IX, IY, Inputs, Vehicle
+from sim.vehicle import IOM, IPSI, IR, IS, ISW, IVX, IX, IY, Inputs, Vehicle
 
 # steering modes
 STEER_TABLE, STEER_PATH, STEER_HOLD, STEER_FREE = 0, 1, 2, 3
@@ -52,6 +52,16 @@ class Plan:
             still needs (re-simulating a recorded run: the car's own recorded
             motor torque carries its accelerations and resistances, so the speed
             is tracked without the feedback loop's lag); None: feedback only.
+        path_grip: (drive, brake) shares of the road's friction ``mu * g`` (-) that the
+            driver allows itself as longitudinal acceleration while following
+            ``path_speed``: it feeds the profile's own acceleration forward (so it brakes
+            where the profile brakes, not a speed error later) and never asks for more
+            drive or brake force than these shares of the grip left beside the
+            cornering (a driver feathering throttle and brake; the car has no
+            traction control or ABS). None: speed feedback only, uncapped.
+        track_half_width_m: while following the path, the car has left the track once
+            its centre is farther than this from the path (m); the run ends there
+            (:meth:`Driver.off_track`). None: no limit.
     """
 
     name: str
@@ -70,6 +80,8 @@ class Plan:
     mu_values: Sequence[float] = (1.0,)
     label: dict = field(default_factory=dict)
     motor_feedforward: np.ndarray | None = None
+    path_grip: tuple[float, float] | None = None
+    track_half_width_m: float | None = None
 
     @property
     def n(self) -> int:
@@ -88,7 +100,8 @@ class Plan:
             self.speed_mode.copy(), self.speed_target.copy(), self.motor_cmd.copy(), self.brake_cmd.copy(),
             path, None if self.path_speed is None else self.path_speed.copy(), self.path_ds,
             tuple(self.mu_dist), tuple(self.mu_values), {**self.label, "mirrored": True},
-            None if self.motor_feedforward is None else self.motor_feedforward.copy(),
+            None if self.motor_feedforward is None else self.motor_feedforward.copy(), self.path_grip,
+            self.track_half_width_m,
         )
 
 
@@ -160,6 +173,19 @@ class Driver:
                     self.path_speed[i, len(p.path_speed):] = p.path_speed[-1]
             self.path[i] = pts
             self.path_len[i] = len(pts) if p.path is None else len(p.path)
+        # the profile's own acceleration along the path, v dv/ds (m/s^2), at the vertices
+        # (centred differences; read at the car's place between them, like the speed)
+        self.path_accel = np.zeros((B, m))
+        v2 = np.nan_to_num(self.path_speed) ** 2
+        if m > 2:
+            self.path_accel[:, 1:-1] = (v2[:, 2:] - v2[:, :-2]) / (4.0 * self.path_ds[:, None])
+        grip = [p.path_grip if p.path_grip is not None and p.path_speed is not None else (np.inf, np.inf)
+                for p in plans]
+        self.grip_drive = np.array([g[0] for g in grip], dtype=float)
+        self.grip_brake = np.array([g[1] for g in grip], dtype=float)
+        self.graded = np.isfinite(self.grip_drive)
+        self.off_limit = np.array([np.inf if p.track_half_width_m is None else p.track_half_width_m for p in plans])
+        self.ax_ff = np.zeros(B)
         seg = np.diff(self.path, axis=1)
         heading = np.arctan2(seg[..., 1], seg[..., 0])
         self.path_heading = np.concatenate([heading, heading[:, -1:]], axis=1)
@@ -191,6 +217,12 @@ class Driver:
         """Start from state ``x``: commands equal the current steering angle."""
         self.cmd_sw[:] = x[:, ISW]
         self.held_sw[:] = x[:, ISW]
+
+    def off_track(self, k: int) -> np.ndarray:
+        """(B,) bool: runs following their path at control step ``k`` whose car is farther
+        from it than their plan's ``track_half_width_m`` (at the last path-following update)."""
+        following = self.steer_mode[:, min(k, self.n - 1)] == STEER_PATH
+        return following & (np.abs(self.lat_err) > self.off_limit)
 
     # ---- helpers -------------------------------------------------------------------
     def road_mu(self, s: np.ndarray) -> np.ndarray:
@@ -248,6 +280,7 @@ class Driver:
         # (vertex by vertex it steps every path_ds / v seconds, and the speed loop's gain
         # turns each step into a drive-torque kick)
         vt = self._lerp(self.path_speed, start, frac)
+        self.ax_ff = self._lerp(self.path_accel, start, frac)
         return delta * v.ratio, vt
 
     def _lerp(self, profile: np.ndarray, j: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -284,6 +317,26 @@ class Driver:
         t = np.clip(((pos - pa) * d).sum(axis=1) / np.maximum((d * d).sum(axis=1), 1e-12), 0.0, 1.0)
         q = pa + t[:, None] * d
         return t, q, ((pos - q) ** 2).sum(axis=1)
+
+    def _graded_force(self, x: np.ndarray, feedback: np.ndarray) -> np.ndarray:
+        """Longitudinal force demand (N) of a driver following a speed profile with ``path_grip``.
+
+        The profile's acceleration is fed forward (``m * v dv/ds`` at the car's place) on
+        top of the speed feedback; the sum is held within the plan's drive and brake shares
+        of the friction left beside the car's lateral acceleration (friction ellipse on
+        ``mu * g`` with ``ay = vx * yaw rate``), plus the air drag and rolling resistance
+        that the drive force overcomes first.
+        """
+        v = self.v
+        vx = x[:, IVX]
+        mu_g = self.road_mu(x[:, IS]) * v.g
+        used = np.clip(np.abs(vx * x[:, IR]) / mu_g, 0.0, 1.0)
+        room = np.sqrt(np.maximum(1.0 - used * used, 0.05))
+        resist = v.drag * vx * np.abs(vx) + 0.012 * v.m * v.g
+        force = feedback + v.m * self.ax_ff
+        top = np.where(np.isfinite(self.grip_drive), self.grip_drive, 0.0) * v.m * mu_g * room + resist
+        bottom = -np.where(np.isfinite(self.grip_brake), self.grip_brake, 0.0) * v.m * mu_g * room
+        return np.clip(force, bottom, top)
 
     # ---- the control step -------------------------------------------------------------
     def update(self, k: int, x: np.ndarray) -> Inputs:
@@ -327,6 +380,9 @@ class Driver:
         # (and at half the gain: it corrects what the recorded torque leaves, not noise)
         fb = np.where(self.has_ff, 0.5, 1.0) * (self.k_v * err + self.k_vi * self.v_int)
         force = np.where(self.has_ff, 0.0, resist) + fb
+        graded = self.graded & following & (smode == SPEED_TARGET)
+        if graded.any():
+            force = np.where(graded, self._graded_force(x, force), force)
         r_wheel = v.R0 * 0.97
         motor_dem = np.where(force > 0, force * r_wheel / (v.gear * v.eta), 0.0) + self.motor_ff[:, k]
         brake_dem = np.where(force < 0, -force * r_wheel * 0.5 * v.brake_share, 0.0)

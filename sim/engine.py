@@ -47,6 +47,21 @@ class BatchResult:
     n_valid: np.ndarray  # (B,) valid samples of each run (runs differ in length; aborted runs end early)
     plans: Sequence[Plan]
     params: Sequence[Mapping[str, Any]]
+    #: (B,) why each run ended: one of :data:`OUTCOMES` (index)
+    ended_by: np.ndarray | None = None
+
+    def outcome(self, i: int) -> dict[str, Any]:
+        """How run ``i`` ended: ``{"status": s, "at_s": t, "planned_s": T}``, ``s`` in :data:`OUTCOMES`.
+
+        ``at_s`` is the time of the run's last valid sample (s); ``planned_s`` the
+        plan's duration. A spun (body side-slip beyond ``ABORT_SIDESLIP_RAD``), stopped
+        (speed below ``ABORT_SPEED_MPS``) or off-track (farther from the path it follows
+        than its plan's ``track_half_width_m``) run ends there, short of its plan.
+        """
+        code = 0 if self.ended_by is None else int(self.ended_by[i])
+        n = int(self.n_valid[i])
+        return {"status": OUTCOMES[code], "at_s": round(float(self.time_s[max(n - 1, 0)]), 3),
+                "planned_s": round(float(self.plans[i].duration_s), 3)}
 
     def run(self, i: int) -> dict[str, np.ndarray]:
         """Run ``i``'s channels, trimmed to its own duration."""
@@ -99,6 +114,7 @@ def simulate_batch(
     # per run, the first recorded sample after which it is no longer a test; kept up to date
     # sample by sample, so no step rescans the recorded history
     aborted_at = np.full(B, n_rec)
+    ended_by = np.zeros(B, dtype=np.int8)
     plan_end = np.array([p.n for p in plans])
     for k in range(n_ctl):
         x_prev = x
@@ -110,7 +126,7 @@ def simulate_batch(
             k1, aux = veh.derivatives(x, u)
             if s == 0 and k % rec_every == 0:
                 _record(rec, j, x, aux, u, drv, veh)
-                aborted_at = _update_abort(aborted_at, rec, j, n_rec)
+                aborted_at = _update_abort(aborted_at, ended_by, rec, j, n_rec, drv.off_track(k))
                 j += 1
             veh.commit(aux)
             if k == n_ctl - 1:
@@ -136,23 +152,34 @@ def simulate_batch(
     time_s = np.arange(n_rec) * (rec_every * CONTROL_DT)
     n_valid = np.array([min(n_rec, (p.n - 1) // rec_every + 1) for p in plans])
     n_valid = np.minimum(np.minimum(n_valid, j), np.maximum(aborted_at, 1))
-    return BatchResult(time_s, rec, n_valid, plans, params)
+    # an abort after a run's own plan has ended (a longer run in the batch) is no abort
+    ended_by[aborted_at >= np.array([(p.n - 1) // rec_every + 1 for p in plans])] = 0
+    return BatchResult(time_s, rec, n_valid, plans, params, ended_by)
 
 
 #: a test driver ends a run once the car has (nearly) stopped or is spinning
 ABORT_SPEED_MPS = 3.0
 ABORT_SIDESLIP_RAD = np.deg2rad(30.0)
+#: how a run ended (index: ``BatchResult.ended_by``)
+OUTCOMES = ("completed", "spun", "stopped", "off-track")
 
 
-def _update_abort(aborted_at: np.ndarray, rec: Mapping[str, np.ndarray], j: int, never: int) -> np.ndarray:
-    """``aborted_at`` with recorded sample ``j`` taken into account.
+def _update_abort(aborted_at: np.ndarray, ended_by: np.ndarray, rec: Mapping[str, np.ndarray], j: int,
+                  never: int, off_track: np.ndarray | None = None) -> np.ndarray:
+    """``aborted_at`` with recorded sample ``j`` taken into account; ``ended_by`` updated in place.
 
-    Per run, the first recorded sample at which the run is no longer a test (stopped or
-    spinning), or ``never``. Callers use ``max(aborted_at, 1)``: a run keeps its first sample.
+    Per run, the first recorded sample at which the run is no longer a test (stopped,
+    spinning, or, per ``off_track`` (B,) bool, off the track it follows), or ``never``.
+    Callers use ``max(aborted_at, 1)``: a run keeps its first sample. A car sliding
+    sideways beyond the side-slip limit has spun, whatever its speed or place.
     """
     vx, vy = rec["vx_true_mps"][:, j], rec["vy_mps"][:, j]
-    bad = (vx < ABORT_SPEED_MPS) | (np.abs(np.arctan2(vy, np.abs(vx))) > ABORT_SIDESLIP_RAD)
-    return np.where((aborted_at == never) & bad, j, aborted_at)
+    spun = np.abs(np.arctan2(vy, np.abs(vx))) > ABORT_SIDESLIP_RAD
+    stopped = vx < ABORT_SPEED_MPS
+    off = np.zeros_like(spun) if off_track is None else off_track
+    new = (aborted_at == never) & (spun | stopped | off)
+    ended_by[new] = np.where(spun[new], 1, np.where(stopped[new], 2, 3))
+    return np.where(new, j, aborted_at)
 
 
 def _record(rec: dict[str, np.ndarray], j: int, x: np.ndarray, aux: Mapping[str, np.ndarray],

@@ -48,6 +48,16 @@ TRACK_AY_FRACTION = 0.62
 #: front brake balance the front wheels lock near 0.85 g, and a locked front cannot
 #: steer into the next corner.
 TRACK_BRAKE_FRACTION = 0.5
+#: acceleration share of the friction limit on the track: the driven front axle carries
+#: 60 % of the weight and less as the car squats; more spins the front wheels on a wet
+#: road and the car runs wide, off the line (the powertrain's 3 m/s^2 caps it on a dry one)
+TRACK_ACCEL_FRACTION = 0.3
+#: longitudinal shares of the friction the track driver never exceeds (drive, brake):
+#: the planned ones with room for the speed loop's corrections
+TRACK_GRIP = (0.4, 0.65)
+#: circuits are 12 to 15 m wide: a car whose centre is 7.5 m off the centreline has left
+#: the track, and the run ends there (outcome "off-track")
+TRACK_HALF_WIDTH_M = 7.5
 
 
 @dataclass(frozen=True)
@@ -271,6 +281,34 @@ def braking_in_turn(v: float, mu: float, rng: np.random.Generator, params: Mappi
     return plan
 
 
+def _track_plan(name: str, tr: Any, laps: int, mu_laps: tuple[float, ...], v: float, label: dict) -> Plan:
+    """Brisk laps of ``tr`` (a :class:`sim.track.Track`), lap i on friction ``mu_laps[i]``.
+
+    The car starts on the line heading +x at the speed profile's speed there; ``v`` caps
+    the speed (m/s) and the profile follows the curvature and each lap's friction.
+    """
+    from sim import track as trk
+
+    # the path runs on past the line by a lap: the run lasts the laps and one second more,
+    # and the follower's preview point needs road ahead of the car to the very end
+    path = tr.laps(laps + 1).aligned_to_start()
+    s = path.s
+    mu_s = np.asarray(mu_laps, dtype=float)[np.minimum((s // tr.length).astype(int), laps - 1)]
+    vprof = trk.speed_profile(path.curvature, s, mu_s, v_max_mps=v, ay_frac=TRACK_AY_FRACTION,
+                              ax_brake_frac=TRACK_BRAKE_FRACTION, ax_accel_frac=TRACK_ACCEL_FRACTION)
+    ds = float(s[1] - s[0])
+    n_laps = int(round(laps * tr.length / ds))
+    duration = float(np.sum(ds / np.maximum(vprof[:n_laps], 1.0))) + 1.0
+    _, plan = _base(name, duration, float(vprof[0]), mu_laps[0], label)
+    plan.steer_mode[:] = STEER_PATH
+    plan.path, plan.path_ds, plan.path_speed = np.stack([path.x, path.y], axis=1), ds, vprof
+    plan.mu_dist = tuple(tr.length * np.arange(1, laps))
+    plan.mu_values = tuple(float(m) for m in mu_laps)
+    plan.path_grip = TRACK_GRIP
+    plan.track_half_width_m = TRACK_HALF_WIDTH_M
+    return plan
+
+
 def magny_cours(v: float, mu: float, rng: np.random.Generator, params: Mapping[str, Any],
                 wet_mu: float = 0.7) -> Plan:
     """Two brisk laps of Magny-Cours: the first at ``mu`` (dry), the second at ``wet_mu``.
@@ -281,21 +319,41 @@ def magny_cours(v: float, mu: float, rng: np.random.Generator, params: Mapping[s
     from sim import track as trk
 
     tr = trk.load_magny_cours()
-    laps = tr.laps(2).aligned_to_start()  # the car starts at the start line heading +x
-    s = laps.s
-    mu_s = np.where(s < tr.length, mu, wet_mu)
-    vprof = trk.speed_profile(laps.curvature, s, mu_s, v_max_mps=v, ay_frac=TRACK_AY_FRACTION,
-                              ax_brake_frac=TRACK_BRAKE_FRACTION)
-    px, py = laps.x, laps.y
-    ds = float(s[1] - s[0])
-    lap_time = float(np.sum(ds / np.maximum(vprof, 1.0)))
-    duration = lap_time + 1.0
-    t, plan = _base("magny-cours", duration, float(vprof[0]), mu,
-                    {"lap_length_m": tr.length, "mu_dry": mu, "mu_wet": wet_mu, "v_max_mps": v})
-    plan.steer_mode[:] = STEER_PATH
-    plan.path, plan.path_ds, plan.path_speed = np.stack([px, py], axis=1), ds, vprof
-    plan.mu_dist, plan.mu_values = (tr.length,), (mu, wet_mu)
-    return plan
+    return _track_plan("magny-cours", tr, 2, (mu, wet_mu), v,
+                       {"lap_length_m": tr.length, "mu_dry": mu, "mu_wet": wet_mu, "v_max_mps": v})
+
+
+#: most laps of one ``circuit`` run
+MAX_LAPS = 20
+
+
+def circuit(v: float, mu: float, rng: np.random.Generator, params: Mapping[str, Any],
+            track: str | None = None, laps: int | None = None) -> Plan:
+    """Brisk laps of any closed circuit at friction ``mu``, the speed capped at ``v`` (m/s).
+
+    Args:
+        track: a bundled circuit's name or a centreline file (:func:`sim.track.load_track`).
+        laps: number of laps (default 1, at most :data:`MAX_LAPS`).
+
+    Raises:
+        ManoeuvreError: no track, a bad lap count, or a centreline that cannot be driven
+            (unreadable, open, crossing itself, too short, or tighter than the car can steer).
+    """
+    from sim import track as trk
+    from sim.centreline import check_steerable
+
+    laps = 1 if laps is None else laps
+    if track is None:
+        raise ManoeuvreError("circuit: --track (a circuit name or a .csv/.geojson centreline) is required")
+    if int(laps) != laps or not 1 <= laps <= MAX_LAPS:
+        raise ManoeuvreError(f"circuit: --laps must be a whole number from 1 to {MAX_LAPS}, got {laps}")
+    try:
+        tr = trk.load_track(track)
+        check_steerable(tr, params, str(track))
+    except trk.TrackError as exc:
+        raise ManoeuvreError(str(exc)) from None
+    return _track_plan("circuit", tr, int(laps), (mu,) * int(laps), v,
+                       {"track": str(track), "laps": int(laps), "lap_length_m": tr.length, "v_max_mps": v})
 
 
 def from_recording(table: Mapping[str, np.ndarray], mu: float, *, longitudinal: str = "speed",
@@ -379,6 +437,7 @@ MANOEUVRES: dict[str, Manoeuvre] = {
         Manoeuvre("sine-with-dwell", (40, 120), "FMVSS 126 sine with dwell", sine_with_dwell),
         Manoeuvre("brake-accel", (40, 120), "steady brake/acceleration command", brake_accel),
         Manoeuvre("magny-cours", (60, 250), "Magny-Cours, 2 laps, dry then wet", magny_cours),
+        Manoeuvre("circuit", (40, 250), "laps of any closed circuit (--track)", circuit),
     )
 }
 
@@ -400,10 +459,18 @@ def check(name: str, speed_kmh: float, mu: float) -> Manoeuvre:
     return m
 
 
-def build_plan(name: str, speed_kmh: float, mu: float, seed: int, params: Mapping[str, Any]) -> Plan:
-    """The plan of manoeuvre ``name`` at ``speed_kmh`` on a road of friction ``mu``."""
+def build_plan(name: str, speed_kmh: float, mu: float, seed: int, params: Mapping[str, Any],
+               **options: Any) -> Plan:
+    """The plan of manoeuvre ``name`` at ``speed_kmh`` on a road of friction ``mu``.
+
+    ``options`` are the manoeuvre's own (``track``, ``laps`` for ``circuit``); any other
+    manoeuvre given one is refused.
+    """
     m = check(name, speed_kmh, mu)
+    given = {k: v for k, v in options.items() if v is not None}
+    if given and name != "circuit":
+        raise ManoeuvreError(f"{name}: {', '.join(sorted(given))} go(es) with the manoeuvre 'circuit' only")
     rng = np.random.default_rng(seed)
-    plan = m.build(speed_kmh / 3.6, mu, rng, params)
+    plan = m.build(speed_kmh / 3.6, mu, rng, params, **given)
     plan.label.update({"manoeuvre": name, "speed_kmh": speed_kmh, "mu": mu, "seed": seed})
     return plan

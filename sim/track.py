@@ -22,10 +22,24 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["Track", "TrackSample", "load_magny_cours", "speed_profile", "lap_time"]
+__all__ = ["Track", "TrackSample", "TrackError", "BUNDLED_TRACKS", "load_magny_cours", "load_track",
+           "speed_profile", "lap_time"]
 
 COLUMNS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm")
 MAGNY_COURS_CSV = "magny_cours_centreline.csv"
+#: circuits bundled with the package, by name: file under ``sim/data`` (derived centrelines,
+#: provenance in each file's header and in NOTICE). Magny-Cours is the report circuit: it is
+#: never used for training or tuning; the others are for development.
+BUNDLED_TRACKS: dict[str, str] = {
+    "magny-cours": MAGNY_COURS_CSV,
+    "hungaroring": "tracks/hungaroring.csv",
+    "zandvoort": "tracks/zandvoort.csv",
+    "red-bull-ring": "tracks/red_bull_ring.csv",
+}
+
+
+class TrackError(ValueError):
+    """A centreline that cannot be driven: unreadable, open, crossing itself, too short or too tight."""
 
 
 class TrackSample(NamedTuple):
@@ -167,8 +181,42 @@ class Track:
 
 def load_magny_cours() -> Track:
     """Load the bundled Magny-Cours centreline (4445 m, clockwise, start/finish straight at s = 0)."""
-    text = resources.files("sim").joinpath("data", MAGNY_COURS_CSV).read_text(encoding="utf-8")
-    return Track._from_text(text, f"sim/data/{MAGNY_COURS_CSV}")
+    return load_track("magny-cours")
+
+
+def load_track(spec: str | Path, **derive_options: float) -> Track:
+    """A circuit by bundled name (:data:`BUNDLED_TRACKS`) or from a file.
+
+    Files: a derived centreline CSV (header ``s_m,x_m,y_m,heading_rad,curvature_1pm``,
+    used as is), or a loop of surveyed points, a CSV with header ``x_m,y_m`` or a GeoJSON
+    LineString of lon/lat, closed, smoothed and resampled by :mod:`sim.centreline`
+    (``derive_options``: ``ds``, ``smoothing_length``) in the direction listed.
+
+    Raises:
+        TrackError: unknown name, missing or malformed file, or a centreline that is
+            open, crosses itself or is too short.
+    """
+    name = str(spec)
+    if name in BUNDLED_TRACKS:
+        rel = BUNDLED_TRACKS[name]
+        text = resources.files("sim").joinpath("data", *rel.split("/")).read_text(encoding="utf-8")
+        return Track._from_text(text, f"sim/data/{rel}")
+    path = Path(name)
+    if path.suffix == "" and not path.exists():
+        raise TrackError(f"unknown circuit {name!r}: name one of {', '.join(BUNDLED_TRACKS)} or give a .csv or "
+                         ".geojson file")
+    if path.suffix.lower() == ".csv" and path.is_file():
+        text = path.read_text(encoding="utf-8", errors="replace")
+        header = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
+        if tuple(c.strip() for c in header.split(",")) == COLUMNS:
+            try:
+                return Track._from_text(text, str(path))
+            except ValueError as exc:
+                raise TrackError(str(exc)) from None
+    from sim.centreline import read_points, track_from_points
+
+    points, _ = read_points(path)
+    return track_from_points(points, str(path), **derive_options)
 
 
 # ---------------------------------------------------------------------- speed profile
@@ -181,6 +229,7 @@ def speed_profile(
     ay_frac: float = 0.85,
     ax_accel_mps2: float = 3.0,
     ax_brake_frac: float = 0.8,
+    ax_accel_frac: float | None = None,
     g: float = 9.81,
     v_start_mps: float | None = None,
     v_end_mps: float | None = None,
@@ -192,7 +241,9 @@ def speed_profile(
     1. cornering limit ``v_lim = min(v_max, sqrt(ay_lim / |kappa|))`` with the lateral
        budget ``ay_lim = ay_frac * mu * g`` (0.85 of the friction limit by default);
     2. forward pass (acceleration): ``v[i+1]^2 <= v[i]^2 + 2 * ax * ds`` with
-       ``ax = ax_accel_mps2 * sqrt(1 - (ay / ay_lim)^2)``, ``ay = v[i]^2 |kappa[i]|``;
+       ``ax = ax_max * sqrt(1 - (ay / ay_lim)^2)``, ``ay = v[i]^2 |kappa[i]|``, where
+       ``ax_max = min(ax_accel_mps2, ax_accel_frac * mu * g)``: the powertrain's limit
+       or, on a slippery road, the driven wheels' grip;
     3. backward pass (braking): ``v[i]^2 <= v[i+1]^2 + 2 * ab * ds`` with
        ``ab = ax_brake_frac * mu * g * sqrt(1 - (ay / ay_lim)^2)``, ``ay = v[i+1]^2 |kappa[i+1]|``,
 
@@ -212,6 +263,8 @@ def speed_profile(
         ay_frac: fraction of the friction used laterally at the cornering limit (-).
         ax_accel_mps2: acceleration available from the powertrain (m/s^2).
         ax_brake_frac: braking deceleration as a fraction of ``mu * g`` (-).
+        ax_accel_frac: acceleration at most this fraction of ``mu * g`` (-), what the
+            driven axle's tyres transmit (None: the powertrain's limit only).
         g: gravity (m/s^2).
         v_start_mps: speed at ``s[0]`` (None: as fast as the limits allow, a flying start).
         v_end_mps: speed required at ``s[-1]`` (None: unconstrained).
@@ -240,6 +293,9 @@ def speed_profile(
     mu_seg = np.minimum(mu_arr[:-1], mu_arr[1:])
     ay_lim_seg = ay_frac * mu_seg * g
     brake_seg = ax_brake_frac * mu_seg * g
+    accel_seg = np.full(len(ds), float(ax_accel_mps2))
+    if ax_accel_frac is not None:
+        accel_seg = np.minimum(accel_seg, ax_accel_frac * mu_seg * g)
 
     def ellipse(v: float, k: float, ay_max: float) -> float:
         r = (v * v * k) / ay_max
@@ -252,7 +308,7 @@ def speed_profile(
         v[-1] = min(v[-1], float(v_end_mps))
     n = len(v)
     for i in range(n - 1):  # forward: acceleration limit
-        ax = ax_accel_mps2 * ellipse(v[i], abs_k[i], ay_lim_seg[i])
+        ax = accel_seg[i] * ellipse(v[i], abs_k[i], ay_lim_seg[i])
         v[i + 1] = min(v[i + 1], np.sqrt(v[i] * v[i] + 2.0 * ax * ds[i]))
     for i in range(n - 2, -1, -1):  # backward: braking limit
         ab = brake_seg[i] * ellipse(v[i + 1], abs_k[i + 1], ay_lim_seg[i])

@@ -179,9 +179,17 @@ def test_abort_sample_is_the_first_stop_or_spin_and_stays():
     vy[2, :] = 5.0  # 14 deg: not a spin
     rec = {"vx_true_mps": vx, "vy_mps": vy}
     at = np.full(3, n)
+    ended_by = np.zeros(3, dtype=np.int8)
     for j in range(n):
-        at = _update_abort(at, rec, j, n)
+        at = _update_abort(at, ended_by, rec, j, n)
     assert at.tolist() == [2, 3, n]
+    assert ended_by.tolist() == [2, 1, 0]  # stopped, spun, completed (sim.engine.OUTCOMES)
+    # off the track it follows: the third run, from sample 4
+    at = np.full(3, n)
+    ended_by[:] = 0
+    for j in range(n):
+        at = _update_abort(at, ended_by, rec, j, n, np.array([False, False, j >= 4]))
+    assert at.tolist() == [2, 3, 4] and ended_by.tolist() == [2, 1, 3]
 
 
 def _hf_rms(x: np.ndarray, fs: float = 100.0, cut_hz: float = 6.0) -> float:

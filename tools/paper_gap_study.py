@@ -80,7 +80,8 @@ def _fit(X: np.ndarray, Y: np.ndarray, train: np.ndarray, test: np.ndarray, para
     from sklearn.exceptions import ConvergenceWarning
     from threadpoolctl import threadpool_limits
 
-    from virtsensor.training import make_pipeline, metrics
+    from virtsensor.metrics import metrics
+    from virtsensor.training import make_pipeline
 
     t0 = time.perf_counter()
     with warnings.catch_warnings(), threadpool_limits(1):
@@ -104,7 +105,7 @@ def _median(fits: list[dict[str, Any]]) -> dict[str, Any]:
 
 def _anatomy(ds, test: np.ndarray, P: np.ndarray) -> dict[str, Any]:
     """Where the test error sits (squared error is what R2 counts)."""
-    from virtsensor.training import metrics
+    from virtsensor.metrics import metrics
 
     Y = ds.Y[test]
     E = P - Y

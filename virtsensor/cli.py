@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("replay", "play a CAN log (or a simulated manoeuvre) onto a python-can bus"),
     "train": ("train", "train the paper's MLP (or the improved one) on recordings, export ONNX + model card"),
     "evaluate": ("evaluate", "Table IV: the paper's protocols and honest ones, baselines, JSON and Markdown"),
+    "score": ("score", "score a shipped model on any recordings, without retraining: R2 and MAE per run"),
     "explain": ("explain", "Section IV.B figures: input correlation, SHAP importance/dependence, track laps"),
     "run": ("run", "the real-time virtual-sensor daemon: CAN in, 20 Hz SAT_FRONT out"),
     "bench": ("bench", "measure the daemon: stage/end-to-end latency, jitter, CPU/RSS, max tick rate, soak"),

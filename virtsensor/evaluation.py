@@ -24,7 +24,8 @@ import numpy as np
 
 from virtsensor.dataset import Dataset, Run, build_dataset, split_track_laps
 from virtsensor.features import PAPER, SPECS
-from virtsensor.training import SteeringObserver, linear_pipeline, make_pipeline, metrics
+from virtsensor.metrics import metrics
+from virtsensor.training import SteeringObserver, linear_pipeline, make_pipeline
 
 TEST_FRACTION = 0.3
 

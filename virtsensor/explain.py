@@ -473,8 +473,8 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     from virtsensor.dataset import build_dataset, load_runs, split_track_laps
     from virtsensor.evaluation import random_split
     from virtsensor.features import FeatureSpec
+    from virtsensor.metrics import metrics as fit_metrics
     from virtsensor.model.onnx import OnnxModel
-    from virtsensor.training import metrics as fit_metrics
 
     say = log or (lambda _msg: None)
     if samples < 1:

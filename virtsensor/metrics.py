@@ -16,12 +16,15 @@ __all__ = ["mae", "metrics", "r2"]
 
 
 def r2(y: np.ndarray, p: np.ndarray) -> float:
-    """Coefficient of determination of ``p`` against ``y`` (NaN when ``y`` is constant)."""
+    """Coefficient of determination of ``p`` against ``y``; for a constant ``y``: 1 for a perfect fit, else 0
+    (scikit-learn's convention)."""
     y = np.asarray(y, dtype=float)
     p = np.asarray(p, dtype=float)
     ss_tot = float(((y - y.mean()) ** 2).sum())
     ss_res = float(((y - p) ** 2).sum())
-    return 1.0 - ss_res / ss_tot if ss_tot > 0 else float("nan")
+    if ss_tot == 0.0:
+        return 1.0 if ss_res == 0.0 else 0.0
+    return 1.0 - ss_res / ss_tot
 
 
 def mae(y: np.ndarray, p: np.ndarray) -> float:

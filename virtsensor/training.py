@@ -25,12 +25,12 @@ from typing import Any
 import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.linear_model import LinearRegression
-from sklearn.metrics import mean_absolute_error, r2_score
 from sklearn.neural_network import MLPRegressor
 from sklearn.pipeline import Pipeline
 from sklearn.preprocessing import MinMaxScaler, RobustScaler, StandardScaler
 
 from virtsensor.features import TICK_S
+from virtsensor.metrics import r2
 
 SCALERS = {"robust": RobustScaler, "standard": StandardScaler, "minmax": MinMaxScaler}
 
@@ -123,24 +123,6 @@ class SteeringObserver(RegressorMixin, BaseEstimator):
         return np.column_stack([tau, np.ones_like(tau)]) @ self.coef_
 
 
-def metrics(Y: np.ndarray, P: np.ndarray, names: tuple[str, ...] = ("fl", "fr")) -> dict[str, Any]:
-    """R2 and MAE (Nm) per wheel, their mean over both wheels, and for the axle sum."""
-    out: dict[str, Any] = {}
-    r2s, maes = [], []
-    for j, n in enumerate(names):
-        r2 = float(r2_score(Y[:, j], P[:, j]))
-        mae = float(mean_absolute_error(Y[:, j], P[:, j]))
-        out[n] = {"r2": r2, "mae_nm": mae}
-        r2s.append(r2)
-        maes.append(mae)
-    out["r2"] = float(np.mean(r2s))
-    out["mae_nm"] = float(np.mean(maes))
-    ys, ps = Y.sum(axis=1), P.sum(axis=1)
-    out["axle"] = {"r2": float(r2_score(ys, ps)), "mae_nm": float(mean_absolute_error(ys, ps))}
-    out["n"] = int(len(Y))
-    return out
-
-
 @dataclass
 class GridResult:
     """Grid-search outcome: every candidate's mean and std R2 over the folds, best first."""
@@ -162,7 +144,8 @@ def _score_candidate(params: Mapping[str, Any], X: np.ndarray, Y: np.ndarray, tr
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore")  # convergence notes of short candidates
         model = make_pipeline(params, seed).fit(X[train], Y[train])
-        return float(r2_score(Y[test], model.predict(X[test])))
+        P = model.predict(X[test])
+        return float(np.mean([r2(Y[test][:, j], P[:, j]) for j in range(Y.shape[1])]))
 
 
 def grid_search(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, *, grid: Mapping[str, list[Any]] = PAPER_GRID,

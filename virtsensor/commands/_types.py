@@ -180,6 +180,24 @@ def tyre_spec(*, axles: bool = True) -> ArgType:
                 ["", "front=", "left=x.tir", "/no/such/tyre.tir", "rear=/no/such.tir"])
 
 
+def track_spec() -> ArgType:
+    """A circuit: a bundled circuit's name, ``random:SEED``, or a centreline file (.csv/.geojson).
+
+    Only the form is checked here (a name, or a path with one of those suffixes); the circuit itself is
+    loaded and checked before any work starts (:func:`sim.track.load_track`)."""
+
+    def parse(text: str) -> str:
+        if not text.strip():
+            raise argparse.ArgumentTypeError("no circuit given")
+        suffix = Path(text).suffix.lower()
+        if suffix and suffix not in (".csv", ".geojson", ".json"):
+            raise argparse.ArgumentTypeError(f"{text}: a circuit is a name or a .csv/.geojson centreline")
+        return text
+
+    return _tag(parse, "circuit", ["zandvoort", "random:3"],
+                ["", "{tmp}/secret.txt", "/no/such/track.csv", "nowhere", "random:x"])
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # paths
 #

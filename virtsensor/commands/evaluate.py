@@ -42,8 +42,9 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.evaluation import evaluate, markdown_table
     from virtsensor.features import SPECS, FeatureSpec
+    from virtsensor.metrics import metrics
     from virtsensor.model.onnx import OnnxModel
-    from virtsensor.training import RECIPES, metrics
+    from virtsensor.training import RECIPES
 
     model = OnnxModel.load(args.model)
     card = model.card

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
 from virtsensor.errors import UserError
-from virtsensor.recordings.simulated import LOG_SUFFIXES, TABLE_SUFFIXES, write_run
+from virtsensor.recordings.simulated import LOG_SUFFIXES, TABLE_SUFFIXES, write_metadata, write_run
 
 HELP = "simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log (.blf/.asc/.log)"
 
@@ -20,10 +20,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("manoeuvre", metavar="MANOEUVRE",
                         help="free-steer, steering-pulse, double-lane-change, steady-state-circular, "
                              "single-sine, random-steer, braking-in-turn, fishhook, sine-with-dwell, "
-                             "brake-accel, magny-cours, or recorded (with --inputs)")
+                             "brake-accel, magny-cours, circuit (with --track), or recorded (with --inputs)")
     parser.add_argument("--speed", type=t.positive_float(500.0), metavar="KMH",
-                        help="entry speed in km/h, > 0 (the manoeuvre sets the limit; magny-cours: top speed); "
-                             "not with 'recorded'")
+                        help="entry speed in km/h, > 0 (the manoeuvre sets the limit; magny-cours, circuit: "
+                             "top speed); not with 'recorded'")
     parser.add_argument("--mu", type=t.float_range(*MU_RANGE), required=True,
                         help=f"road friction coefficient, {MU_RANGE[0]:g} to {MU_RANGE[1]:g} (magny-cours: dry lap)")
     parser.add_argument("--seed", type=t.seed(), default=0,
@@ -35,6 +35,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "speed (or motor torque) drive the re-simulation")
     parser.add_argument("--longitudinal", choices=("speed", "torque"), default="speed",
                         help="for 'recorded': follow the recorded speed (default) or apply the recorded motor torque")
+    parser.add_argument("--track", metavar="FILE", type=t.track_spec(),
+                        help="for 'circuit': a bundled circuit (magny-cours, hungaroring, zandvoort, red-bull-ring) "
+                             "or a closed centreline, .csv with header x_m,y_m or .geojson LineString of lon/lat")
+    parser.add_argument("--laps", type=t.positive_int(100), default=None, metavar="N",
+                        help="for 'circuit': laps to drive, 1 to 100 (default 1)")
     add_car_arguments(parser)
 
 
@@ -55,17 +60,28 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{args.manoeuvre}: --speed KMH is required")
         if args.inputs is not None:
             raise UserError("--inputs goes with the manoeuvre 'recorded' only")
+        if args.manoeuvre != "circuit" and (args.track is not None or args.laps is not None):
+            raise UserError("--track and --laps go with the manoeuvre 'circuit' only")
         with sim_errors():
             check(args.manoeuvre, args.speed, args.mu)
         params = car_from_args(args)
         with sim_errors():
-            sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params)
+            sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params,
+                               track=args.track, laps=args.laps)
     table = write_run(sim_run, out)
     n = len(table["time_s"])
+    write_metadata(sim_run, out, table)
     speed = f"{args.speed:g} km/h" if args.speed is not None else f"recorded inputs of {args.inputs}"
     print(f"{args.manoeuvre} at {speed}, mu {args.mu:g}: {n} samples at 20 Hz "
-          f"({table['time_s'][-1]:.2f} s) -> {out}", file=sys.stderr)
+          f"({table['time_s'][-1]:.2f} s), {_outcome_text(sim_run.outcome)} -> {out}", file=sys.stderr)
     return 0
+
+
+def _outcome_text(outcome: dict) -> str:
+    status = outcome.get("status", "completed")
+    if status == "completed":
+        return "completed"
+    return f"{status.upper()} at t={outcome['at_s']:.2f} s of {outcome['planned_s']:.2f} s planned (run cut short)"
 
 
 def _resimulate(args: argparse.Namespace):

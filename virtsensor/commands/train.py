@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.evaluation import grouped_split
     from virtsensor.features import SPECS
-    from virtsensor.training import RECIPES, grid_search, make_pipeline, metrics
+    from virtsensor.metrics import metrics
+    from virtsensor.training import RECIPES, grid_search, make_pipeline
 
     if args.recipe not in RECIPES:
         raise UserError(f"--recipe: unknown recipe {args.recipe!r}; choose one of: {', '.join(RECIPES)}")

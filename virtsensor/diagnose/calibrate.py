@@ -21,7 +21,8 @@ from virtsensor import signals as cat
 from virtsensor.dataset import Run, build_dataset
 from virtsensor.features import SPECS
 from virtsensor.measured import MeasuredRun
-from virtsensor.training import RECIPES, make_pipeline, metrics
+from virtsensor.metrics import metrics
+from virtsensor.training import RECIPES, make_pipeline
 
 
 def campaign_runs(params: Mapping[str, Any], preset: str, seed: int, n_jobs: int) -> list[Run]:

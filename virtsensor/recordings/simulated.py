@@ -12,10 +12,14 @@ The simulator (package ``sim``) is imported only when a function here runs.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from virtsensor.errors import UserError
+from virtsensor.fileio import write_json
 
 #: suffixes written as the canonical CSV table; any other known suffix is a CAN log
 TABLE_SUFFIXES = (".csv",)
@@ -80,3 +84,22 @@ def write_run(sim_run: Any, out: Path) -> dict[str, np.ndarray]:
     finally:
         tmp.unlink(missing_ok=True)
     return table
+
+
+def write_metadata(sim_run: Any, out: Path, table: Mapping[str, Any]) -> None:
+    """Write the run's metadata (request, outcome, plan label) as JSON beside it, ``<out stem>.json``, atomically.
+
+    Raises:
+        UserError: the file cannot be written (the run's file ``out`` is then removed too: no run without
+            its metadata).
+    """
+    from sim.campaign import manifest_entry
+
+    t = table["time_s"]
+    entry = manifest_entry(sim_run, out, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
+    meta = out.with_suffix(".json")
+    try:
+        write_json(meta, entry)
+    except OSError as exc:
+        out.unlink(missing_ok=True)
+        raise UserError(f"{meta}: cannot write the run's metadata: {exc.strerror or exc}") from None

@@ -1,0 +1,293 @@
+"""``simulate circuit``: any closed centreline (CSV x_m,y_m or GeoJSON lon/lat), its refusals,
+the bundled development circuits, and the outcome every run records (completed, spun, stopped)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim import track as track_module
+from sim.api import simulate, simulate_plan
+from sim.campaign import manifest_entry
+from sim.centreline import derive, equirectangular, read_points, track_from_points
+from sim.driver import SPEED_OPEN, STEER_PATH, Plan
+from sim.params import car_parameters
+from sim.track import BUNDLED_TRACKS, TrackError, load_track
+from virtsensor.cli import main
+
+STATED_M = {"magny-cours": 4412.0, "hungaroring": 4381.0, "zandvoort": 4259.0, "red-bull-ring": 4318.0}
+
+
+def stadium(radius: float = 30.0, straight: float = 80.0, step: float = 5.0) -> np.ndarray:
+    """A stadium loop, counter-clockwise, first point on the lower straight (not repeated)."""
+    pts = [(x, -radius) for x in np.arange(0.0, straight, step)]
+    n = max(int(np.pi * radius / step), 6)
+    pts += [(straight + radius * np.cos(a), radius * np.sin(a)) for a in np.linspace(-np.pi / 2, np.pi / 2, n + 1)[:-1]]
+    pts += [(x, radius) for x in np.arange(straight, 0.0, -step)]
+    pts += [(radius * np.cos(a), radius * np.sin(a)) for a in np.linspace(np.pi / 2, 1.5 * np.pi, n + 1)[:-1]]
+    return np.array(pts)
+
+
+def write_xy(path: Path, pts: np.ndarray) -> Path:
+    path.write_text("x_m,y_m\n" + "".join(f"{x:.3f},{y:.3f}\n" for x, y in pts), encoding="utf-8")
+    return path
+
+
+def write_geojson(path: Path, pts: np.ndarray, lon0: float = 3.0, lat0: float = 47.0) -> Path:
+    """The points as a GeoJSON LineString of lon/lat (inverse of the library's projection)."""
+    unit = equirectangular(np.array([[lon0 + 1e-3, lat0 + 1e-3]]), lon0, lat0)[0] / 1e-3  # m per degree
+    lonlat = np.column_stack([lon0 + pts[:, 0] / unit[0], lat0 + pts[:, 1] / unit[1]])
+    coords = [[float(a), float(b)] for a, b in np.vstack([lonlat, lonlat[:1]])]  # closed, as published
+    feature = {"type": "Feature", "properties": {"Name": "test"}, "geometry": {"type": "LineString",
+                                                                            "coordinates": coords}}
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [feature]}), encoding="utf-8")
+    return path
+
+
+# ---------------------------------------------------------------------- derivation
+def test_csv_loop_is_closed_smoothed_and_keeps_its_direction(tmp_path: Path) -> None:
+    pts = stadium()
+    tr = load_track(write_xy(tmp_path / "oval.csv", pts))
+    perimeter = 2 * 80.0 + 2 * np.pi * 30.0
+    assert tr.length == pytest.approx(perimeter, rel=0.01)
+    assert tr.turn_per_lap == pytest.approx(2 * np.pi, abs=1e-6)  # listed counter-clockwise: kept
+    assert np.hypot(tr.x[-1] - tr.x[0], tr.y[-1] - tr.y[0]) < 1e-6
+    assert np.abs(tr.curvature).max() == pytest.approx(1 / 30.0, rel=0.1)
+    assert np.hypot(tr.x[0] - pts[0, 0], tr.y[0] - pts[0, 1]) < 0.5  # lap starts at the first point
+    backwards = load_track(write_xy(tmp_path / "cw.csv", np.vstack([pts[:1], pts[:0:-1]])))
+    assert backwards.turn_per_lap == pytest.approx(-2 * np.pi, abs=1e-6)
+
+
+def test_geojson_lonlat_gives_the_same_circuit_as_metres(tmp_path: Path) -> None:
+    pts = stadium()
+    from_csv = load_track(write_xy(tmp_path / "oval.csv", pts))
+    from_geo = load_track(write_geojson(tmp_path / "oval.geojson", pts))
+    assert from_geo.length == pytest.approx(from_csv.length, rel=2e-3)
+    assert from_geo.turn_per_lap == pytest.approx(from_csv.turn_per_lap)
+    assert np.abs(from_geo.curvature).max() == pytest.approx(np.abs(from_csv.curvature).max(), rel=0.02)
+
+
+def test_derive_can_force_a_direction() -> None:
+    pts = stadium()
+    cols, facts = derive(pts, direction="clockwise")
+    assert facts["input_order"] == "counter-clockwise"
+    assert cols["heading_rad"][-1] - cols["heading_rad"][0] == pytest.approx(-2 * np.pi, abs=1e-6)
+
+
+SOURCES = Path(__file__).resolve().parent / "data" / "circuits"  # bacinger/f1-circuits GeoJSON (MIT, see NOTICE)
+SOURCE_OF = {"magny-cours": "fr-1960", "hungaroring": "hu-1986", "zandvoort": "nl-1948", "red-bull-ring": "at-1969"}
+
+
+@pytest.mark.parametrize("name", sorted(SOURCE_OF))
+def test_bundled_circuits_are_the_librarys_derivation_of_their_source(name: str) -> None:
+    """Every data row of a bundled centreline is what sim.centreline derives from its GeoJSON today."""
+    import io
+
+    points, _ = read_points(SOURCES / f"{SOURCE_OF[name]}.geojson")
+    cols, _ = derive(points, direction="clockwise")
+    buf = io.StringIO()
+    np.savetxt(buf, np.column_stack([cols[c] for c in ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm")]),
+               fmt=["%.4f", "%.4f", "%.4f", "%.8f", "%.8f"], delimiter=",")
+    bundled = (Path(track_module.__file__).parent / "data" / BUNDLED_TRACKS[name]).read_text().splitlines()
+    rows = [ln for ln in bundled if not ln.startswith("#")][1:]
+    assert buf.getvalue().splitlines() == rows
+
+
+def test_derive_track_tool_reproduces_the_magny_cours_file(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    src = tmp_path / "magny-cours_fr-1960.geojson"
+    src.write_bytes((SOURCES / "fr-1960.geojson").read_bytes())
+    out = tmp_path / "sim" / "data" / "magny_cours_centreline.csv"
+    root = Path(__file__).resolve().parent.parent
+    subprocess.run([sys.executable, str(root / "tools" / "derive_track.py"), str(src),
+                    "sim/data/magny_cours_centreline.csv"], cwd=tmp_path, check=True, capture_output=True, timeout=120)
+    assert out.read_bytes() == (root / "sim" / "data" / "magny_cours_centreline.csv").read_bytes()
+
+
+@pytest.mark.parametrize("name", sorted(BUNDLED_TRACKS))
+def test_bundled_circuits_by_name(name: str) -> None:
+    tr = load_track(name)
+    assert abs(tr.length / STATED_M[name] - 1.0) < 0.015
+    assert tr.turn_per_lap == pytest.approx(-2 * np.pi, abs=1e-6)  # all raced clockwise
+    assert 1.0 / np.abs(tr.curvature).max() > 8.0
+    assert np.allclose(np.diff(tr.s), np.diff(tr.s)[0], atol=2e-4)
+
+
+# ---------------------------------------------------------------------- driving it
+@pytest.fixture(scope="module")
+def oval_run(tmp_path_factory: pytest.TempPathFactory):
+    path = write_xy(tmp_path_factory.mktemp("oval") / "oval.csv", stadium())
+    return simulate("circuit", 60.0, 1.0, seed=3, track=str(path), laps=1)
+
+
+def test_small_circuit_is_driven_round_on_the_line(oval_run) -> None:
+    truth, plan = oval_run.truth, oval_run.plan
+    assert oval_run.outcome["status"] == "completed"
+    assert truth["time_s"][-1] == pytest.approx(plan.duration_s, abs=0.02)
+    path = plan.path
+    d = np.min(np.hypot(truth["x_m"][:, None] - path[None, :, 0], truth["y_m"][:, None] - path[None, :, 1]), axis=1)
+    assert d.max() < 2.0  # metres off the centreline
+    assert np.hypot(truth["x_m"][-1] - path[-1, 0], truth["y_m"][-1] - path[-1, 1]) < 15.0  # back at the line
+    # the corners (R 30 m) are taken at the speed profile's pace, well under the 60 km/h cap
+    assert truth["vx_true_mps"].min() < 0.9 * 60 / 3.6
+    assert np.abs(truth["ay_true_mps2"]).max() < 0.8 * 9.81
+    assert oval_run.request.track and oval_run.request.laps == 1
+
+
+def test_simulate_circuit_cli_writes_the_run_and_its_outcome(tmp_path: Path, capsys) -> None:
+    track = write_xy(tmp_path / "oval.csv", stadium())
+    out = tmp_path / "run.csv"
+    code = main(["simulate", "circuit", "--track", str(track), "--speed", "60", "--mu", "0.9", "--out", str(out)])
+    assert code == 0 and out.exists()
+    meta = json.loads((tmp_path / "run.json").read_text())
+    assert meta["manoeuvre"] == "circuit" and meta["track"] == str(track) and meta["file"] == "run.csv"
+    assert meta["outcome"]["status"] == "completed"
+    assert "completed" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- refusals
+def _refused(argv: list[str], capsys, tmp_path: Path, fragment: str) -> None:
+    before = set(tmp_path.iterdir())
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and fragment in err, err
+    assert set(tmp_path.iterdir()) == before  # nothing written
+
+
+def _circuit_argv(tmp_path: Path, track: str, *extra: str) -> list[str]:
+    return ["simulate", "circuit", "--track", track, "--speed", "60", "--mu", "1.0",
+            "--out", str(tmp_path / "run.csv"), *extra]
+
+
+def test_refuses_an_open_centreline(tmp_path: Path, capsys) -> None:
+    arc = np.array([(100 * np.cos(a), 100 * np.sin(a)) for a in np.linspace(0.0, np.pi, 60)])
+    track = write_xy(tmp_path / "arc.csv", arc)
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "open")
+
+
+def test_refuses_a_self_intersecting_centreline(tmp_path: Path, capsys) -> None:
+    t = np.linspace(0.0, 2 * np.pi, 200, endpoint=False)
+    track = write_xy(tmp_path / "eight.csv", np.column_stack([100 * np.sin(t), 50 * np.sin(2 * t)]))
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "crosses itself")
+
+
+def test_refuses_a_too_short_centreline(tmp_path: Path, capsys) -> None:
+    track = write_xy(tmp_path / "small.csv", stadium(radius=5.0, straight=20.0, step=2.0))
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "shorter than")
+
+
+def test_refuses_a_corner_too_tight_for_the_car(tmp_path: Path, capsys) -> None:
+    track = write_xy(tmp_path / "hairpin.csv", stadium(radius=4.0, straight=150.0, step=2.0))
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "tighter than the car")
+
+
+def test_a_less_steerable_car_finds_a_wide_corner_too_tight(tmp_path: Path, capsys) -> None:
+    track = write_xy(tmp_path / "oval.csv", stadium())
+    _refused(_circuit_argv(tmp_path, str(track), "--set", "steering.max_road_wheel_angle_rad=0.1"),
+             capsys, tmp_path, "tighter than the car")
+
+
+@pytest.mark.parametrize(("content", "fragment"), [
+    ("x,y\n0,0\n", "expected a header line x_m,y_m"),
+    ("x_m,y_m\n0,0\n10,zero\n", "line 3"),
+    ("x_m,y_m\n0,0\n10,0\n", "at least 4 distinct points"),
+])
+def test_refuses_a_malformed_csv(tmp_path: Path, capsys, content: str, fragment: str) -> None:
+    track = tmp_path / "bad.csv"
+    track.write_text(content)
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, fragment)
+
+
+def test_refuses_geojson_without_a_linestring(tmp_path: Path, capsys) -> None:
+    track = tmp_path / "point.geojson"
+    track.write_text(json.dumps({"type": "Feature", "geometry": {"type": "Point", "coordinates": [3.0, 47.0]}}))
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "no LineString")
+
+
+@pytest.mark.parametrize(("argv_tail", "fragment"), [
+    (["circuit", "--speed", "60", "--mu", "1"], "--track"),
+    (["circuit", "--track", "nowhere-ring", "--speed", "60", "--mu", "1"], "unknown circuit 'nowhere-ring'"),
+    (["circuit", "--track", "missing.csv", "--speed", "60", "--mu", "1"], "no such file"),
+    (["circuit", "--track", "zandvoort", "--laps", "0", "--speed", "60", "--mu", "1"], "--laps"),
+    (["circuit", "--track", "zandvoort", "--speed", "300", "--mu", "1"], "outside circuit's range"),
+    (["fishhook", "--track", "zandvoort", "--speed", "60", "--mu", "1"], "go with the manoeuvre 'circuit'"),
+])
+def test_refuses_bad_options(tmp_path: Path, capsys, argv_tail: list[str], fragment: str) -> None:
+    _refused(["simulate", *argv_tail, "--out", str(tmp_path / "run.csv")], capsys, tmp_path, fragment)
+
+
+def test_library_refusal_names_the_origin() -> None:
+    with pytest.raises(TrackError, match="my-loop: .*open"):
+        track_from_points(np.array([(100 * np.cos(a), 100 * np.sin(a)) for a in np.linspace(0, 3, 50)]), "my-loop")
+
+
+def _straight_plan(mu: float, grip: tuple[float, float] | None) -> Plan:
+    """4 s along a straight whose speed profile asks for 3 m/s^2, on a road of friction ``mu``."""
+    ds = 2.0
+    s = np.arange(0.0, 300.0, ds)
+    t = Plan.grid(4.0)
+    n = len(t)
+    return Plan("straight", 4.0, 8.0, np.full(n, STEER_PATH, np.int8), np.zeros(n), np.zeros(n, np.int8),
+                np.full(n, 8.0), np.zeros(n), np.zeros(n), path=np.column_stack([s, np.zeros_like(s)]),
+                path_speed=np.minimum(np.sqrt(64.0 + 6.0 * s), 30.0), path_ds=ds, mu_values=(mu,), path_grip=grip)
+
+
+def test_the_track_driver_does_not_spin_the_driven_wheels_on_a_wet_road() -> None:
+    """Asked for more acceleration than a wet road gives the front axle, the track driver
+    feathers the throttle (``path_grip``); the same plan without it spins the front wheels."""
+    from sim.manoeuvres import TRACK_GRIP
+
+    for grip, spins in ((None, True), (TRACK_GRIP, False)):
+        run = simulate_plan(_straight_plan(0.2, grip))
+        slip = np.maximum(np.abs(run.truth["kappa_fl"]), np.abs(run.truth["kappa_fr"]))
+        assert (slip.max() > 0.3) == spins, (grip, slip.max())
+    assert run.truth["ax_true_mps2"].max() < 0.5 * 0.2 * 9.81  # within the front axle's grip (60 % of the load)
+    assert run.truth["vx_true_mps"][-1] > 8.0 + 2.0  # it still gains speed
+
+
+# ---------------------------------------------------------------------- outcome
+def _open_loop_plan(duration_s: float, speed0: float, steer_rad: float, brake_nm: float, mu: float) -> Plan:
+    """Steer to ``steer_rad`` at 0.5 s, brake with ``brake_nm`` per front wheel from 1 s."""
+    t = Plan.grid(duration_s)
+    n = len(t)
+    return Plan("open-loop", duration_s, speed0, np.zeros(n, np.int8), np.where(t > 0.5, steer_rad, 0.0),
+                np.full(n, SPEED_OPEN, np.int8), np.full(n, speed0), np.zeros(n), np.where(t > 1.0, brake_nm, 0.0),
+                mu_values=(mu,))
+
+
+def test_a_spun_run_says_so_and_when(tmp_path: Path) -> None:
+    # braking in a turn with most of the braking on the rear axle: the rear locks and the car spins
+    params = car_parameters(["brakes.front_share=0.2"])
+    run = simulate_plan(_open_loop_plan(6.0, 25.0, 1.0, 800.0, 0.5), params)
+    out = run.outcome
+    assert out["status"] == "spun"
+    assert 1.0 < out["at_s"] < out["planned_s"] == 6.0
+    assert run.truth["time_s"][-1] == pytest.approx(out["at_s"])
+    entry = manifest_entry(run, tmp_path / "x.csv", samples=10, duration_s=1.0)
+    assert entry["outcome"] == out and "track" not in entry
+
+
+def test_a_stopped_run_says_so() -> None:
+    run = simulate_plan(_open_loop_plan(6.0, 8.0, 0.0, 1500.0, 1.0))  # hard braking from 29 km/h
+    assert run.outcome["status"] == "stopped" and run.outcome["at_s"] < 5.0
+
+
+def test_a_car_off_the_track_ends_the_run(tmp_path: Path) -> None:
+    from sim.manoeuvres import TRACK_HALF_WIDTH_M, build_plan
+
+    track = write_xy(tmp_path / "oval.csv", stadium())
+    plan = build_plan("circuit", 60.0, 1.0, 0, car_parameters(), track=str(track))
+    plan.path = plan.path + np.array([0.0, TRACK_HALF_WIDTH_M + 2.0])  # the car starts beside the track
+    run = simulate_plan(plan)
+    assert run.outcome["status"] == "off-track" and run.outcome["at_s"] < 0.5
+
+
+def test_a_complete_run_says_so() -> None:
+    run = simulate_plan(_open_loop_plan(2.0, 20.0, 0.2, 0.0, 1.0))
+    assert run.outcome == {"status": "completed", "at_s": 2.0, "planned_s": 2.0}

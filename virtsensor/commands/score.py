@@ -1,0 +1,50 @@
+"""``virtsensor score``: a shipped model on any recordings, without retraining.
+
+Example::
+
+    virtsensor score --model models/improved.onnx --data my_runs/ --json score.json --markdown score.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from virtsensor.errors import UserError
+
+HELP = "score a shipped model (the ONNX file and its card) on recordings: R2 and MAE per run and overall"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from virtsensor.commands import _types as t
+
+    parser.add_argument("--model", required=True, metavar="FILE.onnx", type=t.existing_file(".onnx"),
+                        help="the model file (its card beside it)")
+    parser.add_argument("--data", nargs="+", required=True, metavar="PATH", type=t.existing_path(),
+                        help="recordings: .csv tables or CAN logs (.blf, .asc, .log, .trc), or directories of them; "
+                             "each needs the model's inputs and the wheel-force-transducer SATs")
+    parser.add_argument("--json", required=True, metavar="FILE", type=t.output_file(), help="write the scores here")
+    parser.add_argument("--markdown", metavar="FILE", type=t.output_file(),
+                        help="also write them as a Markdown table")
+
+
+def run(args: argparse.Namespace) -> int:
+    from virtsensor.dataset import load_runs
+    from virtsensor.fileio import atomic_write_bytes, write_json
+    from virtsensor.model.onnx import OnnxModel
+    from virtsensor.scoring import markdown, needed_signals, score_runs
+
+    if args.markdown and Path(args.markdown).resolve() == Path(args.json).resolve():
+        raise UserError(f"--markdown {args.markdown}: the same file as --json")
+    model = OnnxModel.load(args.model)
+    runs = load_runs(args.data, needed=needed_signals(model.card))
+    result = score_runs(model, runs)
+    table = markdown(result)
+    write_json(args.json, result)
+    if args.markdown:
+        atomic_write_bytes(args.markdown, table.encode())
+    o = result["overall"]
+    print(f"{len(runs)} run(s), {o['n']} samples: R2 {o['r2']:.3f}, MAE {o['mae_nm']:.2f} Nm "
+          f"(mean of both front wheels) -> {args.json}", file=sys.stderr)
+    return 0

@@ -1,0 +1,92 @@
+"""Score a shipped model on recordings, without retraining.
+
+The model file itself (:class:`virtsensor.model.onnx.OnnxModel`) runs on the
+features its card names (:class:`virtsensor.features.FeatureSpec`), built by the
+same code the daemon and the trainer use from each run's 20 Hz table (a CSV
+table, or a CAN log decoded and sampled by the runtime's front-end). Rows whose
+features or reference SATs are not finite are left out and counted.
+
+Metrics come from :mod:`virtsensor.metrics` (numpy, no scikit-learn): "r2" and "mae_nm" without a
+wheel are the means over the two front wheels; "axle" scores the sum of the two SATs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from virtsensor import signals as cat
+from virtsensor.dataset import Run, build_dataset
+from virtsensor.errors import UserError
+from virtsensor.features import FeatureSpec
+from virtsensor.metrics import metrics
+
+__all__ = ["needed_signals", "score_runs", "markdown"]
+
+
+def needed_signals(card: Any) -> list[str]:
+    """The catalogue signals a run needs to be scored by a model of this card: its inputs and the SATs."""
+    spec = _spec(card)
+    return sorted(set(spec.signals) | set(cat.OUTPUTS))
+
+
+def _spec(card: Any) -> FeatureSpec:
+    try:
+        return FeatureSpec.from_json(card["feature_spec"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"model card has no usable feature_spec ({exc})") from None
+
+
+def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
+    """Score ``model`` (an :class:`~virtsensor.model.onnx.OnnxModel`) on each run and on all together.
+
+    Returns:
+        ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite"},
+        "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle", "dropped_nonfinite"}, ...]}``
+        in the order of ``runs``.
+
+    Raises:
+        UserError: a run lacking a needed signal, or with no row where every feature and
+            both SATs are finite (naming the file).
+    """
+    spec = _spec(model.card)
+    if tuple(spec.names) != tuple(model.input_names):
+        raise UserError(f"{getattr(model, 'path', 'model')}: its card's feature_spec does not give its inputs "
+                        f"{', '.join(model.input_names)}")
+    if tuple(model.outputs) != tuple(cat.OUTPUTS):
+        raise UserError(f"{getattr(model, 'path', 'model')}: it estimates {', '.join(model.outputs)}, "
+                        f"not {', '.join(cat.OUTPUTS)}")
+    per_run, ys, ps = [], [], []
+    dropped = 0
+    for run in runs:
+        ds = build_dataset([run], spec, cat.OUTPUTS)
+        where = str(run.path or run.name)
+        if len(ds.Y) == 0:
+            raise UserError(f"{where}: no sample with every input of the model and both reference SATs finite")
+        pred = model.predict(ds.X)
+        m = metrics(ds.Y, pred)
+        per_run.append({"file": where, "r2": m["r2"], "mae_nm": m["mae_nm"], "n": m["n"], "fl": m["fl"],
+                        "fr": m["fr"], "axle": m["axle"], "dropped_nonfinite": ds.dropped_nonfinite})
+        ys.append(ds.Y)
+        ps.append(pred)
+        dropped += ds.dropped_nonfinite
+    overall = metrics(np.concatenate(ys), np.concatenate(ps))
+    overall["dropped_nonfinite"] = dropped
+    return {"model": {"file": str(getattr(model, "path", "")), "sha256": model.card.get("sha256")},
+            "overall": overall, "runs": per_run}
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The score as a Markdown table: one row per run, then all runs together."""
+    lines = [f"Model `{result['model']['file']}` (sha256 {str(result['model']['sha256'])[:12]}...)", "",
+             "| run | samples | R2 | MAE (Nm) | R2 FL / FR | axle R2 / MAE (Nm) |", "|---|---|---|---|---|---|"]
+
+    def row(name: str, m: dict[str, Any]) -> str:
+        return (f"| {name} | {m['n']} | {m['r2']:.3f} | {m['mae_nm']:.2f} | {m['fl']['r2']:.3f} / "
+                f"{m['fr']['r2']:.3f} | {m['axle']['r2']:.3f} / {m['axle']['mae_nm']:.2f} |")
+
+    lines += [row(r["file"], r) for r in result["runs"]]
+    lines.append(row("**all runs**", result["overall"]))
+    return "\n".join(lines) + "\n"
