@@ -79,8 +79,34 @@ def tiny_preset(seed: int = 0) -> list[Request]:
     return [Request(n, v, mu, int(s)) for (n, v, mu), s in zip(picks, seeds, strict=True)]
 
 
+#: frictions of the ``circuits`` preset, each on every random circuit (dry asphalt to packed snow)
+CIRCUITS_MU = (1.0, 0.7, 0.45, 0.25)
+#: top speeds (km/h) of the ``circuits`` preset: drawn uniformly in this range per run
+CIRCUITS_SPEED_KMH = (110.0, 230.0)
+#: random circuits of the ``circuits`` preset
+CIRCUITS_COUNT = 8
+
+
+def circuits_preset(seed: int = 0) -> list[Request]:
+    """Track driving for training: one lap of each of :data:`CIRCUITS_COUNT` random circuits
+    (:mod:`sim.randomtrack`, ``random:SEED``) on each friction of :data:`CIRCUITS_MU`, at a random
+    top speed; deterministic for ``seed``. No surveyed circuit is used, so every real circuit
+    (Magny-Cours and the development circuits) stays unseen by a model trained on it."""
+    ss = np.random.SeedSequence([seed, 0xC1C])
+    track_seeds = ss.generate_state(CIRCUITS_COUNT)
+    run_seeds = ss.spawn(1)[0].generate_state(CIRCUITS_COUNT * len(CIRCUITS_MU))
+    rng = np.random.default_rng(ss.spawn(2)[1])
+    out = []
+    for i, track_seed in enumerate(track_seeds):
+        for j, mu in enumerate(CIRCUITS_MU):
+            speed = float(round(rng.uniform(*CIRCUITS_SPEED_KMH)))
+            out.append(Request("circuit", speed, mu, int(run_seeds[i * len(CIRCUITS_MU) + j]),
+                               track=f"random:{int(track_seed)}", laps=1))
+    return out
+
+
 PRESETS: dict[str, Callable[[int], list[Request]]] = {
-    "paper": paper_preset, "smoke": smoke_preset, "tiny": tiny_preset,
+    "paper": paper_preset, "smoke": smoke_preset, "tiny": tiny_preset, "circuits": circuits_preset,
 }
 
 

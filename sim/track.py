@@ -185,7 +185,8 @@ def load_magny_cours() -> Track:
 
 
 def load_track(spec: str | Path, **derive_options: float) -> Track:
-    """A circuit by bundled name (:data:`BUNDLED_TRACKS`) or from a file.
+    """A circuit by bundled name (:data:`BUNDLED_TRACKS`), a random one (``random:SEED``,
+    :mod:`sim.randomtrack`) or from a file.
 
     Files: a derived centreline CSV (header ``s_m,x_m,y_m,heading_rad,curvature_1pm``,
     used as is), or a loop of surveyed points, a CSV with header ``x_m,y_m`` or a GeoJSON
@@ -197,6 +198,11 @@ def load_track(spec: str | Path, **derive_options: float) -> Track:
             open, crosses itself or is too short.
     """
     name = str(spec)
+    from sim.randomtrack import parse_name, random_track
+
+    seed = parse_name(name)
+    if seed is not None:
+        return random_track(seed)
     if name in BUNDLED_TRACKS:
         rel = BUNDLED_TRACKS[name]
         text = resources.files("sim").joinpath("data", *rel.split("/")).read_text(encoding="utf-8")

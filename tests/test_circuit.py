@@ -291,3 +291,26 @@ def test_a_car_off_the_track_ends_the_run(tmp_path: Path) -> None:
 def test_a_complete_run_says_so() -> None:
     run = simulate_plan(_open_loop_plan(2.0, 20.0, 0.2, 0.0, 1.0))
     assert run.outcome == {"status": "completed", "at_s": 2.0, "planned_s": 2.0}
+
+
+def test_random_circuits_are_deterministic_drivable_and_track_like():
+    """random:SEED circuits: the same for a seed, closed, never self-crossing (star-shaped), with corners
+    like a grand-prix circuit's (the module docstring's figures)."""
+    import numpy as np
+
+    from sim.randomtrack import random_track
+    from sim.track import TrackError, load_track
+
+    a, b = load_track("random:7"), random_track(7)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.curvature, b.curvature)
+    stats = []
+    for seed in range(16):
+        tr = random_track(seed)
+        k = np.abs(tr.curvature)
+        assert 2400 < tr.length < 5700 and 1.0 / k.max() >= 10.0
+        stats.append((1.0 / k.max(), (k > 1 / 40).mean(), (k > 1 / 100).mean(), (k > 1 / 300).mean()))
+    s = np.array(stats)
+    assert 10.0 <= np.median(s[:, 0]) <= 25.0
+    assert 0.03 <= s[:, 1].mean() <= 0.10 and 0.12 <= s[:, 2].mean() <= 0.30 and 0.28 <= s[:, 3].mean() <= 0.55
+    with pytest.raises(TrackError, match="random:SEED"):
+        load_track("random:x")

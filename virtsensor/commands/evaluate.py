@@ -10,10 +10,8 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import warnings
-from pathlib import Path
 
 HELP = "Table IV: the paper's protocols and honest ones, baselines, JSON and Markdown"
 
@@ -26,6 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(unless it is the paper's) and the ONNX file itself on the track laps")
     parser.add_argument("--data", nargs="+", required=True, metavar="PATH", type=t.existing_path(),
                         help="Table I recordings (files or directories), as for train")
+    parser.add_argument("--train-extra", nargs="+", default=[], metavar="PATH", type=t.existing_path(),
+                        help="recordings added to the training side of every protocol of the improved recipe "
+                             "(e.g. the circuits campaign); test rows and held-out runs come from --data only")
     parser.add_argument("--track", metavar="FILE", type=t.existing_file(),
                         help="Magny-Cours recording (dry lap then wet lap)")
     parser.add_argument("--json", required=True, metavar="FILE", type=t.output_file(), help="write the results here")
@@ -42,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.evaluation import evaluate, markdown_table
     from virtsensor.features import SPECS, FeatureSpec
+    from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.metrics import metrics
     from virtsensor.model.onnx import OnnxModel
     from virtsensor.training import RECIPES
@@ -56,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     needed = {s for r in recipes.values() for s in SPECS[r["features"]].signals} | set(cat.OUTPUTS)
     runs = load_runs(args.data, needed=sorted(needed))
     track = load_runs([args.track], needed=sorted(needed))[0] if args.track else None
+    extra = {"improved": load_runs(args.train_extra, needed=sorted(needed))} if args.train_extra else None
 
     def log(msg: str) -> None:
         if not args.quiet:
@@ -65,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore")
-        result = evaluate(runs, track, recipes, seed=args.seed, log=log)
+        result = evaluate(runs, track, recipes, seed=args.seed, train_extra=extra, log=log)
     if track is not None:
         spec = FeatureSpec.from_json(card["feature_spec"])
         shipped = {}
@@ -73,9 +76,9 @@ def run(args: argparse.Namespace) -> int:
             ds = build_dataset([r], spec)
             shipped[f"track_{lap}"] = metrics(ds.Y, model.predict(ds.X))
         result["shipped_model"] = {"file": str(args.model), "sha256": card["sha256"], **shipped}
-    Path(args.json).write_text(json.dumps(result, indent=1))
+    write_json(args.json, result)
     table = markdown_table(result)
     if args.markdown:
-        Path(args.markdown).write_text(table)
+        atomic_write_bytes(args.markdown, table.encode())
     print(table)
     return 0

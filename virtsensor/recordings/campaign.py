@@ -34,7 +34,8 @@ FORMATS = ("csv", "blf", "asc", "log")
 def run_name(request: Any, fmt: str) -> str:
     """File name of a campaign run (a :class:`sim.api.Request`) in format ``fmt``."""
     r = request
-    return f"{r.manoeuvre}_{r.speed_kmh:g}kmh_mu{r.mu:g}_{r.seed}.{fmt}"
+    where = f"-{str(r.track).replace(':', '')}" if getattr(r, "track", None) else ""
+    return f"{r.manoeuvre}{where}_{r.speed_kmh:g}kmh_mu{r.mu:g}_{r.seed}.{fmt}"
 
 
 def write_partial_run(sim_run: Any, out_dir: Path, fmt: str) -> dict[str, Any]:
