@@ -111,3 +111,13 @@ def test_the_built_wheel_runs_the_demo_and_the_daemon_from_an_empty_directory(tm
                          timeout=120)
     assert run.returncode == 0, run.stderr
     assert '"started"' in run.stderr, run.stderr
+
+
+def test_the_demo_runs_on_the_base_install(tmp_path):
+    """The daemon, replay and demo need no optional extra: the training stack and matplotlib blocked."""
+    code = _BLOCK.format(blocked=("sklearn", "skl2onnx", "scipy", "joblib", "tqdm", "threadpoolctl", "shap",
+                                  "matplotlib"))
+    r = subprocess.run([sys.executable, "-c", code, "demo", "--rate", "max", "--no-live"], capture_output=True,
+                       text=True, cwd=tmp_path, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "MAE" in r.stdout and "Traceback" not in r.stderr

@@ -26,6 +26,7 @@ from array import array
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -174,6 +175,27 @@ def _sources(frames_or_path, loop: bool):
     return (lambda: iter(seq)), len(seq), "frames"
 
 
+class _NoBar:
+    """What replay needs of a progress bar, doing nothing (no tqdm, or no progress asked for)."""
+
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress_bar(progress: bool, total: int | None, label: str) -> Any:
+    """A tqdm bar on stderr when asked for and tqdm is installed, else a :class:`_NoBar`."""
+    if not progress:
+        return _NoBar()
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _NoBar()
+    return tqdm(total=total, unit="frame", file=sys.stderr, mininterval=0.5, desc=label, leave=False)
+
+
 def replay(
     frames_or_path: str | os.PathLike | Iterable,
     bus,
@@ -195,7 +217,7 @@ def replay(
         rate: time scale (2.0 = twice as fast); ``None``/``"max"``: no timing.
         loop: start over at the end (until Ctrl-C, ``stop`` or ``max_loops``).
         matrix: CAN matrix used to recognise known ids (default: bundled).
-        progress: tqdm progress bar on stderr.
+        progress: a progress bar on stderr (tqdm, where installed: it is not part of the base install).
         max_loops: stop after this many passes (with ``loop``).
         stop: optional ``threading.Event``; set it to end the replay.
         spin_s: sleep/spin split before each deadline (s).
@@ -207,7 +229,6 @@ def replay(
         UserError: unreadable log, or the bus refusing frames.
     """
     import can
-    from tqdm import tqdm
 
     rate_f = parse_rate(rate) if isinstance(rate, str) else (None if rate is None else float(rate))
     if rate_f is not None and not (rate_f > 0 and math.isfinite(rate_f)):
@@ -220,15 +241,7 @@ def replay(
     errors = array("d")
     sent = unknown = passes = 0
     interrupted = False
-    bar = tqdm(
-        total=total if not loop else None,
-        unit="frame",
-        file=sys.stderr,
-        disable=not progress,
-        mininterval=0.5,
-        desc=label[-40:],
-        leave=False,
-    )
+    bar = _progress_bar(progress, total if not loop else None, label[-40:])
     pending = 0
     t_start = clock()
     t_pass = t_start
