@@ -231,3 +231,71 @@ def test_a_card_without_an_envelope_checks_none(models):
     assert not any(e["event"].startswith("envelope_") for e in events)
     assert all(int(h["VS_OutOfEnvelope"]) == 0 for h in health)
     assert ticks[-1][1] == (VALID, VALID)
+
+
+# ------------------------------------------------------------------------------------------------ score
+def test_score_splits_the_error_at_the_envelope(models):
+    from virtsensor.dataset import Run
+    from virtsensor.scoring import markdown, score_runs
+
+    t, sig = synthetic_streams(12.0, seed=11)
+    plain = simulated_recording(t, sig, seed=11).table
+    sig["vx_mps"] = np.where((t >= EXCURSION_S[0]) & (t < EXCURSION_S[1]), 70.0, sig["vx_mps"])
+    for w in ("fl", "fr"):
+        sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
+    moved = simulated_recording(t, sig, seed=11).table
+    runs = [Run("plain", plain), Run("moved", moved)]
+    res = score_runs(models[0], runs)
+    inside_only, out = res["runs"][0]["envelope"], res["runs"][1]["envelope"]
+    assert inside_only["outside_share"] == 0.0 and inside_only["outside"] is None
+    assert inside_only["inside"]["n"] == res["runs"][0]["n"]
+    assert out["outside_share"] == pytest.approx(2.0 / 12.0, abs=0.02)
+    assert out["inside"]["n"] + out["outside"]["n"] == res["runs"][1]["n"]
+    overall = res["overall"]["envelope"]
+    assert overall["outside"]["n"] == out["outside"]["n"]
+    assert overall["outside_share"] == pytest.approx(out["outside"]["n"] / res["overall"]["n"])
+    assert out["outside"]["mae_nm"] > out["inside"]["mae_nm"]  # the model extrapolates there
+    assert "outside envelope" in markdown(res) and "| — |" in markdown(res)
+    none = score_runs(models[1], runs)
+    assert none["overall"]["envelope"] is None and none["runs"][1]["envelope"] is None
+    assert "outside envelope" not in markdown(none)
+
+
+# ------------------------------------------------------------------------------------------------ evaluate, explain
+def test_evaluate_gives_a_row_per_unseen_circuit():
+    from test_features_dataset import synthetic_table
+
+    from virtsensor.dataset import Run
+    from virtsensor.evaluation import evaluate, held_out_runs, markdown_table
+    from virtsensor.training import RECIPES
+
+    runs = [Run(f"r{i}", synthetic_table(300, 10 + i)) for i in range(6)]
+    circuits = [Run("spa", synthetic_table(200, 97)), Run("monza", synthetic_table(200, 96, mu=0.6))]
+    recipe = {"paper": {"features": "paper", "params": {**RECIPES["paper"]["params"], "max_iter": 200}}}
+    res = evaluate(runs, None, recipe, circuits=circuits, seed=0)
+    assert res["meta"]["circuits"] == {"spa": 200, "monza": 200}
+    for col in (res["paper"], res["baselines"]["linear"], res["baselines"]["eq1_observer"]):
+        assert {"circuit_spa", "circuit_monza"} <= set(col)
+    table = markdown_table(res)
+    m = res["paper"]["circuit_monza"]
+    assert f"| Circuit monza (never trained on) | — | {m['r2']:.3f} / {m['mae_nm']:.2f} |" in table
+    res["shipped_model"] = {"file": "m.onnx", "circuit_spa": {"envelope": {
+        "outside_share": 0.25, "inside": {"r2": 0.9, "mae_nm": 1.0, "n": 150}, "outside": None}}}
+    assert "| circuit_spa | 150 | 25.0 % | 0.900 / 1.00 | — |" in markdown_table(res)
+    with pytest.raises(UserError, match="spa"):
+        held_out_runs({}, [circuits[0], Run("spa", circuits[1].table)])
+
+
+def test_shading_marks_each_out_of_envelope_stretch():
+    pytest.importorskip("matplotlib")
+    from virtsensor import plotting
+
+    fig = plotting.figure(4.0, 3.0)
+    ax = fig.add_subplot()
+    t = np.arange(20) * 0.05
+    mask = np.zeros(20, dtype=bool)
+    mask[3:6] = mask[10] = mask[18:] = True
+    assert plotting.shade(ax, t, mask, label="outside") == 3
+    spans = sorted(p.get_x() for p in ax.patches)
+    assert spans == pytest.approx([0.125, 0.475, 0.875])
+    assert plotting.shade(ax, t, np.zeros(20, dtype=bool)) == 0

@@ -289,12 +289,15 @@ class VirtualSensor:
             self._msg_err[:] = rx.errors
             rx.clear_errors()
             outside = self._estimate(status)
-            if outside or self.outside_envelope:
-                _track_envelope(self, t, outside)
+            crossed = outside != self.outside_envelope
+            if outside or crossed:
+                _count_envelope(self, outside)
             self._publish(start_ns, bitmap)
         finally:
             if gc_off:
                 gc.enable()
+        if crossed:  # (logged after the frames are out)
+            _log_envelope(self, t, outside)
         sv, cur = self._out.sat_values, self._statuses
         changed = bitmap != self._last_bitmap
         for k, w in enumerate(self._wheels):
@@ -395,18 +398,21 @@ def _card_envelope(model: Any) -> Any:
     return None if doc is None else Envelope.from_json(doc, str(getattr(model, "card_path", "model card")))
 
 
-def _track_envelope(self: VirtualSensor, t: float, outside: bool) -> None:
-    """Count a tick outside the envelope; on an exit or a return, count and log it (``envelope_exit`` with
-    what is outside, ``envelope_return``)."""
+def _count_envelope(self: VirtualSensor, outside: bool) -> None:
+    """Count a tick outside the envelope, and an exit; set :attr:`VirtualSensor.outside_envelope`."""
+    c = self.counters
     if outside:
-        self.counters["envelope_ticks"] += 1
-    if outside == self.outside_envelope:
-        return
+        c["envelope_ticks"] += 1
+        if not self.outside_envelope:
+            c["envelope_exits"] += 1
     self.outside_envelope = outside
+
+
+def _log_envelope(self: VirtualSensor, t: float, outside: bool) -> None:
+    """Log an exit from the envelope (``envelope_exit``, with what is outside) or a return (``envelope_return``)."""
     if not outside:
         event(logging.INFO, "envelope_return", t=round(t, 6), envelope_ticks=self.counters["envelope_ticks"])
         return
-    self.counters["envelope_exits"] += 1
     vals = dict(zip(self.layout.signals, (float(v) for v in self._vals), strict=True))
     event(logging.WARNING, "envelope_exit", t=round(t, 6), outside=self.envelope.reasons(vals),
           envelope_exits=self.counters["envelope_exits"])
