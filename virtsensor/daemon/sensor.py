@@ -289,9 +289,7 @@ class VirtualSensor:
             self._msg_err[:] = rx.errors
             rx.clear_errors()
             outside = self._estimate(status)
-            crossed = outside != self.outside_envelope
-            if outside or crossed:
-                _count_envelope(self, outside)
+            crossed = _count_envelope(self, outside)
             self._publish(start_ns, bitmap)
         finally:
             if gc_off:
@@ -398,14 +396,17 @@ def _card_envelope(model: Any) -> Any:
     return None if doc is None else Envelope.from_json(doc, str(getattr(model, "card_path", "model card")))
 
 
-def _count_envelope(self: VirtualSensor, outside: bool) -> None:
-    """Count a tick outside the envelope, and an exit; set :attr:`VirtualSensor.outside_envelope`."""
-    c = self.counters
+def _count_envelope(self: VirtualSensor, outside: bool) -> bool:
+    """Count a tick outside the envelope, and an exit; set :attr:`VirtualSensor.outside_envelope`; returns
+    whether it changed (an exit or a return)."""
+    was = self.outside_envelope
     if outside:
+        c = self.counters
         c["envelope_ticks"] += 1
-        if not self.outside_envelope:
+        if not was:
             c["envelope_exits"] += 1
     self.outside_envelope = outside
+    return outside != was
 
 
 def _log_envelope(self: VirtualSensor, t: float, outside: bool) -> None:
