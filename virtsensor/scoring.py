@@ -63,7 +63,8 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
         raise UserError(f"{getattr(model, 'path', 'model')}: it estimates {', '.join(model.outputs)}, "
                         f"not {', '.join(cat.OUTPUTS)}")
     env = _envelope(model)
-    per_run, ys, ps, outs = [], [], [], []
+    per_run, ys, ps = [], [], []
+    outs: list[np.ndarray] = []
     dropped = 0
     for run in runs:
         ds = build_dataset([run], spec, cat.OUTPUTS)
@@ -78,7 +79,8 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
                         "envelope": envelope_split(ds.Y, pred, out)})
         ys.append(ds.Y)
         ps.append(pred)
-        outs.append(out)
+        if out is not None:
+            outs.append(out)
         dropped += ds.dropped_nonfinite
     Y, P = np.concatenate(ys), np.concatenate(ps)
     overall = metrics(Y, P)

@@ -122,7 +122,7 @@ class Envelope:
         if missing:
             raise ValueError(f"envelope bounds {', '.join(missing)}, which the rows lack")
         cols = X[:, [idx[s] for s in self.signals]]
-        out = ((cols < self.lo) | (cols > self.hi)).any(axis=1)
+        out: np.ndarray = np.asarray(((cols < self.lo) | (cols > self.hi)).any(axis=1), dtype=bool)
         if self.has_bands:
             vx, ay = X[:, idx[VX]], np.abs(X[:, idx[AY]])
             k = np.floor((vx - self.band_start) / self.band_width)
@@ -199,7 +199,8 @@ class Envelope:
             return env
         if not isinstance(bands, Mapping) or bands.get("signal") != VX:
             raise bad("speed_bands must be an object over vx_mps")
-        start, width = bands.get("start_mps"), bands.get("width_mps")
+        start: Any = bands.get("start_mps")
+        width: Any = bands.get("width_mps")
         ay, acc = bands.get("ay_abs_max_mps2"), bands.get("accel_max_mps2")
         if not (_num(start) and _num(width) and width > 0 and isinstance(ay, list) and isinstance(acc, list)
                 and len(ay) == len(acc) > 0 and all(x is None or (_num(x) and x >= 0) for x in ay + acc)):
