@@ -146,7 +146,6 @@ class VirtualSensor:
         self._plaus = Plausibility(lay.plausibility_rules(), len(lay.signals))
         self.envelope = _card_envelope(model)
         self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
-        self._env_scratch = np.zeros(len(lay.signals))
         #: the latest tick's inputs were outside the model card's validity envelope
         self.outside_envelope = False
         self._vals = np.full(len(lay.signals), np.nan)
@@ -323,7 +322,7 @@ class VirtualSensor:
         x_ok = x.dot(self._xzero) == 0.0  # every feature finite (one call instead of isfinite + all)
         y = self._predict(x) if x_ok else None
         rules = self._env_rules
-        outside = x_ok and rules is not None and outside_envelope(self._vals, rules, self._env_scratch)
+        outside = x_ok and rules is not None and outside_envelope(self.inputs.values, rules)
         for k, est, st, lo, hi in self._wheels:
             v = float(y[k]) if (y is not None and k >= 0) else math.nan
             s = envelope_status(wheel_status(status, v, lo, hi), outside)

@@ -33,8 +33,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 __all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
            "PlausibilityRule", "Plausibility", "assess_inputs", "wheel_status", "EnvelopeRules", "outside_envelope",
            "envelope_status"]
@@ -267,14 +265,13 @@ class EnvelopeRules:
     """The model card's envelope laid out on the daemon's input signals (index ``i`` as in :class:`ValidityRules`).
 
     Attributes:
-        mid, half: per input signal, the centre and half width of its range (``half`` inf: not bounded), so
-            ``|v - mid| <= half`` is inside. i_vx, i_ay, i_ax: the speed and acceleration inputs (-1: none).
-        band_start, band_width: the speed bands (m/s). ay_max, acc_max: per band, the ceilings of ``|ay|`` and
-            ``hypot(ax, ay)`` (m/s^2; nan: outside; empty tuples: no bands).
+        lo, hi: per input signal, its range (-inf/inf: not bounded). i_vx, i_ay, i_ax: the speed and
+            acceleration inputs (-1: none). band_start, band_width: the speed bands (m/s). ay_max, acc_max: per
+            band, the ceilings of ``|ay|`` and ``hypot(ax, ay)`` (m/s^2; nan: outside; empty: no bands).
     """
 
-    mid: np.ndarray
-    half: np.ndarray
+    lo: tuple[float, ...]
+    hi: tuple[float, ...]
     i_vx: int = -1
     i_ay: int = -1
     i_ax: int = -1
@@ -287,41 +284,37 @@ class EnvelopeRules:
     def from_envelope(cls, env: Any, signals: Sequence[str]) -> EnvelopeRules:
         """Lay ``env`` (a :class:`virtsensor.model.envelope.Envelope`) out on ``signals`` (the daemon's inputs);
         a bounded signal the daemon does not read is ignored."""
-        n = len(signals)
-        mid, half = np.zeros(n), np.full(n, np.inf)
+        lo, hi = [-_INF] * len(signals), [_INF] * len(signals)
         idx = {s: i for i, s in enumerate(signals)}
-        for s, lo, hi in zip(env.signals, env.lo, env.hi, strict=True):
+        for s, a, b in zip(env.signals, env.lo, env.hi, strict=True):
             if s in idx:
-                mid[idx[s]], half[idx[s]] = 0.5 * (lo + hi), 0.5 * (hi - lo)
+                lo[idx[s]], hi[idx[s]] = float(a), float(b)
         if not (env.has_bands and "vx_mps" in idx and "ay_mps2" in idx):
-            return cls(mid, half)
-        return cls(mid, half, idx["vx_mps"], idx["ay_mps2"], idx.get("ax_mps2", -1), float(env.band_start),
-                   float(env.band_width), tuple(float(v) for v in env.ay_max), tuple(float(v) for v in env.acc_max))
+            return cls(tuple(lo), tuple(hi))
+        return cls(tuple(lo), tuple(hi), idx["vx_mps"], idx["ay_mps2"], idx.get("ax_mps2", -1),
+                   float(env.band_start), float(env.band_width), tuple(float(v) for v in env.ay_max),
+                   tuple(float(v) for v in env.acc_max))
 
 
-def outside_envelope(values: np.ndarray, rules: EnvelopeRules, scratch: np.ndarray) -> bool:
-    """Whether the input ``values`` (per signal, finite) lie outside the envelope ``rules``.
-
-    ``scratch``: a preallocated float array as long as ``values`` (overwritten): no array is allocated.
-    """
-    np.subtract(values, rules.mid, out=scratch)
-    np.abs(scratch, out=scratch)
-    np.subtract(scratch, rules.half, out=scratch)
-    if scratch.max() > 0.0:
-        return True
+def outside_envelope(values: Sequence[float], rules: EnvelopeRules) -> bool:
+    """Whether the input ``values`` (per signal, finite; best a list of floats) lie outside the envelope
+    ``rules``. Allocates nothing but float temporaries."""
+    for v, lo, hi in zip(values, rules.lo, rules.hi, strict=True):
+        if not lo <= v <= hi:
+            return True
     caps = rules.ay_max
     if not caps:
         return False
-    k = math.floor((float(values[rules.i_vx]) - rules.band_start) / rules.band_width)
+    k = math.floor((values[rules.i_vx] - rules.band_start) / rules.band_width)
     if not 0 <= k < len(caps):
         return True
-    ay = float(values[rules.i_ay])
+    ay = values[rules.i_ay]
     if not abs(ay) <= caps[k]:  # (a nan ceiling: outside)
         return True
     if rules.i_ax < 0:
         return False
     acc_cap = rules.acc_max[k]
-    return not (acc_cap != acc_cap or math.hypot(float(values[rules.i_ax]), ay) <= acc_cap)
+    return not (acc_cap != acc_cap or math.hypot(values[rules.i_ax], ay) <= acc_cap)
 
 
 def envelope_status(status: int, outside: bool) -> int:
