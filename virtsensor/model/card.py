@@ -14,6 +14,10 @@ in their shortest round-trip form). Any edit of a loaded card (a flipped ``criti
 The ONNX side of the checks (sha256 of the graph, output names, the numpy weights against the graph)
 is in :class:`virtsensor.model.onnx.OnnxModel`.
 
+A card may state the validity envelope of its training rows (``envelope``,
+:mod:`virtsensor.model.envelope`); it is covered by the digest, checked by :meth:`ModelCard.validate`
+and read by :attr:`ModelCard.envelope`. Cards without one load as before and have no envelope check.
+
 This module needs nothing beyond the base install (the daemon imports it).
 """
 
