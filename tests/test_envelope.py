@@ -298,3 +298,35 @@ def test_shading_marks_each_out_of_envelope_stretch():
     spans = sorted(p.get_x() for p in ax.patches)
     assert spans == pytest.approx([0.125, 0.475, 0.875])
     assert plotting.shade(ax, t, np.zeros(20, dtype=bool)) == 0
+
+
+@pytest.mark.slow
+def test_evaluate_command_scores_unseen_circuits_with_the_shipped_model(tmp_path):
+    import json
+
+    from test_explain import _table
+
+    from virtsensor.cli import main
+    from virtsensor.recording import write_csv
+
+    rng = np.random.default_rng(7)
+    (tmp_path / "data").mkdir()
+    for i in range(4):
+        write_csv(tmp_path / "data" / f"run{i}.csv", _table(rng, 300))
+    far = _table(rng, 300)
+    far["vx_mps"] = far["vx_mps"] * 1.2  # partly faster than any training row
+    write_csv(tmp_path / "spa.csv", far)
+    write_csv(tmp_path / "monza.csv", _table(rng, 300))
+    model = tmp_path / "m.onnx"
+    assert main(["train", "--data", str(tmp_path / "data"), "--out", str(model), "--quiet"]) == 0
+    assert ModelCard.read(tmp_path / "m.card.json").envelope is not None  # train writes it
+    out, md = tmp_path / "ev.json", tmp_path / "ev.md"
+    assert main(["evaluate", "--model", str(model), "--data", str(tmp_path / "data"), "--circuits",
+                 str(tmp_path / "spa.csv"), str(tmp_path / "monza.csv"), "--json", str(out), "--markdown", str(md),
+                 "--quiet"]) == 0
+    res = json.loads(out.read_text())
+    shipped = res["shipped_model"]
+    assert {"circuit_spa", "circuit_monza"} <= set(shipped) and "circuit_spa" in res["paper"]
+    assert shipped["circuit_spa"]["envelope"]["outside_share"] > shipped["circuit_monza"]["envelope"]["outside_share"]
+    text = md.read_text()
+    assert "| Circuit spa (never trained on) |" in text and "| circuit_monza | 300 |" in text

@@ -393,8 +393,9 @@ def plot_dependence(path: Path, result: ShapResult, features: Sequence[int], par
 
 def plot_track(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: Mapping[str, Any],
                lap: str, outside: np.ndarray | None = None) -> None:
-    """Estimated (red) and true (blue) front SATs over a lap, one panel per wheel (the paper's Figs. 5 and 6);
-    rows ``outside`` the validity envelope (bool per row; None: no envelope) shaded."""
+    """Estimated (red) and true (blue) front SATs over a lap (``lap``: its title, e.g. "dry lap"), one panel per
+    wheel (the paper's Figs. 5 and 6); rows ``outside`` the validity envelope (bool per row; None: no envelope)
+    shaded."""
     from virtsensor.plotting import shade
 
     fig = _figure(12.0, 6.4)
@@ -405,7 +406,7 @@ def plot_track(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics:
         ax.plot(t, Y[:, j], color=TRUE_COLOUR, lw=0.9, label="true")
         ax.plot(t, P[:, j], color=ESTIMATE_COLOUR, lw=0.8, label="estimated (ONNX)")
         m = metrics[wheel]
-        ax.set_title(f"{lap} lap, {WHEEL_LABEL[name]}: R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
+        ax.set_title(f"{lap}, {WHEEL_LABEL[name]}: R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
         ax.set_ylabel(f"{name} [Nm]")
         ax.grid(alpha=0.3)
         ax.legend(loc="best", fontsize=8, framealpha=0.8)
@@ -426,7 +427,7 @@ def plot_axle(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: 
     ax.plot(t, Y.sum(axis=1), color=TRUE_COLOUR, lw=0.9, label="true")
     ax.plot(t, P.sum(axis=1), color=ESTIMATE_COLOUR, lw=0.8, label="estimated (ONNX)")
     m = metrics["axle"]
-    ax.set_title(f"{lap} lap, axle total SAT (FL + FR): R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
+    ax.set_title(f"{lap}, axle total SAT (FL + FR): R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
     ax.set_xlabel("time in the lap [s]")
     ax.set_ylabel("sat_fl_nm + sat_fr_nm [Nm]")
     ax.grid(alpha=0.3)
@@ -623,7 +624,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
             lds = build_dataset([laps[lap]], spec, targets=outputs)
             if len(lds.X) < 2:
                 raise UserError(f"--track {track}: the {lap} lap has {len(lds.X)} usable rows")
-            doc["track"][lap] = _lap_figures(out_dir, model, lds, lap, FIGURES[key],
+            doc["track"][lap] = _lap_figures(out_dir, model, lds, f"{lap} lap", FIGURES[key],
                                              FIGURES["axle"] if lap == "wet" else None, figures, say)
     if circuits:
         doc["circuits"] = {}
