@@ -12,6 +12,7 @@ import numpy as np
 from virtsensor import signals as cat
 from virtsensor.features import HISTORY, FeatureSpec
 from virtsensor.model import ModelCard
+from virtsensor.model.envelope import Envelope
 from virtsensor.model.export import export_pipeline, pipeline_weights
 
 #: A dedicated sync id of the tests (not in the DBC).
@@ -28,8 +29,9 @@ def card_inputs(spec: FeatureSpec) -> list[dict]:
 
 
 def train_model(tables: Sequence[Mapping[str, np.ndarray]], path: Path, spec: FeatureSpec = HISTORY,
-                hidden: tuple[int, ...] = (8,), max_iter: int = 200, seed: int = 0) -> dict:
-    """Fit RobustScaler + a small MLP on 20 Hz tables (features by ``spec.transform``) and export it."""
+                hidden: tuple[int, ...] = (8,), max_iter: int = 200, seed: int = 0, envelope: bool = False) -> dict:
+    """Fit RobustScaler + a small MLP on 20 Hz tables (features by ``spec.transform``) and export it (with the
+    validity envelope of its training rows in the card when ``envelope``, as ``virtsensor train`` does)."""
     from sklearn.exceptions import ConvergenceWarning
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import Pipeline
@@ -50,7 +52,8 @@ def train_model(tables: Sequence[Mapping[str, np.ndarray]], path: Path, spec: Fe
         warnings.simplefilter("ignore", ConvergenceWarning)
         pipe.fit(X, Y)
     return export_pipeline(pipe, X.shape[1], path, parity_X=X[:200], card_extra=ModelCard.trainer_fields(
-        model="virtsensor-test", spec=spec, weights=pipeline_weights(pipe)))
+        model="virtsensor-test", spec=spec, weights=pipeline_weights(pipe),
+        envelope=Envelope.fit(X, spec.names) if envelope else None))
 
 
 def synthetic_streams(duration_s: float, seed: int = 0, rate_hz: float = 100.0):

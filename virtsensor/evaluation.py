@@ -10,6 +10,8 @@ baselines (the eq. (1) steering observer, a linear regression):
   figure for a manoeuvre the model has not seen.
 * ``track_dry`` / ``track_wet``: the Magny-Cours laps (mu 1, then 0.7), never
   seen in training, with a model trained on all the Table I runs.
+* ``circuit_<name>``: each recording given as a circuit never trained on (``circuits``),
+  with the same model trained on all the runs.
 
 R2 and MAE per wheel, their mean (``r2``, ``mae_nm``) and for the axle sum.
 """
@@ -73,6 +75,7 @@ def evaluate(
     track: Run | None,
     recipes: Mapping[str, Mapping[str, Any]],
     *,
+    circuits: Sequence[Run] = (),
     seed: int = 0,
     baselines: bool = True,
     train_extra: Mapping[str, Sequence[Run]] | None = None,
@@ -81,11 +84,15 @@ def evaluate(
     """All protocols for every recipe (and the baselines). See the module docstring.
 
     ``train_extra``: recipe name -> runs added to the *training* side of every protocol of that recipe
-    (e.g. track driving); the test rows, the held-out runs and the laps still come from ``runs`` and
-    ``track`` only, so the protocols stay comparable across recipes.
+    (e.g. track driving); the test rows, the held-out runs, the laps and the circuits still come from
+    ``runs``, ``track`` and ``circuits`` only, so the protocols stay comparable across recipes.
+
+    Raises:
+        UserError: two ``circuits`` with the same name (file stem).
     """
     extra_of = dict(train_extra or {})
-    laps = split_track_laps(track) if track is not None else {}
+    track_laps = split_track_laps(track) if track is not None else {}
+    laps = held_out_runs(track_laps, circuits)
     result: dict[str, Any] = {}
     timing: dict[str, float] = {}
     sizes: dict[str, Any] = {}
@@ -93,7 +100,7 @@ def evaluate(
     def protocols(name: str, spec_name: str, make: Callable[[], Any]) -> dict[str, Any]:
         spec = SPECS[spec_name]
         ds = build_dataset(runs, spec)
-        lap_ds = {f"track_{k}": build_dataset([r], spec) for k, r in laps.items()}
+        lap_ds = {k: build_dataset([r], spec) for k, r in laps.items()}
         sizes[name] = {"rows": int(len(ds.X)), "runs": len(ds.runs), "dropped_nonfinite": ds.dropped_nonfinite,
                        "features": list(ds.feature_names)}
         extra = build_dataset(extra_of[name], spec) if extra_of.get(name) else None
@@ -132,8 +139,26 @@ def evaluate(
         result["baselines"]["eq1_observer"] = _observer_protocols(runs, laps, seed)
         log(f"eq1_observer: runs held out R2 {result['baselines']['eq1_observer']['grouped']['r2']:.3f}")
     result["meta"] = {"seed": seed, "timing_s": timing, "data": sizes, "test_fraction": TEST_FRACTION,
-                      "track_laps": {k: int(len(r.table["time_s"])) for k, r in laps.items()}}
+                      "track_laps": {k: int(len(r.table["time_s"])) for k, r in track_laps.items()},
+                      "circuits": {r.name: int(len(r.table["time_s"])) for r in circuits}}
     return result
+
+
+def held_out_runs(track_laps: Mapping[str, Run], circuits: Sequence[Run]) -> dict[str, Run]:
+    """The runs scored with a model trained on all the runs: ``track_<lap>`` and ``circuit_<name>``.
+
+    Raises:
+        UserError: two circuits with the same name.
+    """
+    from virtsensor.errors import UserError
+
+    out = {f"track_{k}": r for k, r in track_laps.items()}
+    for r in circuits:
+        key = f"circuit_{r.name}"
+        if key in out:
+            raise UserError(f"--circuits {r.path or r.name}: another circuit has the name {r.name!r} (file stem)")
+        out[key] = r
+    return out
 
 
 def _observer_protocols(runs: Sequence[Run], laps: Mapping[str, Run], seed: int) -> dict[str, Any]:
@@ -149,7 +174,7 @@ def _observer_protocols(runs: Sequence[Run], laps: Mapping[str, Run], seed: int)
     pred = _observer_fit_predict(ds.subset(gtr), {"test": ds.subset(gte)})["test"]
     out["grouped"] = metrics(ds.Y[gte], pred)
     if laps:
-        lap_ds = {f"track_{k}": build_dataset([r], PAPER) for k, r in laps.items()}
+        lap_ds = {k: build_dataset([r], PAPER) for k, r in laps.items()}
         preds = _observer_fit_predict(ds, lap_ds)
         for k, d in lap_ds.items():
             out[k] = metrics(d.Y, preds[k])
@@ -163,7 +188,8 @@ ROWS = (("train", "Training phase"), ("test", "Test phase (random 30 % of rows)"
 
 
 def markdown_table(result: Mapping[str, Any]) -> str:
-    """A Table IV with the paper's figures beside ours (R2 / MAE Nm, mean of both wheels)."""
+    """A Table IV with the paper's figures beside ours (R2 / MAE Nm, mean of both wheels), one row per circuit
+    never trained on; then, when the shipped model has an envelope split (:func:`envelope_table`), that."""
     cols = [("paper", result.get("paper")), ("improved", result.get("improved"))]
     base = result.get("baselines", {})
     cols += [("linear", base.get("linear")), ("eq. (1) observer", base.get("eq1_observer"))]
@@ -171,11 +197,30 @@ def markdown_table(result: Mapping[str, Any]) -> str:
     head = "| simulation test | paper (Table IV) | " + " | ".join(f"{n} R2 / MAE" for n, _ in cols) + " |"
     sep = "|---|---|" + "---|" * len(cols)
     lines = [head, sep]
-    for key, label in ROWS:
+    circuits = tuple((f"circuit_{c}", f"Circuit {c} (never trained on)")
+                     for c in result.get("meta", {}).get("circuits", {}))
+    for key, label in ROWS + circuits:
         ref = PAPER_TABLE_IV.get(key)
         cells = [f"{ref[0]:.3f} / {ref[1]:.2f}" if ref else "—"]
         for _, c in cols:
             m = c.get(key)
             cells.append(f"{m['r2']:.3f} / {m['mae_nm']:.2f}" if m else "—")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    env = envelope_table(result)
+    return "\n".join(lines) + "\n" + ("\n" + env if env else "")
+
+
+def envelope_table(result: Mapping[str, Any]) -> str:
+    """The shipped model file on the laps and circuits, inside and outside its card's validity envelope
+    (Markdown; empty when it has no envelope split)."""
+    shipped = result.get("shipped_model") or {}
+    rows = [(k, m["envelope"]) for k, m in shipped.items() if isinstance(m, Mapping) and m.get("envelope")]
+    if not rows:
+        return ""
+    lines = [f"Shipped model `{shipped.get('file')}` against its validity envelope (R2 / MAE Nm):", "",
+             "| run | samples | outside envelope | inside | outside |", "|---|---|---|---|---|"]
+    for key, e in rows:
+        side = ["—" if e[k] is None else f"{e[k]['r2']:.3f} / {e[k]['mae_nm']:.2f}" for k in ("inside", "outside")]
+        n = sum(e[k]["n"] for k in ("inside", "outside") if e[k] is not None)
+        lines.append(f"| {key} | {n} | {100 * e['outside_share']:.1f} % | {side[0]} | {side[1]} |")
     return "\n".join(lines) + "\n"

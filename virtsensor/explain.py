@@ -10,7 +10,13 @@ Figures (PNG, matplotlib's Agg canvas: no display, no pyplot state):
   most important features of the front-left SAT (the paper's Fig. 9);
 * ``fig5_track_dry.png``, ``fig6_track_wet.png``: estimated (red) and true
   (blue) front SATs on the dry and wet Magny-Cours laps (Figs. 5 and 6);
-* ``fig7_axle_total.png``: the axle total FL + FR on the wet lap (Fig. 7).
+* ``fig7_axle_total.png``: the axle total FL + FR on the wet lap (Fig. 7);
+* ``circuit_<name>.png``: estimated and true front SATs on each recording given as a circuit the model
+  never saw (``circuits``).
+
+On the lap and circuit figures, the stretches where the inputs lie outside the validity envelope of the
+model card (:mod:`virtsensor.model.envelope`) are shaded grey: there the model extrapolates, and
+``explain.json`` gives the error inside and outside the envelope.
 
 What is explained
 -----------------
@@ -386,15 +392,21 @@ def plot_dependence(path: Path, result: ShapResult, features: Sequence[int], par
 
 
 def plot_track(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: Mapping[str, Any],
-               lap: str) -> None:
-    """Estimated (red) and true (blue) front SATs over a lap, one panel per wheel (the paper's Figs. 5 and 6)."""
+               lap: str, outside: np.ndarray | None = None) -> None:
+    """Estimated (red) and true (blue) front SATs over a lap (``lap``: its title, e.g. "dry lap"), one panel per
+    wheel (the paper's Figs. 5 and 6); rows ``outside`` the validity envelope (bool per row; None: no envelope)
+    shaded."""
+    from virtsensor.plotting import shade
+
     fig = _figure(12.0, 6.4)
     for j, (wheel, name) in enumerate((("fl", "sat_fl_nm"), ("fr", "sat_fr_nm"))):
         ax = fig.add_subplot(2, 1, j + 1)
+        if outside is not None:
+            shade(ax, t, outside, label="outside the validity envelope")
         ax.plot(t, Y[:, j], color=TRUE_COLOUR, lw=0.9, label="true")
         ax.plot(t, P[:, j], color=ESTIMATE_COLOUR, lw=0.8, label="estimated (ONNX)")
         m = metrics[wheel]
-        ax.set_title(f"{lap} lap, {WHEEL_LABEL[name]}: R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
+        ax.set_title(f"{lap}, {WHEEL_LABEL[name]}: R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
         ax.set_ylabel(f"{name} [Nm]")
         ax.grid(alpha=0.3)
         ax.legend(loc="best", fontsize=8, framealpha=0.8)
@@ -403,14 +415,19 @@ def plot_track(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics:
 
 
 def plot_axle(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: Mapping[str, Any],
-              lap: str) -> None:
-    """Estimated (red) and true (blue) axle total FL + FR over a lap (the paper's Fig. 7)."""
+              lap: str, outside: np.ndarray | None = None) -> None:
+    """Estimated (red) and true (blue) axle total FL + FR over a lap (the paper's Fig. 7), rows ``outside``
+    the validity envelope shaded."""
+    from virtsensor.plotting import shade
+
     fig = _figure(12.0, 3.8)
     ax = fig.add_subplot()
+    if outside is not None:
+        shade(ax, t, outside, label="outside the validity envelope")
     ax.plot(t, Y.sum(axis=1), color=TRUE_COLOUR, lw=0.9, label="true")
     ax.plot(t, P.sum(axis=1), color=ESTIMATE_COLOUR, lw=0.8, label="estimated (ONNX)")
     m = metrics["axle"]
-    ax.set_title(f"{lap} lap, axle total SAT (FL + FR): R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
+    ax.set_title(f"{lap}, axle total SAT (FL + FR): R2 = {m['r2']:.3f}, MAE = {m['mae_nm']:.2f} Nm", fontsize=10)
     ax.set_xlabel("time in the lap [s]")
     ax.set_ylabel("sat_fl_nm + sat_fr_nm [Nm]")
     ax.grid(alpha=0.3)
@@ -449,8 +466,35 @@ def make_out_dir(out: str | os.PathLike[str]) -> Path:
     return p
 
 
+def _lap_figures(out_dir: Path, model: Any, ds: Any, lap: str, name: str, axle_name: str | None,
+                 figures: list[str], say: Callable[[str], None]) -> dict[str, Any]:
+    """Estimate vs truth over one lap or circuit (:func:`plot_track`, and :func:`plot_axle` when ``axle_name``),
+    out-of-envelope rows shaded; appends the file names to ``figures``; returns the metrics, with
+    ``envelope`` (:func:`virtsensor.scoring.envelope_split`; None without an envelope in the card)."""
+    from virtsensor.metrics import metrics as fit_metrics
+    from virtsensor.model.envelope import Envelope
+    from virtsensor.scoring import envelope_split
+
+    P = model.predict(ds.X)
+    m = fit_metrics(ds.Y, P)
+    env_doc = model.card.get("envelope")
+    env = None if env_doc is None else Envelope.from_json(env_doc, str(model.card_path))
+    outside = None if env is None else env.outside_rows(ds.X, ds.feature_names)
+    m["envelope"] = envelope_split(ds.Y, P, outside)
+    t = ds.time_s - ds.time_s[0]
+    plot_track(out_dir / name, t, ds.Y, P, m, lap, outside)
+    figures.append(name)
+    if axle_name is not None:
+        plot_axle(out_dir / axle_name, t, ds.Y, P, m, lap, outside)
+        figures.append(axle_name)
+    share = "" if outside is None else f", {100 * m['envelope']['outside_share']:.1f} % outside the envelope"
+    say(f"{lap}: R2 {m['r2']:.3f}, MAE {m['mae_nm']:.2f} Nm, axle R2 {m['axle']['r2']:.3f}{share}")
+    return m
+
+
 def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str],
-            *, track: str | os.PathLike[str] | None = None, seed: int = 0, samples: int = 500,
+            *, track: str | os.PathLike[str] | None = None,
+            circuits: Sequence[str | os.PathLike[str]] = (), seed: int = 0, samples: int = 500,
             background: int = BACKGROUND_ROWS, method: str = "auto",
             log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Write the Section IV.B figures and ``explain.json`` to ``out``; return the JSON document.
@@ -460,6 +504,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
         data: recordings (files or directories) of the data set, as for ``virtsensor train``.
         out: output directory (created).
         track: optional Magny-Cours recording (dry lap then wet lap) for Figs. 5-7.
+        circuits: recordings of circuits the model never saw: one estimate-vs-truth figure each.
         seed: seed of the 70/30 split, of the explained and background rows and of the permutations.
         samples: test rows to explain (fewer if the test side is smaller).
         background: rows of the independent masker.
@@ -473,7 +518,6 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     from virtsensor.dataset import build_dataset, load_runs, split_track_laps
     from virtsensor.evaluation import random_split
     from virtsensor.features import FeatureSpec
-    from virtsensor.metrics import metrics as fit_metrics
     from virtsensor.model.onnx import OnnxModel
 
     say = log or (lambda _msg: None)
@@ -580,16 +624,16 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
             lds = build_dataset([laps[lap]], spec, targets=outputs)
             if len(lds.X) < 2:
                 raise UserError(f"--track {track}: the {lap} lap has {len(lds.X)} usable rows")
-            P = model.predict(lds.X)
-            m = fit_metrics(lds.Y, P)
-            t = lds.time_s - lds.time_s[0]
-            plot_track(out_dir / FIGURES[key], t, lds.Y, P, m, lap)
-            figures.append(FIGURES[key])
-            doc["track"][lap] = m
-            if lap == "wet":
-                plot_axle(out_dir / FIGURES["axle"], t, lds.Y, P, m, lap)
-                figures.append(FIGURES["axle"])
-            say(f"{lap} lap: R2 {m['r2']:.3f}, MAE {m['mae_nm']:.2f} Nm, axle R2 {m['axle']['r2']:.3f}")
+            doc["track"][lap] = _lap_figures(out_dir, model, lds, f"{lap} lap", FIGURES[key],
+                                             FIGURES["axle"] if lap == "wet" else None, figures, say)
+    if circuits:
+        doc["circuits"] = {}
+        for r in load_runs(circuits, needed=sorted(set(spec.signals) | set(outputs))):
+            cds = build_dataset([r], spec, targets=outputs)
+            if len(cds.X) < 2:
+                raise UserError(f"--circuits {r.path}: {len(cds.X)} usable rows")
+            doc["circuits"][r.name] = _lap_figures(out_dir, model, cds, f"circuit {r.name}",
+                                                   f"circuit_{r.name}.png", None, figures, say)
     doc["figures"] = figures
     doc = _round(doc)
     (out_dir / "explain.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")

@@ -15,7 +15,7 @@ from typing import Any
 from virtsensor.extras import require as require_extra
 from virtsensor.fileio import atomic_write
 
-__all__ = ["DPI", "available", "colormap", "figure", "require", "save"]
+__all__ = ["DPI", "available", "colormap", "figure", "require", "save", "shade"]
 
 #: Resolution of every saved figure (dots per inch).
 DPI = 110
@@ -57,3 +57,21 @@ def save(fig: Any, path: str | os.PathLike[str]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI))
     return path
+
+
+def shade(ax: Any, x: Any, mask: Any, *, color: str = "0.85", label: str | None = None) -> int:
+    """Shade on ``ax`` the stretches of ``x`` (increasing) where ``mask`` (bool, same length) is True, each
+    from its first to its last sample widened by half the median sample step on each side; ``label`` names
+    the first in a legend.
+    Returns how many stretches were shaded."""
+    import numpy as np
+
+    m = np.asarray(mask, dtype=bool)
+    xs = np.asarray(x, dtype=float)
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], m.view(np.int8), [0]))))
+    starts, ends = edges[::2], edges[1::2] - 1
+    step = float(np.median(np.diff(xs))) if len(xs) > 1 else 1.0
+    for k, (a, b) in enumerate(zip(starts, ends, strict=True)):
+        ax.axvspan(xs[a] - 0.5 * step, xs[b] + 0.5 * step, color=color, lw=0, zorder=0,
+                   label=label if k == 0 else None)
+    return int(len(starts))

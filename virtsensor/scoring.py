@@ -8,6 +8,9 @@ features or reference SATs are not finite are left out and counted.
 
 Metrics come from :mod:`virtsensor.metrics` (numpy, no scikit-learn): "r2" and "mae_nm" without a
 wheel are the means over the two front wheels; "axle" scores the sum of the two SATs.
+
+When the model card states a validity envelope (:mod:`virtsensor.model.envelope`), every run and the
+overall figure also give the share of rows outside it and the error inside and outside it.
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ from virtsensor.dataset import Run, build_dataset
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 from virtsensor.metrics import metrics
+from virtsensor.model.envelope import Envelope
 
-__all__ = ["needed_signals", "score_runs", "markdown"]
+__all__ = ["envelope_split", "needed_signals", "score_runs", "markdown"]
 
 
 def needed_signals(card: Any) -> list[str]:
@@ -43,9 +47,9 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
     """Score ``model`` (an :class:`~virtsensor.model.onnx.OnnxModel`) on each run and on all together.
 
     Returns:
-        ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite"},
-        "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle", "dropped_nonfinite"}, ...]}``
-        in the order of ``runs``.
+        ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite", "envelope"},
+        "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle", "dropped_nonfinite", "envelope"}, ...]}``
+        in the order of ``runs``; ``envelope`` is :func:`envelope_split` (None when the card states none).
 
     Raises:
         UserError: a run lacking a needed signal, or with no row where every feature and
@@ -58,7 +62,9 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
     if tuple(model.outputs) != tuple(cat.OUTPUTS):
         raise UserError(f"{getattr(model, 'path', 'model')}: it estimates {', '.join(model.outputs)}, "
                         f"not {', '.join(cat.OUTPUTS)}")
+    env = _envelope(model)
     per_run, ys, ps = [], [], []
+    outs: list[np.ndarray] = []
     dropped = 0
     for run in runs:
         ds = build_dataset([run], spec, cat.OUTPUTS)
@@ -67,25 +73,60 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
             raise UserError(f"{where}: no sample with every input of the model and both reference SATs finite")
         pred = model.predict(ds.X)
         m = metrics(ds.Y, pred)
+        out = None if env is None else env.outside_rows(ds.X, spec.names)
         per_run.append({"file": where, "r2": m["r2"], "mae_nm": m["mae_nm"], "n": m["n"], "fl": m["fl"],
-                        "fr": m["fr"], "axle": m["axle"], "dropped_nonfinite": ds.dropped_nonfinite})
+                        "fr": m["fr"], "axle": m["axle"], "dropped_nonfinite": ds.dropped_nonfinite,
+                        "envelope": envelope_split(ds.Y, pred, out)})
         ys.append(ds.Y)
         ps.append(pred)
+        if out is not None:
+            outs.append(out)
         dropped += ds.dropped_nonfinite
-    overall = metrics(np.concatenate(ys), np.concatenate(ps))
+    Y, P = np.concatenate(ys), np.concatenate(ps)
+    overall = metrics(Y, P)
     overall["dropped_nonfinite"] = dropped
+    overall["envelope"] = envelope_split(Y, P, None if env is None else np.concatenate(outs))
     return {"model": {"file": str(getattr(model, "path", "")), "sha256": model.card.get("sha256")},
             "overall": overall, "runs": per_run}
 
 
+def _envelope(model: Any) -> Envelope | None:
+    doc = model.card.get("envelope")
+    return None if doc is None else Envelope.from_json(doc, str(getattr(model, "card_path", "model card")))
+
+
+def envelope_split(Y: np.ndarray, P: np.ndarray, outside: np.ndarray | None) -> dict[str, Any] | None:
+    """The share of rows outside the envelope, and R2, MAE (Nm, means over both wheels) and rows inside
+    and outside it: ``{"outside_share", "inside": {"r2", "mae_nm", "n"} | None, "outside": ... | None}``
+    (a side without rows is None). None when ``outside`` (bool per row) is None."""
+    if outside is None:
+        return None
+    res: dict[str, Any] = {"outside_share": float(outside.mean()) if len(outside) else 0.0}
+    for side, rows in (("inside", ~outside), ("outside", outside)):
+        if rows.any():
+            m = metrics(Y[rows], P[rows])
+            res[side] = {"r2": m["r2"], "mae_nm": m["mae_nm"], "n": m["n"]}
+        else:
+            res[side] = None
+    return res
+
+
 def markdown(result: dict[str, Any]) -> str:
     """The score as a Markdown table: one row per run, then all runs together."""
+    env = result["overall"].get("envelope") is not None
+    head = "| run | samples | R2 | MAE (Nm) | R2 FL / FR | axle R2 / MAE (Nm) |"
+    head += " outside envelope | inside R2 / MAE (Nm) | outside R2 / MAE (Nm) |" if env else ""
     lines = [f"Model `{result['model']['file']}` (sha256 {str(result['model']['sha256'])[:12]}...)", "",
-             "| run | samples | R2 | MAE (Nm) | R2 FL / FR | axle R2 / MAE (Nm) |", "|---|---|---|---|---|---|"]
+             head, "|---" * head.count(" | ") + "|---|"]
 
     def row(name: str, m: dict[str, Any]) -> str:
-        return (f"| {name} | {m['n']} | {m['r2']:.3f} | {m['mae_nm']:.2f} | {m['fl']['r2']:.3f} / "
+        text = (f"| {name} | {m['n']} | {m['r2']:.3f} | {m['mae_nm']:.2f} | {m['fl']['r2']:.3f} / "
                 f"{m['fr']['r2']:.3f} | {m['axle']['r2']:.3f} / {m['axle']['mae_nm']:.2f} |")
+        if env:
+            e = m["envelope"]
+            side = ["—" if e[k] is None else f"{e[k]['r2']:.3f} / {e[k]['mae_nm']:.2f}" for k in ("inside", "outside")]
+            text += f" {100 * e['outside_share']:.1f} % | {side[0]} | {side[1]} |"
+        return text
 
     lines += [row(r["file"], r) for r in result["runs"]]
     lines.append(row("**all runs**", result["overall"]))

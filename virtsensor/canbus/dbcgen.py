@@ -251,7 +251,8 @@ def _payload_sat_front(rx: tuple[str, ...]) -> list[SignalLayout]:
                 "",
                 rx,
                 f"Validity of SAT_{corner}: 0 VALID, 1 DEGRADED (a non-critical input held or "
-                f"substituted), 2 INVALID (a critical input missing or implausible), 3 INIT.",
+                f"substituted, or the inputs outside the model's validity envelope), "
+                f"2 INVALID (a critical input missing or implausible), 3 INIT.",
                 STATUS_CHOICES,
             )
         )
@@ -311,6 +312,30 @@ def _payload_vs_health(rx: tuple[str, ...]) -> list[SignalLayout]:
         )
     )
     bit += 8
+    sigs.append(
+        _integer(
+            "VS_OutOfEnvelope",
+            bit,
+            1,
+            "",
+            rx,
+            "1 = the inputs lie outside the validity envelope the model card states (the ranges and grip per "
+            "speed band of its training data): the estimator extrapolates and a VALID estimate is sent as "
+            "DEGRADED; 0 = inside, or the model card states no envelope.",
+        )
+    )
+    bit += 1
+    sigs.append(
+        _integer(
+            "VS_EnvelopeExits",
+            bit,
+            3,
+            "",
+            rx,
+            "Number of excursions outside the validity envelope since start (saturates at 7).",
+        )
+    )
+    bit += 3
     return sigs
 
 

@@ -4,7 +4,7 @@ Example::
 
     virtsensor simulate magny-cours --speed 180 --mu 1.0 --out data/track.csv
     virtsensor evaluate --model models/improved.onnx --data data/paper --track data/track.csv \\
-        --json evaluation.json --markdown evaluation.md
+        --circuits data/unseen/*.csv --json evaluation.json --markdown evaluation.md
 """
 
 from __future__ import annotations
@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(e.g. the circuits campaign); test rows and held-out runs come from --data only")
     parser.add_argument("--track", metavar="FILE", type=t.existing_file(),
                         help="Magny-Cours recording (dry lap then wet lap)")
+    parser.add_argument("--circuits", nargs="+", default=[], metavar="FILE", type=t.existing_file(),
+                        help="recordings of circuits never trained on: one Table IV row each (named by the file "
+                             "stem), the shipped model also scored inside and outside its validity envelope")
     parser.add_argument("--json", required=True, metavar="FILE", type=t.output_file(), help="write the results here")
     parser.add_argument("--markdown", metavar="FILE", type=t.output_file(),
                         help="also write the Table IV comparison as Markdown")
@@ -41,11 +44,12 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor import signals as cat
     from virtsensor.dataset import build_dataset, load_runs, split_track_laps
     from virtsensor.errors import UserError
-    from virtsensor.evaluation import evaluate, markdown_table
+    from virtsensor.evaluation import evaluate, held_out_runs, markdown_table
     from virtsensor.features import SPECS, FeatureSpec
     from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.metrics import metrics
     from virtsensor.model.onnx import OnnxModel
+    from virtsensor.scoring import envelope_split
     from virtsensor.training import RECIPES
 
     model = OnnxModel.load(args.model)
@@ -59,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     runs = load_runs(args.data, needed=sorted(needed))
     track = load_runs([args.track], needed=sorted(needed))[0] if args.track else None
     extra = {"improved": load_runs(args.train_extra, needed=sorted(needed))} if args.train_extra else None
+    circuits = load_runs(args.circuits, needed=sorted(needed)) if args.circuits else []
 
     def log(msg: str) -> None:
         if not args.quiet:
@@ -68,13 +73,18 @@ def run(args: argparse.Namespace) -> int:
 
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore")
-        result = evaluate(runs, track, recipes, seed=args.seed, train_extra=extra, log=log)
-    if track is not None:
+        result = evaluate(runs, track, recipes, circuits=circuits, seed=args.seed, train_extra=extra, log=log)
+    held = held_out_runs(split_track_laps(track) if track is not None else {}, circuits)
+    if held:
         spec = FeatureSpec.from_json(card["feature_spec"])
+        env = card.envelope
         shipped = {}
-        for lap, r in split_track_laps(track).items():
+        for key, r in held.items():
             ds = build_dataset([r], spec)
-            shipped[f"track_{lap}"] = metrics(ds.Y, model.predict(ds.X))
+            P = model.predict(ds.X)
+            shipped[key] = metrics(ds.Y, P)
+            shipped[key]["envelope"] = envelope_split(
+                ds.Y, P, None if env is None else env.outside_rows(ds.X, ds.feature_names))
         result["shipped_model"] = {"file": str(args.model), "sha256": card["sha256"], **shipped}
     write_json(args.json, result)
     table = markdown_table(result)

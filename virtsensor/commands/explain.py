@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="recordings (files or directories), as for train")
     parser.add_argument("--track", metavar="FILE", type=t.existing_file(),
                         help="Magny-Cours recording (dry lap then wet lap): adds Figs. 5, 6 and 7")
+    parser.add_argument("--circuits", nargs="+", default=[], metavar="FILE", type=t.existing_file(),
+                        help="recordings of circuits the model never saw: one estimate-vs-truth figure each "
+                             "(circuit_<file stem>.png), out-of-envelope stretches shaded")
     parser.add_argument("--out", required=True, metavar="DIR", type=t.output_dir(),
                         help="output directory for the PNGs and explain.json")
     parser.add_argument("--seed", type=t.seed(), default=0,
@@ -49,8 +52,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(msg, file=sys.stderr)
 
-    doc = explain(args.model, args.data, args.out, track=args.track, seed=args.seed, samples=args.samples,
-                  background=args.background, method=args.method, log=log)
+    doc = explain(args.model, args.data, args.out, track=args.track, circuits=args.circuits, seed=args.seed,
+                  samples=args.samples, background=args.background, method=args.method, log=log)
     fl = doc["model"]["outputs"][0]
     print(f"{fl}: " + ", ".join(doc["ranking"][fl][:3]) + f"  ({len(doc['figures'])} figures in {args.out})")
     return 0

@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _export(model, ds, out, parity_rows, args, recipe, spec, report):
     from virtsensor.model import ModelCard
+    from virtsensor.model.envelope import Envelope
     from virtsensor.model.export import export_pipeline, pipeline_weights
 
     return export_pipeline(model, len(ds.feature_names), out, parity_X=parity_rows, card_extra=ModelCard.trainer_fields(
@@ -115,4 +116,6 @@ def _export(model, ds, out, parity_rows, args, recipe, spec, report):
             "dropped_nonfinite": ds.dropped_nonfinite, "sources": [str(p) for p in args.data],
         },
         # the same weights as plain arrays: the numpy back-end and audits need no sklearn
-        weights=pipeline_weights(model)))
+        weights=pipeline_weights(model),
+        # where the training rows lie: the daemon, score and explain flag rows outside it
+        envelope=Envelope.fit(ds.X, ds.feature_names)))

@@ -58,7 +58,8 @@ class Publisher:
             self.sat_values[w.estimate] = math.nan
             self.sat_values[w.status] = INIT
         self.health_values: dict[str, float] = {"VS_TickOverruns": 0, "VS_TickLatency": 0, "VS_InputStatus": 0,
-                                                "VS_ModelId": layout.model_id}
+                                                "VS_ModelId": layout.model_id, "VS_OutOfEnvelope": 0,
+                                                "VS_EnvelopeExits": 0}  # (a DBC without a signal ignores it)
         self._sat_ctr = 0
         self._health_ctr = 0
 
@@ -69,12 +70,15 @@ class Publisher:
         self._sat_ctr = next_counter(self._sat_ctr)
         return m
 
-    def fill_health(self, overruns: int, latency_us: int, bitmap: int) -> Any:
+    def fill_health(self, overruns: int, latency_us: int, bitmap: int, out_of_envelope: bool = False,
+                    envelope_exits: int = 0) -> Any:
         """Encode VS_Health (values saturate at the DBC's raw range) with the next counter; returns it."""
         hv = self.health_values
         hv["VS_TickOverruns"] = overruns
         hv["VS_TickLatency"] = latency_us
         hv["VS_InputStatus"] = bitmap
+        hv["VS_OutOfEnvelope"] = out_of_envelope
+        hv["VS_EnvelopeExits"] = envelope_exits
         m = self.health_msg
         m.data[:] = self._encode_health(hv, self._health_ctr)
         self._health_ctr = next_counter(self._health_ctr)

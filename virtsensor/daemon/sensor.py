@@ -22,7 +22,8 @@ copying the receivers' list of input values into the feature builder's numpy arr
 list; after start-up the heap is ``gc.freeze()``-d and the cyclic GC is off during the tick.
 
 Logs are JSON lines on stderr (:func:`~virtsensor.daemon.jsonlog.configure_logging`): ``started``,
-``config``, ``bus_error``, ``reconnect``, ``status_change``, ``shutdown``...
+``config``, ``bus_error``, ``reconnect``, ``status_change``, ``envelope_exit``/``envelope_return`` (once per
+excursion outside the model card's validity envelope), ``shutdown``...
 """
 
 from __future__ import annotations
@@ -52,9 +53,12 @@ from virtsensor.daemon.validity import (
     INIT,
     INVALID,
     STATUS_NAMES,
+    EnvelopeRules,
     Plausibility,
     ValidityState,
     assess_inputs,
+    envelope_status,
+    outside_envelope,
     wheel_status,
 )
 from virtsensor.features import FeatureBuilder
@@ -70,7 +74,7 @@ _COUNTERS = ("frames", "input_frames", "other_frames", "unknown_ids", "error_fra
              *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
              "future_stamped", "time_step_back", "implausible_checks", "drained_frames",
              "ticks", "overruns", "tick_errors", "sent", "send_errors", "unsent", "recv_errors", "reconnects",
-             "reconnect_failures", "status_changes")
+             "reconnect_failures", "status_changes", "envelope_exits", "envelope_ticks")
 
 
 class VirtualSensor:
@@ -140,6 +144,10 @@ class VirtualSensor:
         self._rules = lay.rules()
         self._state = ValidityState(len(lay.signals))
         self._plaus = Plausibility(lay.plausibility_rules(), len(lay.signals))
+        self.envelope = _card_envelope(model)
+        self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
+        #: the latest tick's inputs were outside the model card's validity envelope
+        self.outside_envelope = False
         self._vals = np.full(len(lay.signals), np.nan)
         self._xzero = np.zeros(len(lay.spec.features))  # x . 0 is nan iff some feature is not finite (0 * inf)
         self._msg_err = [False] * len(lay.input_messages)  # the tick's E2E errors (for the logs)
@@ -279,11 +287,14 @@ class VirtualSensor:
                                            self._rules, self._state, plaus.implausible)
             self._msg_err[:] = rx.errors
             rx.clear_errors()
-            self._estimate(status)
+            outside = self._estimate(status)
+            crossed = _count_envelope(self, outside)
             self._publish(start_ns, bitmap)
         finally:
             if gc_off:
                 gc.enable()
+        if crossed:  # (logged after the frames are out)
+            _log_envelope(self, t, outside)
         sv, cur = self._out.sat_values, self._statuses
         changed = bitmap != self._last_bitmap
         for k, w in enumerate(self._wheels):
@@ -297,8 +308,9 @@ class VirtualSensor:
             self.last_statuses = tuple(int(s) for s in cur)
             _log_change(self, t, self.last_statuses, bitmap, status)
 
-    def _estimate(self, status: int) -> None:
-        """Features, model and per-wheel status into the SAT_FRONT values."""
+    def _estimate(self, status: int) -> bool:
+        """Features, model and per-wheel status into the SAT_FRONT values; returns whether the inputs are
+        outside the model's validity envelope (False without features or without an envelope)."""
         sv = self._out.sat_values
         self._vals[:] = self.inputs.values
         x = self._push(self._vals) if self._complete else None
@@ -306,14 +318,17 @@ class VirtualSensor:
             for _, est, st, _, _ in self._wheels:
                 sv[est] = math.nan
                 sv[st] = INIT
-            return
+            return False
         x_ok = x.dot(self._xzero) == 0.0  # every feature finite (one call instead of isfinite + all)
         y = self._predict(x) if x_ok else None
+        rules = self._env_rules
+        outside = x_ok and rules is not None and outside_envelope(self.inputs.values, rules)
         for k, est, st, lo, hi in self._wheels:
             v = float(y[k]) if (y is not None and k >= 0) else math.nan
-            s = wheel_status(status, v, lo, hi)
+            s = envelope_status(wheel_status(status, v, lo, hi), outside)
             sv[est] = math.nan if s == INVALID else v  # nan -> SNA on the bus
             sv[st] = s
+        return outside
 
     def _publish(self, start_ns: int, bitmap: int) -> None:
         out = self._out
@@ -322,7 +337,7 @@ class VirtualSensor:
         self._send_sat(m)
         lat_us = (time.monotonic_ns() - start_ns) // 1000
         c = self.counters
-        self._link.send(out.fill_health(c["overruns"], lat_us, bitmap))
+        self._link.send(out.fill_health(c["overruns"], lat_us, bitmap, self.outside_envelope, c["envelope_exits"]))
         self.tick_stats.record_tick(lat_us, compute_us)
         c["ticks"] += 1
         if self.sync_id is not None and lat_us * 1000 > TICK_NS:
@@ -371,6 +386,37 @@ def _log_implausible(self: VirtualSensor, t: float) -> None:
             event(logging.WARNING, "implausible", t=round(t, 6), check=r.name, subject=sig[r.subject],
                   value=vals[r.subject], references={sig[i]: vals[i] for i in r.refs},
                   implausible_checks=self.counters["implausible_checks"])
+
+def _card_envelope(model: Any) -> Any:
+    """The model card's validity envelope (None: the card states none). Raises UserError if malformed."""
+    from virtsensor.model.envelope import Envelope
+
+    doc = model.card.get("envelope")
+    return None if doc is None else Envelope.from_json(doc, str(getattr(model, "card_path", "model card")))
+
+
+def _count_envelope(self: VirtualSensor, outside: bool) -> bool:
+    """Count a tick outside the envelope, and an exit; set :attr:`VirtualSensor.outside_envelope`; returns
+    whether it changed (an exit or a return)."""
+    was = self.outside_envelope
+    if outside:
+        c = self.counters
+        c["envelope_ticks"] += 1
+        if not was:
+            c["envelope_exits"] += 1
+    self.outside_envelope = outside
+    return outside != was
+
+
+def _log_envelope(self: VirtualSensor, t: float, outside: bool) -> None:
+    """Log an exit from the envelope (``envelope_exit``, with what is outside) or a return (``envelope_return``)."""
+    if not outside:
+        event(logging.INFO, "envelope_return", t=round(t, 6), envelope_ticks=self.counters["envelope_ticks"])
+        return
+    vals = dict(zip(self.layout.signals, (float(v) for v in self._vals), strict=True))
+    event(logging.WARNING, "envelope_exit", t=round(t, 6), outside=self.envelope.reasons(vals),
+          envelope_exits=self.counters["envelope_exits"])
+
 
 def _log_change(self: VirtualSensor, t: float, statuses: tuple[int, ...], bitmap: int, in_status: int) -> None:
     """Count a status change; log it with its causes."""

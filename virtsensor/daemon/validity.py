@@ -18,6 +18,12 @@ status is INVALID when a critical signal is bad, DEGRADED when only non-critical
 The health bitmap has a message's bit set when its last usable frame is fresh, in order, without E2E
 error, and none of its signals is bad. Per wheel (:func:`wheel_status`): INVALID also when the estimate
 is not finite or outside the catalogue range.
+
+Envelope (:class:`EnvelopeRules`, :func:`outside_envelope`): the inputs are *outside the envelope* when a
+bounded input lies outside the training range the model card states, or the grip used (``|ay|``,
+``hypot(ax, ay)``) exceeds the ceiling of the speed band, or the speed band had no training rows
+(:mod:`virtsensor.model.envelope`). Then a VALID wheel is DEGRADED (:func:`envelope_status`); INVALID and
+INIT are kept.
 """
 
 from __future__ import annotations
@@ -25,9 +31,11 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 __all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
-           "PlausibilityRule", "Plausibility", "assess_inputs", "wheel_status"]
+           "PlausibilityRule", "Plausibility", "assess_inputs", "wheel_status", "EnvelopeRules", "outside_envelope",
+           "envelope_status"]
 
 #: Per-wheel status codes of ``SAT_FRONT.SAT_xx_Status`` (DBC value table).
 VALID, DEGRADED, INVALID, INIT = 0, 1, 2, 3
@@ -250,3 +258,65 @@ class Plausibility:
             if failing[k]:
                 imp[r.subject] = True
         return n_new
+
+
+@dataclass(frozen=True)
+class EnvelopeRules:
+    """The model card's envelope laid out on the daemon's input signals (index ``i`` as in :class:`ValidityRules`).
+
+    Attributes:
+        lo, hi: per input signal, its range (-inf/inf: not bounded). i_vx, i_ay, i_ax: the speed and
+            acceleration inputs (-1: none). band_start, band_width: the speed bands (m/s). ay_max, acc_max: per
+            band, the ceilings of ``|ay|`` and ``hypot(ax, ay)`` (m/s^2; nan: outside; empty: no bands).
+    """
+
+    lo: tuple[float, ...]
+    hi: tuple[float, ...]
+    i_vx: int = -1
+    i_ay: int = -1
+    i_ax: int = -1
+    band_start: float = 0.0
+    band_width: float = 1.0
+    ay_max: tuple[float, ...] = ()
+    acc_max: tuple[float, ...] = ()
+
+    @classmethod
+    def from_envelope(cls, env: Any, signals: Sequence[str]) -> EnvelopeRules:
+        """Lay ``env`` (a :class:`virtsensor.model.envelope.Envelope`) out on ``signals`` (the daemon's inputs);
+        a bounded signal the daemon does not read is ignored."""
+        lo, hi = [-_INF] * len(signals), [_INF] * len(signals)
+        idx = {s: i for i, s in enumerate(signals)}
+        for s, a, b in zip(env.signals, env.lo, env.hi, strict=True):
+            if s in idx:
+                lo[idx[s]], hi[idx[s]] = float(a), float(b)
+        if not (env.has_bands and "vx_mps" in idx and "ay_mps2" in idx):
+            return cls(tuple(lo), tuple(hi))
+        return cls(tuple(lo), tuple(hi), idx["vx_mps"], idx["ay_mps2"], idx.get("ax_mps2", -1),
+                   float(env.band_start), float(env.band_width), tuple(float(v) for v in env.ay_max),
+                   tuple(float(v) for v in env.acc_max))
+
+
+def outside_envelope(values: Sequence[float], rules: EnvelopeRules) -> bool:
+    """Whether the input ``values`` (per signal, finite; best a list of floats) lie outside the envelope
+    ``rules``. Allocates nothing but float temporaries."""
+    for v, lo, hi in zip(values, rules.lo, rules.hi, strict=True):
+        if not lo <= v <= hi:
+            return True
+    caps = rules.ay_max
+    if not caps:
+        return False
+    k = math.floor((values[rules.i_vx] - rules.band_start) / rules.band_width)
+    if not 0 <= k < len(caps):
+        return True
+    ay = values[rules.i_ay]
+    if not abs(ay) <= caps[k]:  # (a nan ceiling: outside)
+        return True
+    if rules.i_ax < 0:
+        return False
+    acc_cap = rules.acc_max[k]
+    return not (acc_cap != acc_cap or math.hypot(values[rules.i_ax], ay) <= acc_cap)
+
+
+def envelope_status(status: int, outside: bool) -> int:
+    """A wheel's status once the envelope is judged: VALID becomes DEGRADED when ``outside``; others are kept."""
+    return DEGRADED if outside and status == VALID else status

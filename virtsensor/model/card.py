@@ -14,6 +14,10 @@ in their shortest round-trip form). Any edit of a loaded card (a flipped ``criti
 The ONNX side of the checks (sha256 of the graph, output names, the numpy weights against the graph)
 is in :class:`virtsensor.model.onnx.OnnxModel`.
 
+A card may state the validity envelope of its training rows (``envelope``,
+:mod:`virtsensor.model.envelope`); it is covered by the digest, checked by :meth:`ModelCard.validate`
+and read by :attr:`ModelCard.envelope`. Cards without one load as before and have no envelope check.
+
 This module needs nothing beyond the base install (the daemon imports it).
 """
 
@@ -29,6 +33,7 @@ from typing import Any
 
 from virtsensor.errors import UserError
 from virtsensor.fileio import atomic_write_bytes
+from virtsensor.model.envelope import Envelope
 
 #: Card key holding the digest of the card's canonical content.
 DIGEST_KEY = "card_sha256"
@@ -105,6 +110,13 @@ class ModelCard(Mapping[str, Any]):
     def n_features(self) -> int:
         return int(self._data["n_features"])
 
+    @property
+    def envelope(self) -> Envelope | None:
+        """The validity envelope of the training rows (:mod:`virtsensor.model.envelope`); None when the card
+        states none (cards written before envelopes existed): then nothing is checked against one."""
+        doc = self._data.get("envelope")
+        return None if doc is None else Envelope.from_json(doc, self._where())
+
     # -- digest -----------------------------------------------------------------------------------------------
     def digest(self) -> str:
         """SHA-256 (hex) of the canonical content (see the module docstring)."""
@@ -155,6 +167,11 @@ class ModelCard(Mapping[str, Any]):
         if len(set(self.outputs)) != len(outs) or d.get("n_outputs", len(outs)) != len(outs):
             raise UserError(f"{where}: outputs {list(self.outputs)} are not distinct or disagree with n_outputs")
         self._validate_inputs(where)
+        if self._data.get("envelope") is not None:
+            env = Envelope.from_json(self._data["envelope"], where)
+            stray = sorted(set(env.signals) - set(self._data.get("signals") or env.signals))
+            if stray:
+                raise UserError(f"{where}: envelope bounds {', '.join(stray)}, which the model does not read")
 
     def _validate_inputs(self, where: str) -> None:
         inputs = self._data.get("inputs")
@@ -244,7 +261,8 @@ class ModelCard(Mapping[str, Any]):
     @classmethod
     def trainer_fields(cls, *, model: str, spec: Any, recipe: Mapping[str, Any] | None = None,
                        training_data: Mapping[str, Any] | None = None, metrics: Mapping[str, Any] | None = None,
-                       seed: int | None = None, weights: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                       seed: int | None = None, weights: Mapping[str, Any] | None = None,
+                       envelope: Envelope | None = None) -> dict[str, Any]:
         """What the trainer knows, as the ``card_extra`` of :func:`virtsensor.model.export.export_pipeline`.
 
         Args:
@@ -253,6 +271,7 @@ class ModelCard(Mapping[str, Any]):
             recipe, training_data, metrics, seed: recorded as given (omitted when None).
             weights: the pipeline's plain weights (:func:`virtsensor.model.export.pipeline_weights`),
                 for the numpy back-end; checked against the graph at export and at every load.
+            envelope: the validity envelope of the training rows (:meth:`Envelope.fit`), as ``envelope``.
         """
         fields: dict[str, Any] = {"model": model}
         if recipe is not None:
@@ -262,6 +281,8 @@ class ModelCard(Mapping[str, Any]):
                            ("weights", weights)):
             if value is not None:
                 fields[key] = value
+        if envelope is not None:
+            fields["envelope"] = envelope.to_json()
         return fields
 
 
