@@ -3,8 +3,8 @@
 What runs (all in this process, on python-can's in-process ``virtual`` bus, one fresh channel per run):
 
 * the **player** (:func:`virtsensor.replay.replay`, drift-free timing, in a worker thread) sends the
-  recording's frames, timestamps preserved, with a sync frame (:data:`SYNC_ID`, not in the DBC)
-  :data:`SYNC_OFFSET_S` after each 20 Hz instant ``t_first + k * 50 ms``: after every frame stamped at or
+  recording's frames, timestamps preserved, with a sync frame (:func:`~virtsensor.daemon.layout.sync_frames`,
+  an id not in the DBC) after each 20 Hz instant ``t_first + k * TABLE_TICK_S``: after every frame stamped at or
   before the instant, before any later one;
 * the **daemon** is the real :class:`~virtsensor.daemon.VirtualSensor`, built by ``from_config`` as
   ``virtsensor run`` builds it, on its own handle of the channel, in sync mode (``--sync-id``): it ticks on
@@ -46,8 +46,6 @@ from virtsensor.errors import UserError
 
 __all__ = [
     "DEMO_RUN",
-    "SYNC_ID",
-    "SYNC_OFFSET_S",
     "default_model",
     "default_recording",
     "demo_recording_name",
@@ -57,10 +55,6 @@ __all__ = [
 
 #: The bundled run: (manoeuvre, speed km/h, road friction, seed) of ``virtsensor simulate``.
 DEMO_RUN = ("random-steer", 70.0, 0.7, 4)
-#: Sync frame id of the demo (not in the DBC; another free id is used if the recording has this one).
-SYNC_ID = 0x7F0
-#: Sync frames go this long after each 20 Hz instant (frame phases are multiples of 0.25 ms).
-SYNC_OFFSET_S = 0.5e-6
 #: Default plot, relative to the working directory.
 DEFAULT_PLOT = "figures/demo.png"
 #: Live line every this many seconds of wall time (terminal; otherwise ``LIVE_PIPE_S``).
@@ -216,16 +210,21 @@ def _load_frames(recording: Path, matrix: Any) -> tuple[list[Any], int]:
 
 
 def _with_sync(frames: list[Any], sync_id: int) -> tuple[list[Any], int]:
-    import can
+    """``frames`` (time order) and a sync frame after each 20 Hz instant from the first frame's stamp on."""
+    from virtsensor.daemon.layout import sync_frames
+    from virtsensor.signals import TABLE_TICK_S
 
     t0, t1 = frames[0].timestamp, frames[-1].timestamp
-    n = int(math.floor((t1 - t0) / 0.05 + 1e-9)) + 1
-    syncs = [can.Message(timestamp=t0 + k * 0.05 + SYNC_OFFSET_S, arbitration_id=sync_id, is_extended_id=False,
-                         dlc=0, data=b"") for k in range(n)]
+    n = int(math.floor((t1 - t0) / TABLE_TICK_S + 1e-9)) + 1
+    syncs = sync_frames(t0 + np.arange(n) * TABLE_TICK_S, sync_id)
     return sorted(frames + syncs, key=lambda m: m.timestamp), n
 
 
 def _free_id(frames: list[Any], matrix: Any) -> int:
+    """:data:`~virtsensor.daemon.layout.SYNC_ID`, or the next lower standard id that neither the recording
+    nor the DBC uses."""
+    from virtsensor.daemon.layout import SYNC_ID
+
     used = {m.arbitration_id for m in frames if not m.is_extended_id} | set(matrix.by_id)
     for fid in range(SYNC_ID, 0, -1):
         if fid not in used:
@@ -402,6 +401,8 @@ def run_demo(
 def _run(sensor, listener, tx, merged, n_sync, sync_id, sat_id, te_id, matrix, rate_f, live, out,
          rec_path, model_path, duration, has_truth, replay) -> dict[str, Any]:
     """Start the daemon and the player, listen until every tick is answered; Ctrl-C ends it early."""
+    from virtsensor.daemon.layout import SYNC_OFFSET_S
+
     dec = matrix.fresh()
     stamping = _StampingBus(tx, sync_id)
     stop = threading.Event()
