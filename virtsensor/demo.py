@@ -41,8 +41,11 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from virtsensor import plotting
 from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
 from virtsensor.errors import UserError
+from virtsensor.fileio import PARTIAL_PREFIX, write_json
+from virtsensor.metrics import mae, r2
 
 __all__ = [
     "DEMO_RUN",
@@ -67,7 +70,7 @@ PLAYER_SPIN_S = 0.0002
 DRAIN_S = 2.0
 
 _STATUS = ("VALID", "DEGRADED", "INVALID", "INIT")
-_HINT_PLOTS = "pip install -e '.[plots]'"
+_HINT_PLOTS = "pip install 'virtsensor[plots]'"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -126,7 +129,7 @@ def _check_writable(path: Path, option: str) -> None:
         raise UserError(f"{option}: cannot write {path}: {d} is not a directory")
     try:
         if d == parent:
-            fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".partial")
+            fd, tmp = tempfile.mkstemp(dir=parent, prefix=f"{PARTIAL_PREFIX}{path.stem}.", suffix=path.suffix)
             os.close(fd)
             os.unlink(tmp)
         elif not os.access(d, os.W_OK | os.X_OK):
@@ -135,31 +138,11 @@ def _check_writable(path: Path, option: str) -> None:
         raise UserError(f"{option}: cannot write {path}: {exc.strerror or exc}") from None
 
 
-def _atomic_write(path: Path, write) -> None:
-    """``write(tmp_path)`` then rename it over ``path`` (readers never see a half-written file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def _matplotlib_missing() -> str | None:
-    """None when matplotlib can be imported, else why not."""
-    try:
-        import matplotlib  # noqa: F401
-        from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
-    except ImportError as exc:
-        return f"matplotlib is not installed ({exc}); {_HINT_PLOTS} adds it"
-    return None
+    """None when the plot can be drawn, else why not (the ``plots`` extra is not installed)."""
+    if plotting.available():
+        return None
+    return f"matplotlib is not installed; {_HINT_PLOTS} adds it"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -241,21 +224,9 @@ def _fmt(v: float) -> str:
     return f"{v:7.1f}" if math.isfinite(v) else "    ---"
 
 
-def _finite(obj: Any) -> Any:
-    """``obj`` with non-finite floats as None (JSON has no NaN)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj
-
-
 def _metrics(est: np.ndarray, true: np.ndarray, status: np.ndarray) -> dict[str, Any] | None:
-    """MAE, RMSE and R2 per wheel over the ticks with an estimate and a reference; None when there are none."""
+    """MAE, RMSE (Nm) and R2 (:mod:`virtsensor.metrics`) per wheel over the ticks with an estimate (status
+    VALID or DEGRADED) and a finite reference, their mean over the two wheels; None when a wheel has < 2."""
     out: dict[str, Any] = {}
     for k, w in enumerate(("fl", "fr")):
         ok = np.isfinite(est[:, k]) & np.isfinite(true[:, k]) & (status[:, k] <= 1)
@@ -263,10 +234,9 @@ def _metrics(est: np.ndarray, true: np.ndarray, status: np.ndarray) -> dict[str,
             return None
         e, y = est[ok, k], true[ok, k]
         err = e - y
-        ss_tot = float(((y - y.mean()) ** 2).sum())
-        out[w] = {"mae_nm": round(float(np.abs(err).mean()), 4),
+        out[w] = {"mae_nm": round(mae(y, e), 4),
                   "rmse_nm": round(float(np.sqrt((err ** 2).mean())), 4),
-                  "r2": round(float(1.0 - (err ** 2).sum() / ss_tot), 5) if ss_tot > 0 else math.nan,
+                  "r2": round(r2(y, e), 5),
                   "max_abs_error_nm": round(float(np.abs(err).max()), 3),
                   "peak_true_nm": round(float(np.abs(y).max()), 3), "ticks": int(ok.sum())}
     out["mean"] = {k: round(float(np.mean([out["fl"][k], out["fr"][k]])), 5) for k in ("mae_nm", "rmse_nm", "r2")}
@@ -385,15 +355,15 @@ def run_demo(
     result["plot_skipped"] = plot_skip
     if plot_path is not None and plot_skip is None:
         if len(ticks.t):
-            _atomic_write(plot_path, lambda p: _plot(p, ticks, metrics, result))
+            _plot(plot_path, ticks, metrics, result)
             result["plot"] = str(plot_path)
         else:
             result["plot_skipped"] = "no tick to plot"
     result["wall_s"] = round(time.monotonic() - wall0, 3)
     _print_summary(result, out)
     if json_file is not None:
-        text = json.dumps(_finite(result), indent=2, allow_nan=False) + "\n"
-        _atomic_write(json_file, lambda p: p.write_text(text))
+        json_file.parent.mkdir(parents=True, exist_ok=True)
+        write_json(json_file, result)
         print(f"figures: {_shown(json_file)}", file=out, flush=True)
     return result
 
@@ -552,14 +522,11 @@ def _print_summary(r: dict[str, Any], out: TextIO) -> None:
 
 
 def _plot(path: Path, ticks: _Ticks, metrics: dict[str, Any] | None, r: dict[str, Any]) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
+    """Estimated and true SAT per wheel and the error over time, as PNG (:mod:`virtsensor.plotting`)."""
     t = np.array(ticks.t)
     est = np.array(ticks.est, dtype=float).reshape(-1, 2)
     true = np.array(ticks.true, dtype=float).reshape(-1, 2)
-    fig = Figure(figsize=(11, 8))
-    FigureCanvasAgg(fig)
+    fig = plotting.figure(11, 8, what="the demo plot")
     axes = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 3, 2]})
     colors = {"fl": "tab:blue", "fr": "tab:orange"}
     for k, (w, label) in enumerate((("fl", "front left"), ("fr", "front right"))):
@@ -583,5 +550,4 @@ def _plot(path: Path, ticks: _Ticks, metrics: dict[str, Any] | None, r: dict[str
     if metrics:
         head += f" | mean MAE {metrics['mean']['mae_nm']:.2f} Nm, mean R2 {metrics['mean']['r2']:.3f}"
     fig.suptitle(head, fontsize=11)
-    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.07, top=0.92, hspace=0.3)
-    fig.savefig(path, format="png", dpi=100)
+    plotting.save(fig, path)

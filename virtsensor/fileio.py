@@ -6,7 +6,10 @@ Contracts:
   reader of recordings ever takes for a run). The file is made readable by all (0644) and the rename is
   made durable (``fsync`` of the file and its folder, POSIX).
 * :func:`json_safe`: the same object with non-finite floats as ``None`` (JSON has no NaN/inf), numpy
-  scalars and arrays as Python numbers and lists, paths as strings, mapping keys as strings.
+  scalars and arrays as Python numbers and lists, paths as strings, sets as sorted lists, mapping keys as
+  strings.
+* :func:`json_default`: the ``default=`` hook of ``json.dumps`` for writers that refuse non-finite floats
+  instead (``allow_nan=False``): the same conversions, ``TypeError`` for any other type.
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "dumps", "json_safe", "write_json"]
+__all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "dumps", "json_default", "json_safe",
+           "write_json"]
 
 #: Prefix of the temporary file of an atomic write (readers of recordings skip such files).
 PARTIAL_PREFIX = ".partial-"
@@ -41,7 +45,21 @@ def json_safe(obj: Any) -> Any:
         return json_safe(obj.item())
     if isinstance(obj, os.PathLike):
         return os.fspath(obj)
+    if isinstance(obj, (set, frozenset)):
+        return [json_safe(v) for v in sorted(obj)]
     return obj
+
+
+def json_default(obj: Any) -> Any:
+    """``default=`` of ``json.dumps``: numpy arrays and scalars, paths and sets as JSON values (no NaN check:
+    pair it with ``allow_nan=False``). Raises ``TypeError`` naming any other type."""
+    if isinstance(obj, (np.ndarray, np.generic)):
+        return obj.tolist()
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
+    raise TypeError(f"a value of type {type(obj).__name__} is not JSON-serialisable")
 
 
 def dumps(obj: Any, *, indent: int | None = 2, compact: bool = False) -> str:

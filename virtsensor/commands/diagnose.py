@@ -15,7 +15,6 @@ it, the last third of the ``--measured`` runs is held out (when there are 3 or m
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -100,7 +99,9 @@ def run(args: argparse.Namespace) -> int:
         res["exported_model"] = _export(art["after"], res, args)
     print(_summary(res))
     if args.json:
-        _write_json(Path(args.json), res)
+        from virtsensor.fileio import write_json
+
+        write_json(args.json, res)
     if args.report:
         from virtsensor.diagnose.report import markdown, plots
 
@@ -124,27 +125,6 @@ def _summary(res) -> str:
         line += (f"\nheld-out SAT MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f} Nm, "
                  f"R2 {res['r2_before']:.3f} -> {res['r2_after']:.3f}")
     return line
-
-
-def _write_json(path: Path, res) -> None:
-    tmp = path.with_name(f".partial-{path.name}")
-    try:
-        tmp.write_text(json.dumps(res, indent=1, default=_jsonable))
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def _jsonable(o):
-    import numpy as np
-
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
 
 
 def _export(est, res, args) -> str:

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import gc
 import hashlib
-import json
 import math
 import os
 import platform
@@ -722,7 +721,7 @@ def write_histogram(r: dict[str, Any], path: str | os.PathLike) -> None:
 
 
 def to_json(r: dict[str, Any]) -> str:
-    from virtsensor.daemon.jsonlog import json_safe
+    """The bench result as indented JSON (keys starting with ``_`` left out; non-finite floats as null)."""
+    from virtsensor.fileio import dumps
 
-    clean = {k: v for k, v in r.items() if not k.startswith("_")}
-    return json.dumps(json_safe(clean), indent=2, allow_nan=False) + "\n"
+    return dumps({k: v for k, v in r.items() if not k.startswith("_")}) + "\n"
