@@ -697,13 +697,13 @@ def write_markdown(r: dict[str, Any], path: str | os.PathLike) -> None:
 
 
 def write_histogram(r: dict[str, Any], path: str | os.PathLike) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """PNG histogram of the soak's tick compute times (us, log count) with p50/p99/p99.9 marked; needs the
+    ``plots`` extra (:class:`~virtsensor.extras.MissingExtra` otherwise)."""
+    from virtsensor import plotting
 
     comp = np.asarray(r.get("_samples", {}).get("tick_compute_us", []), dtype=float)
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig = plotting.figure(8, 4.5, what="virtsensor bench --histogram")
+    ax = fig.subplots()
     if comp.size:
         hi = max(float(np.percentile(comp, 99.9)) * 1.5, 1.0)
         ax.hist(np.clip(comp, 0, hi), bins=120, log=True, color="tab:blue", alpha=0.8)
@@ -715,9 +715,7 @@ def write_histogram(r: dict[str, Any], path: str | os.PathLike) -> None:
     ax.set_title(f"virtsensor tick compute, {comp.size} ticks (clipped at 1.5 x p99.9; max {comp.max():.0f} us)"
                  if comp.size else "virtsensor tick compute (no ticks)")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    plotting.save(fig, path)
 
 
 def to_json(r: dict[str, Any]) -> str:
