@@ -25,30 +25,22 @@ coalition takes its values from the background rows (``shap.maskers.Independent`
 and the game's value is the model's mean output over them. Values are in Nm and
 add up, row by row, to the prediction minus the mean background prediction.
 
-Explainer choice
-----------------
-Exact Shapley values of a black-box model need the model on all ``2**d``
-coalitions of the ``d`` features, each over the ``B`` background rows:
-``n * 2**d * B`` model rows for ``n`` explained rows. ``shap.explainers.Exact``
-does precisely that (Gray-code order, one changed feature per step). For the
-paper's 12 features that is 500 * 4096 * 100 = 2e8 rows: about a minute with the
-single-threaded ONNX runtime (4-7 M rows/s for the 12-32-12-2 network, ``tools/microbench.py``), so the
-default (``method="auto"``) computes the **exact** values whenever
-``n * 2**d * B <= EXACT_BUDGET_ROWS``. For 20-22 features (the ``history`` spec)
-it would be 256-1024 times more (hours): no model-agnostic method gives exact
-Shapley values of an MLP with 20 inputs in minutes. There ``auto`` falls back to
-``shap.explainers.Permutation``: antithetic permutations (each ordering walked
-forward and backward, ``2d + 1`` coalitions), exact for models whose
-interactions are at most of second order, and an unbiased estimate otherwise
-whose error shrinks as 1/sqrt(permutations). It uses as many permutations as
-``PERMUTATION_BUDGET_ROWS`` allows (at least :data:`MIN_PERMUTATIONS`), and
+Explainer (``method``)
+----------------------
+* ``exact``: ``shap.explainers.Exact``, the model on all ``2**d`` coalitions of
+  the ``d`` features over the ``B`` background rows: ``n * 2**d * B`` model rows
+  for ``n`` explained rows.
+* ``permutation``: ``shap.explainers.Permutation`` with antithetic permutations
+  (each ordering walked forward and backward, ``2d + 1`` coalitions): exact for
+  models whose interactions are at most of second order, otherwise unbiased with
+  an error shrinking as 1/sqrt(permutations). As many permutations as
+  :data:`PERMUTATION_BUDGET_ROWS` allows, at least :data:`MIN_PERMUTATIONS`.
+* ``auto``: ``exact`` when ``n * 2**d * B <= EXACT_BUDGET_ROWS``, else
+  ``permutation``.
+
 ``explain.json`` records the method, the permutation count and the standard
-error of each mean |SHAP|. On the paper's model, 80 permutations give every
-mean |SHAP| within 0.05 Nm of the exact value, with the same ranking.
-``KernelExplainer`` was not chosen: its weighted regression over coalitions is
-exact only when it enumerates all ``2**d`` of them (the Exact cost again), and
-sampled it has no guarantee comparable to the antithetic permutations' (exact up
-to second-order interactions).
+error of each mean |SHAP|. Cost and accuracy of each method on the shipped
+models: README, "Measured figures".
 """
 
 from __future__ import annotations

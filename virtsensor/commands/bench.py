@@ -1,4 +1,4 @@
-"""``virtsensor bench``: the daemon's latency, jitter, throughput, CPU/RSS and soak figures (issue 6).
+"""``virtsensor bench``: the daemon's latency, jitter, throughput, CPU/RSS and soak figures.
 
 Examples::
 

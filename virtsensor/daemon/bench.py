@@ -200,7 +200,7 @@ def _sync_rig(model: Any, matrix: Any, **kw: Any) -> tuple[str, Any, Any, int]:
 
 def _stage_timer(rec: dict[str, list[float]], xs: list[np.ndarray]) -> Callable[[str, Callable[..., Any]], Any]:
     """A ``stage_hook`` of :class:`VirtualSensor` timing each stage call into ``rec[stage]`` (us, with
-    ``perf_counter_ns``; each figure includes the ~0.1-0.3 us of the wrapper call) and keeping the
+    ``perf_counter_ns``; each figure includes the wrapper call) and keeping the
     feature vectors in ``xs``."""
     pc = time.perf_counter_ns
 
@@ -619,7 +619,7 @@ def run_bench(model_path: str | os.PathLike | None = None, *, quick: bool = Fals
 
 
 def targets(r: dict[str, Any]) -> dict[str, Any]:
-    """Issue 6 targets: value, limit, met."""
+    """The daemon's performance targets: per target its value, limit and whether it is met (None: not measured)."""
     def get(d: Any, *keys: str) -> Any:
         for k in keys:
             d = d.get(k) if isinstance(d, dict) else None
@@ -690,7 +690,7 @@ def write_markdown(r: dict[str, Any], path: str | os.PathLike) -> None:
               f"* soak: {s['ticks']} ticks in {s['wall_s']} s, missed {s['missed_ticks']} "
               f"(no SAT_FRONT {s['missed_no_sat_front']}, over budget {s['missed_over_budget']}), RSS "
               f"{s['rss_mb_start']:.1f} -> {s['rss_mb_end']:.1f} MB (drift {s['rss_mb_drift']:+.2f} MB)", "",
-              "## Issue 6 targets", "", "| target | value | limit | met |", "|---|---:|---|---|"]
+              "## Targets", "", "| target | value | limit | met |", "|---|---:|---|---|"]
     for k, t in r["targets"].items():
         lines.append(f"| {k} | {t['value']} | {t['limit']} | {'yes' if t['met'] else 'NO'} |")
     Path(path).write_text("\n".join(lines) + "\n")
