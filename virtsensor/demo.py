@@ -30,7 +30,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -44,7 +43,7 @@ import numpy as np
 from virtsensor import plotting
 from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
 from virtsensor.errors import UserError
-from virtsensor.fileio import PARTIAL_PREFIX, write_json
+from virtsensor.fileio import check_writable, write_json
 from virtsensor.metrics import mae, r2
 
 __all__ = [
@@ -119,25 +118,6 @@ def _describe(recording: Path) -> str:
 # ---------------------------------------------------------------------------------------------------------------
 # output files: checked before the run, written atomically after it
 # ---------------------------------------------------------------------------------------------------------------
-def _check_writable(path: Path, option: str) -> None:
-    """Refuse (UserError) an output path that cannot be written, before spending a run on it (nothing created)."""
-    if path.is_dir():
-        raise UserError(f"{option}: {path} is a directory, give a file name")
-    parent = path.parent
-    d = next(a for a in (parent, *parent.parents) if a.exists())  # ends at "." or "/" at the latest
-    if not d.is_dir():
-        raise UserError(f"{option}: cannot write {path}: {d} is not a directory")
-    try:
-        if d == parent:
-            fd, tmp = tempfile.mkstemp(dir=parent, prefix=f"{PARTIAL_PREFIX}{path.stem}.", suffix=path.suffix)
-            os.close(fd)
-            os.unlink(tmp)
-        elif not os.access(d, os.W_OK | os.X_OK):
-            raise PermissionError(13, f"{d} is not writable")
-    except OSError as exc:
-        raise UserError(f"{option}: cannot write {path}: {exc.strerror or exc}") from None
-
-
 def _matplotlib_missing() -> str | None:
     """None when the plot can be drawn, else why not (the ``plots`` extra is not installed)."""
     if plotting.available():
@@ -291,9 +271,9 @@ def run_demo(
     json_file = Path(json_path) if json_path is not None else None
     # refusals first, before any work
     if plot_path is not None and plot_skip is None:
-        _check_writable(plot_path, "--plot")
+        check_writable(plot_path, "--plot")
     if json_file is not None:
-        _check_writable(json_file, "--json")
+        check_writable(json_file, "--json")
     if not model_path.is_file():
         raise UserError(f"--model: no such model file {model_path}")
 
