@@ -45,7 +45,6 @@ models: README, "Measured figures".
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -59,6 +58,7 @@ import numpy as np
 from virtsensor import plotting
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
+from virtsensor.fileio import write_json
 
 #: Background rows of the independent masker (drawn with the seed from the training side).
 BACKGROUND_ROWS = 100
@@ -557,6 +557,6 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
             say(f"{lap} lap: R2 {m['r2']:.3f}, MAE {m['mae_nm']:.2f} Nm, axle R2 {m['axle']['r2']:.3f}")
     doc["figures"] = figures
     doc = _round(doc)
-    (out_dir / "explain.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    write_json(out_dir / "explain.json", doc)
     say(f"wrote {len(figures)} figures and explain.json to {out_dir}")
     return doc

@@ -59,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.commands._simargs import car_from_args
     from virtsensor.diagnose import diagnose
     from virtsensor.errors import UserError
+    from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.measured import load_measured
     from virtsensor.training import RECIPES
 
@@ -99,15 +100,13 @@ def run(args: argparse.Namespace) -> int:
         res["exported_model"] = _export(art["after"], res, args)
     print(_summary(res))
     if args.json:
-        from virtsensor.fileio import write_json
-
         write_json(args.json, res)
     if args.report:
         from virtsensor.diagnose.report import markdown, plots
 
         d = Path(args.report)
         d.mkdir(parents=True, exist_ok=True)
-        (d / "diagnosis.md").write_text(markdown(res))
+        atomic_write_bytes(d / "diagnosis.md", markdown(res).encode())
         files = plots(art, res, d)
         log(f"report: {d / 'diagnosis.md'}" + (f" and {len(files)} plots" if files else
                                                 " (plots skipped: matplotlib is not installed)"))

@@ -10,10 +10,8 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import warnings
-from pathlib import Path
 
 HELP = "Table IV: the paper's protocols and honest ones, baselines, JSON and Markdown"
 
@@ -42,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.evaluation import evaluate, markdown_table
     from virtsensor.features import SPECS, FeatureSpec
+    from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.metrics import metrics
     from virtsensor.model.onnx import OnnxModel
     from virtsensor.training import RECIPES
@@ -73,9 +72,9 @@ def run(args: argparse.Namespace) -> int:
             ds = build_dataset([r], spec)
             shipped[f"track_{lap}"] = metrics(ds.Y, model.predict(ds.X))
         result["shipped_model"] = {"file": str(args.model), "sha256": card["sha256"], **shipped}
-    Path(args.json).write_text(json.dumps(result, indent=1))
+    write_json(args.json, result)
     table = markdown_table(result)
     if args.markdown:
-        Path(args.markdown).write_text(table)
+        atomic_write_bytes(args.markdown, table.encode())
     print(table)
     return 0

@@ -45,6 +45,7 @@ import numpy as np
 from virtsensor import assets
 from virtsensor.daemon.layout import SYNC_ID, SYNC_OFFSET_S, sync_frames
 from virtsensor.errors import UserError
+from virtsensor.fileio import atomic_write_bytes
 from virtsensor.signals import TABLE_TICK_S as TICK_S
 
 __all__ = ["run_bench", "write_markdown", "write_histogram", "percentiles", "await_frame", "Inputs"]
@@ -693,7 +694,7 @@ def write_markdown(r: dict[str, Any], path: str | os.PathLike) -> None:
               "## Targets", "", "| target | value | limit | met |", "|---|---:|---|---|"]
     for k, t in r["targets"].items():
         lines.append(f"| {k} | {t['value']} | {t['limit']} | {'yes' if t['met'] else 'NO'} |")
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
 
 
 def write_histogram(r: dict[str, Any], path: str | os.PathLike) -> None:
