@@ -38,8 +38,8 @@ alpha linearly and fades the curve shifts, the trail and the residual torque wit
 a smooth (cosine) factor; backwards rolling flips the signs as MFeval does.
 ``use_alpha_star=True`` (default, MFeval ``useMode`` 121) uses the book's
 alpha* = tan(alpha) sign(Vcx) and gamma* = sin(gamma); ``False`` gives ``useMode``
-111 (alpha* = alpha, gamma* = gamma, the TNO choice). Below 5 deg of slip the two
-differ by < 0.1 % of the peak in Fy and < 0.4 % in Mz.
+111 (alpha* = alpha, gamma* = gamma, the TNO choice). The two differ only to third
+order in the slip angle and the inclination (tan a - a and sin g - g).
 
 Friction scaling: ``mu_scale`` multiplies LMUX and LMUY (the road friction
 relative to the surface the tyre was measured on). Through the MF equations this

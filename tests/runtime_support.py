@@ -10,17 +10,11 @@ import can
 import numpy as np
 
 from virtsensor import signals as cat
+from virtsensor.daemon.layout import SYNC_ID, sync_frames
 from virtsensor.features import HISTORY, FeatureSpec
 from virtsensor.model import ModelCard
 from virtsensor.model.envelope import Envelope
 from virtsensor.model.export import export_pipeline, pipeline_weights
-
-#: A dedicated sync id of the tests (not in the DBC).
-SYNC_ID = 0x7F0
-#: Sync frames go this long after each 20 Hz grid instant: after the frames stamped at the
-#: instant, before any later one (frame phases are multiples of 0.25 ms), and inside the
-#: offline table's 1 us tolerance, so both paths see the same frames at each tick.
-SYNC_OFFSET_S = 0.5e-6
 
 
 def card_inputs(spec: FeatureSpec) -> list[dict]:
@@ -78,15 +72,15 @@ def synthetic_streams(duration_s: float, seed: int = 0, rate_hz: float = 100.0):
 
 
 def with_sync(frames: Iterable[can.Message], t_first: float, t_last: float, sync_id: int = SYNC_ID,
-              period: float = 0.05) -> tuple[list[can.Message], np.ndarray]:
-    """``frames`` with a sync frame ``SYNC_OFFSET_S`` after each grid instant ``t_first + k * period``.
+              period: float = cat.TABLE_TICK_S) -> tuple[list[can.Message], np.ndarray]:
+    """``frames`` with a sync frame (:func:`~virtsensor.daemon.layout.sync_frames`) after each grid instant
+    ``t_first + k * period``.
 
     Returns the merged frames (time order) and the tick times.
     """
     frames = list(frames)
     n = int(np.floor((t_last - t_first) / period + 1e-9)) + 1
     ticks = t_first + np.arange(n) * period
-    syncs = [can.Message(timestamp=float(tk + SYNC_OFFSET_S), arbitration_id=sync_id, is_extended_id=False,
-                         data=b"", dlc=0) for tk in ticks]
+    syncs = sync_frames(ticks, sync_id)
     merged = sorted(frames + syncs, key=lambda m: m.timestamp)  # stable; no ties by construction
     return merged, ticks

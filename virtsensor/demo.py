@@ -3,8 +3,8 @@
 What runs (all in this process, on python-can's in-process ``virtual`` bus, one fresh channel per run):
 
 * the **player** (:func:`virtsensor.replay.replay`, drift-free timing, in a worker thread) sends the
-  recording's frames, timestamps preserved, with a sync frame (:data:`SYNC_ID`, not in the DBC)
-  :data:`SYNC_OFFSET_S` after each 20 Hz instant ``t_first + k * 50 ms``: after every frame stamped at or
+  recording's frames, timestamps preserved, with a sync frame (:func:`~virtsensor.daemon.layout.sync_frames`,
+  an id not in the DBC) after each 20 Hz instant ``t_first + k * TABLE_TICK_S``: after every frame stamped at or
   before the instant, before any later one;
 * the **daemon** is the real :class:`~virtsensor.daemon.VirtualSensor`, built by ``from_config`` as
   ``virtsensor run`` builds it, on its own handle of the channel, in sync mode (``--sync-id``): it ticks on
@@ -30,7 +30,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -41,13 +40,14 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from virtsensor import plotting
 from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
 from virtsensor.errors import UserError
+from virtsensor.fileio import check_writable, write_json
+from virtsensor.metrics import mae, r2
 
 __all__ = [
     "DEMO_RUN",
-    "SYNC_ID",
-    "SYNC_OFFSET_S",
     "default_model",
     "default_recording",
     "demo_recording_name",
@@ -57,10 +57,6 @@ __all__ = [
 
 #: The bundled run: (manoeuvre, speed km/h, road friction, seed) of ``virtsensor simulate``.
 DEMO_RUN = ("random-steer", 70.0, 0.7, 4)
-#: Sync frame id of the demo (not in the DBC; another free id is used if the recording has this one).
-SYNC_ID = 0x7F0
-#: Sync frames go this long after each 20 Hz instant (frame phases are multiples of 0.25 ms).
-SYNC_OFFSET_S = 0.5e-6
 #: Default plot, relative to the working directory.
 DEFAULT_PLOT = "figures/demo.png"
 #: Live line every this many seconds of wall time (terminal; otherwise ``LIVE_PIPE_S``).
@@ -73,7 +69,7 @@ PLAYER_SPIN_S = 0.0002
 DRAIN_S = 2.0
 
 _STATUS = ("VALID", "DEGRADED", "INVALID", "INIT")
-_HINT_PLOTS = "pip install -e '.[plots]'"
+_HINT_PLOTS = "pip install 'virtsensor[plots]'"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -122,50 +118,11 @@ def _describe(recording: Path) -> str:
 # ---------------------------------------------------------------------------------------------------------------
 # output files: checked before the run, written atomically after it
 # ---------------------------------------------------------------------------------------------------------------
-def _check_writable(path: Path, option: str) -> None:
-    """Refuse (UserError) an output path that cannot be written, before spending a run on it (nothing created)."""
-    if path.is_dir():
-        raise UserError(f"{option}: {path} is a directory, give a file name")
-    parent = path.parent
-    d = next(a for a in (parent, *parent.parents) if a.exists())  # ends at "." or "/" at the latest
-    if not d.is_dir():
-        raise UserError(f"{option}: cannot write {path}: {d} is not a directory")
-    try:
-        if d == parent:
-            fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".partial")
-            os.close(fd)
-            os.unlink(tmp)
-        elif not os.access(d, os.W_OK | os.X_OK):
-            raise PermissionError(13, f"{d} is not writable")
-    except OSError as exc:
-        raise UserError(f"{option}: cannot write {path}: {exc.strerror or exc}") from None
-
-
-def _atomic_write(path: Path, write) -> None:
-    """``write(tmp_path)`` then rename it over ``path`` (readers never see a half-written file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def _matplotlib_missing() -> str | None:
-    """None when matplotlib can be imported, else why not."""
-    try:
-        import matplotlib  # noqa: F401
-        from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
-    except ImportError as exc:
-        return f"matplotlib is not installed ({exc}); {_HINT_PLOTS} adds it"
-    return None
+    """None when the plot can be drawn, else why not (the ``plots`` extra is not installed)."""
+    if plotting.available():
+        return None
+    return f"matplotlib is not installed; {_HINT_PLOTS} adds it"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -216,16 +173,21 @@ def _load_frames(recording: Path, matrix: Any) -> tuple[list[Any], int]:
 
 
 def _with_sync(frames: list[Any], sync_id: int) -> tuple[list[Any], int]:
-    import can
+    """``frames`` (time order) and a sync frame after each 20 Hz instant from the first frame's stamp on."""
+    from virtsensor.daemon.layout import sync_frames
+    from virtsensor.signals import TABLE_TICK_S
 
     t0, t1 = frames[0].timestamp, frames[-1].timestamp
-    n = int(math.floor((t1 - t0) / 0.05 + 1e-9)) + 1
-    syncs = [can.Message(timestamp=t0 + k * 0.05 + SYNC_OFFSET_S, arbitration_id=sync_id, is_extended_id=False,
-                         dlc=0, data=b"") for k in range(n)]
+    n = int(math.floor((t1 - t0) / TABLE_TICK_S + 1e-9)) + 1
+    syncs = sync_frames(t0 + np.arange(n) * TABLE_TICK_S, sync_id)
     return sorted(frames + syncs, key=lambda m: m.timestamp), n
 
 
 def _free_id(frames: list[Any], matrix: Any) -> int:
+    """:data:`~virtsensor.daemon.layout.SYNC_ID`, or the next lower standard id that neither the recording
+    nor the DBC uses."""
+    from virtsensor.daemon.layout import SYNC_ID
+
     used = {m.arbitration_id for m in frames if not m.is_extended_id} | set(matrix.by_id)
     for fid in range(SYNC_ID, 0, -1):
         if fid not in used:
@@ -242,21 +204,9 @@ def _fmt(v: float) -> str:
     return f"{v:7.1f}" if math.isfinite(v) else "    ---"
 
 
-def _finite(obj: Any) -> Any:
-    """``obj`` with non-finite floats as None (JSON has no NaN)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj
-
-
 def _metrics(est: np.ndarray, true: np.ndarray, status: np.ndarray) -> dict[str, Any] | None:
-    """MAE, RMSE and R2 per wheel over the ticks with an estimate and a reference; None when there are none."""
+    """MAE, RMSE (Nm) and R2 (:mod:`virtsensor.metrics`) per wheel over the ticks with an estimate (status
+    VALID or DEGRADED) and a finite reference, their mean over the two wheels; None when a wheel has < 2."""
     out: dict[str, Any] = {}
     for k, w in enumerate(("fl", "fr")):
         ok = np.isfinite(est[:, k]) & np.isfinite(true[:, k]) & (status[:, k] <= 1)
@@ -264,10 +214,9 @@ def _metrics(est: np.ndarray, true: np.ndarray, status: np.ndarray) -> dict[str,
             return None
         e, y = est[ok, k], true[ok, k]
         err = e - y
-        ss_tot = float(((y - y.mean()) ** 2).sum())
-        out[w] = {"mae_nm": round(float(np.abs(err).mean()), 4),
+        out[w] = {"mae_nm": round(mae(y, e), 4),
                   "rmse_nm": round(float(np.sqrt((err ** 2).mean())), 4),
-                  "r2": round(float(1.0 - (err ** 2).sum() / ss_tot), 5) if ss_tot > 0 else math.nan,
+                  "r2": round(r2(y, e), 5),
                   "max_abs_error_nm": round(float(np.abs(err).max()), 3),
                   "peak_true_nm": round(float(np.abs(y).max()), 3), "ticks": int(ok.sum())}
     out["mean"] = {k: round(float(np.mean([out["fl"][k], out["fr"][k]])), 5) for k in ("mae_nm", "rmse_nm", "r2")}
@@ -322,9 +271,9 @@ def run_demo(
     json_file = Path(json_path) if json_path is not None else None
     # refusals first, before any work
     if plot_path is not None and plot_skip is None:
-        _check_writable(plot_path, "--plot")
+        check_writable(plot_path, "--plot")
     if json_file is not None:
-        _check_writable(json_file, "--json")
+        check_writable(json_file, "--json")
     if not model_path.is_file():
         raise UserError(f"--model: no such model file {model_path}")
 
@@ -386,15 +335,15 @@ def run_demo(
     result["plot_skipped"] = plot_skip
     if plot_path is not None and plot_skip is None:
         if len(ticks.t):
-            _atomic_write(plot_path, lambda p: _plot(p, ticks, metrics, result))
+            _plot(plot_path, ticks, metrics, result)
             result["plot"] = str(plot_path)
         else:
             result["plot_skipped"] = "no tick to plot"
     result["wall_s"] = round(time.monotonic() - wall0, 3)
     _print_summary(result, out)
     if json_file is not None:
-        text = json.dumps(_finite(result), indent=2, allow_nan=False) + "\n"
-        _atomic_write(json_file, lambda p: p.write_text(text))
+        json_file.parent.mkdir(parents=True, exist_ok=True)
+        write_json(json_file, result)
         print(f"figures: {_shown(json_file)}", file=out, flush=True)
     return result
 
@@ -402,6 +351,8 @@ def run_demo(
 def _run(sensor, listener, tx, merged, n_sync, sync_id, sat_id, te_id, matrix, rate_f, live, out,
          rec_path, model_path, duration, has_truth, replay) -> dict[str, Any]:
     """Start the daemon and the player, listen until every tick is answered; Ctrl-C ends it early."""
+    from virtsensor.daemon.layout import SYNC_OFFSET_S
+
     dec = matrix.fresh()
     stamping = _StampingBus(tx, sync_id)
     stop = threading.Event()
@@ -551,14 +502,11 @@ def _print_summary(r: dict[str, Any], out: TextIO) -> None:
 
 
 def _plot(path: Path, ticks: _Ticks, metrics: dict[str, Any] | None, r: dict[str, Any]) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
+    """Estimated and true SAT per wheel and the error over time, as PNG (:mod:`virtsensor.plotting`)."""
     t = np.array(ticks.t)
     est = np.array(ticks.est, dtype=float).reshape(-1, 2)
     true = np.array(ticks.true, dtype=float).reshape(-1, 2)
-    fig = Figure(figsize=(11, 8))
-    FigureCanvasAgg(fig)
+    fig = plotting.figure(11, 8, what="the demo plot")
     axes = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 3, 2]})
     colors = {"fl": "tab:blue", "fr": "tab:orange"}
     for k, (w, label) in enumerate((("fl", "front left"), ("fr", "front right"))):
@@ -582,5 +530,4 @@ def _plot(path: Path, ticks: _Ticks, metrics: dict[str, Any] | None, r: dict[str
     if metrics:
         head += f" | mean MAE {metrics['mean']['mae_nm']:.2f} Nm, mean R2 {metrics['mean']['r2']:.3f}"
     fig.suptitle(head, fontsize=11)
-    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.07, top=0.92, hspace=0.3)
-    fig.savefig(path, format="png", dpi=100)
+    plotting.save(fig, path)

@@ -31,35 +31,26 @@ coalition takes its values from the background rows (``shap.maskers.Independent`
 and the game's value is the model's mean output over them. Values are in Nm and
 add up, row by row, to the prediction minus the mean background prediction.
 
-Explainer choice
-----------------
-Exact Shapley values of a black-box model need the model on all ``2**d``
-coalitions of the ``d`` features, each over the ``B`` background rows:
-``n * 2**d * B`` model rows for ``n`` explained rows. ``shap.explainers.Exact``
-does precisely that (Gray-code order, one changed feature per step). For the
-paper's 12 features that is 500 * 4096 * 100 = 2e8 rows: about a minute with the
-single-threaded ONNX runtime (4-7 M rows/s for the 12-32-12-2 network, ``tools/microbench.py``), so the
-default (``method="auto"``) computes the **exact** values whenever
-``n * 2**d * B <= EXACT_BUDGET_ROWS``. For 20-22 features (the ``history`` spec)
-it would be 256-1024 times more (hours): no model-agnostic method gives exact
-Shapley values of an MLP with 20 inputs in minutes. There ``auto`` falls back to
-``shap.explainers.Permutation``: antithetic permutations (each ordering walked
-forward and backward, ``2d + 1`` coalitions), exact for models whose
-interactions are at most of second order, and an unbiased estimate otherwise
-whose error shrinks as 1/sqrt(permutations). It uses as many permutations as
-``PERMUTATION_BUDGET_ROWS`` allows (at least :data:`MIN_PERMUTATIONS`), and
+Explainer (``method``)
+----------------------
+* ``exact``: ``shap.explainers.Exact``, the model on all ``2**d`` coalitions of
+  the ``d`` features over the ``B`` background rows: ``n * 2**d * B`` model rows
+  for ``n`` explained rows.
+* ``permutation``: ``shap.explainers.Permutation`` with antithetic permutations
+  (each ordering walked forward and backward, ``2d + 1`` coalitions): exact for
+  models whose interactions are at most of second order, otherwise unbiased with
+  an error shrinking as 1/sqrt(permutations). As many permutations as
+  :data:`PERMUTATION_BUDGET_ROWS` allows, at least :data:`MIN_PERMUTATIONS`.
+* ``auto``: ``exact`` when ``n * 2**d * B <= EXACT_BUDGET_ROWS``, else
+  ``permutation``.
+
 ``explain.json`` records the method, the permutation count and the standard
-error of each mean |SHAP|. On the paper's model, 80 permutations give every
-mean |SHAP| within 0.05 Nm of the exact value, with the same ranking.
-``KernelExplainer`` was not chosen: its weighted regression over coalitions is
-exact only when it enumerates all ``2**d`` of them (the Exact cost again), and
-sampled it has no guarantee comparable to the antithetic permutations' (exact up
-to second-order interactions).
+error of each mean |SHAP|. Cost and accuracy of each method on the shipped
+models: README, "Measured figures".
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -70,8 +61,10 @@ from typing import Any
 
 import numpy as np
 
+from virtsensor import plotting
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
+from virtsensor.fileio import write_json
 
 #: Background rows of the independent masker (drawn with the seed from the training side).
 BACKGROUND_ROWS = 100
@@ -106,14 +99,6 @@ def require_shap() -> Any:
     except ImportError:
         raise UserError(SHAP_MISSING) from None
     return shap
-
-
-def _require_matplotlib() -> None:
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        raise UserError("the figures need matplotlib: install the 'explain' extra: "
-                        "pip install 'virtsensor[explain]'") from None
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -270,20 +255,6 @@ def shap_values(predict: Callable[[np.ndarray], np.ndarray], X: np.ndarray, back
 # ---------------------------------------------------------------------------------------------------------------
 # figures
 # ---------------------------------------------------------------------------------------------------------------
-def _figure(width: float, height: float) -> Any:
-    """A matplotlib Figure on an Agg canvas (no pyplot, no display)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width, height), dpi=110, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _save(fig: Any, path: Path) -> None:
-    fig.savefig(path, format="png")
-
-
 def _label(name: str) -> str:
     """Axis label of a feature or catalogue signal: its name and unit (``steer_angle_rad@rate [rad/s]``)."""
     base, _, op = name.partition("@")
@@ -299,9 +270,9 @@ def plot_correlation(path: Path, names: Sequence[str], C: np.ndarray, subtitle: 
     from matplotlib.colors import to_rgba
 
     k = len(names)
-    fig = _figure(1.6 + 0.62 * k, 1.2 + 0.55 * k)
+    fig = plotting.figure(1.6 + 0.62 * k, 1.2 + 0.55 * k)
     ax = fig.add_subplot()
-    cmap = _cmap("RdBu_r").with_extremes(bad=to_rgba("0.85"))  # grey: undefined (a constant column)
+    cmap = plotting.colormap("RdBu_r").with_extremes(bad=to_rgba("0.85"))  # grey: undefined (a constant column)
     im = ax.imshow(np.ma.masked_invalid(C), cmap=cmap, vmin=-1.0, vmax=1.0)
     ax.set_xticks(range(k), names, rotation=50, ha="right", rotation_mode="anchor", fontsize=8)
     ax.set_yticks(range(k), names, fontsize=8)
@@ -319,13 +290,7 @@ def plot_correlation(path: Path, names: Sequence[str], C: np.ndarray, subtitle: 
     fig.colorbar(im, ax=ax, shrink=0.8, label="Pearson correlation coefficient")
     ax.set_title("Correlation of the 12 inputs and the 2 front SATs" + (f"\n{subtitle}" if subtitle else ""),
                  fontsize=10)
-    _save(fig, path)
-
-
-def _cmap(name: str) -> Any:
-    import matplotlib
-
-    return matplotlib.colormaps[name]
+    plotting.save(fig, path)
 
 
 def plot_importance(path: Path, result: ShapResult, subtitle: str = "") -> None:
@@ -333,7 +298,7 @@ def plot_importance(path: Path, result: ShapResult, subtitle: str = "") -> None:
     imp = result.mean_abs()
     se = result.mean_abs_stderr()
     d, k = imp.shape
-    fig = _figure(6.0 * k, 1.4 + 0.36 * d)
+    fig = plotting.figure(6.0 * k, 1.4 + 0.36 * d)
     for j in range(k):
         ax = fig.add_subplot(1, k, j + 1)
         order = np.argsort(-imp[:, j], kind="stable")[::-1]  # largest at the top
@@ -352,7 +317,7 @@ def plot_importance(path: Path, result: ShapResult, subtitle: str = "") -> None:
     what = "exact Shapley values" if result.method == "exact" else f"{result.permutations} antithetic permutations"
     fig.suptitle(f"Global SHAP importance ({what}, {len(result.values)} test rows, "
                  f"{result.background_rows} background rows)" + (f"\n{subtitle}" if subtitle else ""), fontsize=10)
-    _save(fig, path)
+    plotting.save(fig, path)
 
 
 def interaction_partner(shap_module: Any, result: ShapResult, feature: int, output: int = 0) -> int | None:
@@ -368,7 +333,7 @@ def plot_dependence(path: Path, result: ShapResult, features: Sequence[int], par
                     output: int = 0) -> None:
     """SHAP value against feature value, coloured by the strongest interacting feature (the paper's Fig. 9)."""
     m = len(features)
-    fig = _figure(5.0 * m, 4.4)
+    fig = plotting.figure(5.0 * m, 4.4)
     name = result.output_names[output]
     for p, (i, partner) in enumerate(zip(features, partners, strict=True)):
         ax = fig.add_subplot(1, m, p + 1)
@@ -388,7 +353,7 @@ def plot_dependence(path: Path, result: ShapResult, features: Sequence[int], par
         ax.set_title(f"#{p + 1}: {result.feature_names[i]}", fontsize=10)
         ax.grid(alpha=0.3)
     fig.suptitle(f"SHAP dependence of the {WHEEL_LABEL.get(name, name)}: top {m} features", fontsize=10)
-    _save(fig, path)
+    plotting.save(fig, path)
 
 
 def plot_track(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: Mapping[str, Any],
@@ -396,13 +361,11 @@ def plot_track(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics:
     """Estimated (red) and true (blue) front SATs over a lap (``lap``: its title, e.g. "dry lap"), one panel per
     wheel (the paper's Figs. 5 and 6); rows ``outside`` the validity envelope (bool per row; None: no envelope)
     shaded."""
-    from virtsensor.plotting import shade
-
-    fig = _figure(12.0, 6.4)
+    fig = plotting.figure(12.0, 6.4)
     for j, (wheel, name) in enumerate((("fl", "sat_fl_nm"), ("fr", "sat_fr_nm"))):
         ax = fig.add_subplot(2, 1, j + 1)
         if outside is not None:
-            shade(ax, t, outside, label="outside the validity envelope")
+            plotting.shade(ax, t, outside, label="outside the validity envelope")
         ax.plot(t, Y[:, j], color=TRUE_COLOUR, lw=0.9, label="true")
         ax.plot(t, P[:, j], color=ESTIMATE_COLOUR, lw=0.8, label="estimated (ONNX)")
         m = metrics[wheel]
@@ -411,19 +374,17 @@ def plot_track(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics:
         ax.grid(alpha=0.3)
         ax.legend(loc="best", fontsize=8, framealpha=0.8)
     ax.set_xlabel("time in the lap [s]")
-    _save(fig, path)
+    plotting.save(fig, path)
 
 
 def plot_axle(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: Mapping[str, Any],
               lap: str, outside: np.ndarray | None = None) -> None:
     """Estimated (red) and true (blue) axle total FL + FR over a lap (the paper's Fig. 7), rows ``outside``
     the validity envelope shaded."""
-    from virtsensor.plotting import shade
-
-    fig = _figure(12.0, 3.8)
+    fig = plotting.figure(12.0, 3.8)
     ax = fig.add_subplot()
     if outside is not None:
-        shade(ax, t, outside, label="outside the validity envelope")
+        plotting.shade(ax, t, outside, label="outside the validity envelope")
     ax.plot(t, Y.sum(axis=1), color=TRUE_COLOUR, lw=0.9, label="true")
     ax.plot(t, P.sum(axis=1), color=ESTIMATE_COLOUR, lw=0.8, label="estimated (ONNX)")
     m = metrics["axle"]
@@ -432,7 +393,7 @@ def plot_axle(path: Path, t: np.ndarray, Y: np.ndarray, P: np.ndarray, metrics: 
     ax.set_ylabel("sat_fl_nm + sat_fr_nm [Nm]")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8, framealpha=0.8)
-    _save(fig, path)
+    plotting.save(fig, path)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -528,7 +489,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     if method not in ("auto", "exact", "permutation"):
         raise UserError(f"--method {method!r}: choose auto, exact or permutation")
     shap = require_shap()
-    _require_matplotlib()
+    plotting.require("virtsensor explain")
     model = OnnxModel.load(model_path)
     try:
         spec = FeatureSpec.from_json(model.card["feature_spec"])
@@ -636,6 +597,6 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
                                                    f"circuit_{r.name}.png", None, figures, say)
     doc["figures"] = figures
     doc = _round(doc)
-    (out_dir / "explain.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    write_json(out_dir / "explain.json", doc)
     say(f"wrote {len(figures)} figures and explain.json to {out_dir}")
     return doc

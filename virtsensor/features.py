@@ -28,7 +28,7 @@ import numpy as np
 from virtsensor import signals as cat
 
 Op = Literal["value", "rate", "accel", "lag"]
-TICK_S = 1.0 / cat.TABLE_RATE_HZ
+TICK_S = cat.TABLE_TICK_S
 
 
 @dataclass(frozen=True)

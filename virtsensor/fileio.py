@@ -6,7 +6,10 @@ Contracts:
   reader of recordings ever takes for a run). The file is made readable by all (0644) and the rename is
   made durable (``fsync`` of the file and its folder, POSIX).
 * :func:`json_safe`: the same object with non-finite floats as ``None`` (JSON has no NaN/inf), numpy
-  scalars and arrays as Python numbers and lists, paths as strings, mapping keys as strings.
+  scalars and arrays as Python numbers and lists, paths as strings, sets as sorted lists, mapping keys as
+  strings.
+* :func:`json_default`: the ``default=`` hook of ``json.dumps`` for writers that refuse non-finite floats
+  instead (``allow_nan=False``): the same conversions, ``TypeError`` for any other type.
 """
 
 from __future__ import annotations
@@ -21,7 +24,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "dumps", "json_safe", "write_json"]
+from virtsensor.errors import UserError
+
+__all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "check_writable", "dumps", "json_default",
+           "json_safe", "write_json"]
 
 #: Prefix of the temporary file of an atomic write (readers of recordings skip such files).
 PARTIAL_PREFIX = ".partial-"
@@ -41,7 +47,21 @@ def json_safe(obj: Any) -> Any:
         return json_safe(obj.item())
     if isinstance(obj, os.PathLike):
         return os.fspath(obj)
+    if isinstance(obj, (set, frozenset)):
+        return [json_safe(v) for v in sorted(obj)]
     return obj
+
+
+def json_default(obj: Any) -> Any:
+    """``default=`` of ``json.dumps``: numpy arrays and scalars, paths and sets as JSON values (no NaN check:
+    pair it with ``allow_nan=False``). Raises ``TypeError`` naming any other type."""
+    if isinstance(obj, (np.ndarray, np.generic)):
+        return obj.tolist()
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
+    raise TypeError(f"a value of type {type(obj).__name__} is not JSON-serialisable")
 
 
 def dumps(obj: Any, *, indent: int | None = 2, compact: bool = False) -> str:
@@ -90,3 +110,30 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
 def write_json(path: str | os.PathLike[str], obj: Any) -> None:
     """Write ``obj`` as indented JSON (:func:`json_safe`) with a final newline, atomically."""
     atomic_write_bytes(path, (dumps(obj) + "\n").encode())
+
+
+def check_writable(path: str | os.PathLike[str], option: str) -> None:
+    """Refuse an output file that cannot be written, before any work is spent on it; leaves nothing behind.
+
+    Missing folders are fine (the writer creates them) when the nearest existing one is a writable folder;
+    an existing parent folder is tried with a temporary file (which is removed at once).
+
+    Raises:
+        UserError: ``"<option>: ..."``: ``path`` is a folder, or its folder is not one or is not writable.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{option}: {path} is a directory, give a file name")
+    parent = path.parent
+    folder = next(a for a in (parent, *parent.parents) if a.exists())  # "." or "/" at the latest
+    if not folder.is_dir():
+        raise UserError(f"{option}: cannot write {path}: {folder} is not a directory")
+    try:
+        if folder == parent:
+            fd, tmp = tempfile.mkstemp(dir=parent, prefix=f"{PARTIAL_PREFIX}{path.stem}.", suffix=path.suffix)
+            os.close(fd)
+            os.unlink(tmp)
+        elif not os.access(folder, os.W_OK | os.X_OK):
+            raise PermissionError(13, f"{folder} is not writable")
+    except OSError as exc:
+        raise UserError(f"{option}: cannot write {path}: {exc.strerror or exc}") from None

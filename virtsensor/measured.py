@@ -40,7 +40,7 @@ from virtsensor.recordings.files import read_table, recording_files
 from virtsensor.recordings.manifest import check_rows
 
 RATE_HZ = cat.TABLE_RATE_HZ
-TICK_S = 1.0 / RATE_HZ
+TICK_S = cat.TABLE_TICK_S
 #: signals a measured run must carry: the 12 inputs and the reference SATs (the canonical table but time_s)
 NEEDED: tuple[str, ...] = cat.TABLE_COLUMNS[1:]
 #: shortest segment between gaps worth re-simulating (s)

@@ -42,9 +42,10 @@ from virtsensor.canbus.codec import CanMatrix
 from virtsensor.canbus.e2e import E2EStatus, counter_sequence
 from virtsensor.errors import UserError
 from virtsensor.frontend import TableBuild, collect, table_from_collected
+from virtsensor.recordings.files import LOG_SUFFIXES
 
 __all__ = [
-    "LOG_SUFFIXES",
+    "CAN_LOG_SUFFIXES",
     "PHASE_STEP_S",
     "LogSummary",
     "Recording",
@@ -60,8 +61,9 @@ __all__ = [
     "read_csv",
 ]
 
-#: Log formats python-can both writes and reads (by file suffix; ``.gz`` text variants too).
-LOG_SUFFIXES: tuple[str, ...] = (".blf", ".asc", ".log", ".csv", ".trc")
+#: Log formats python-can both writes and reads (by file suffix; ``.gz`` text variants too): a recording's CAN
+#: logs and python-can's own CSV (which recording folders never hold: there ``.csv`` is the table).
+CAN_LOG_SUFFIXES: tuple[str, ...] = (*LOG_SUFFIXES, ".csv")
 _TEXT_SUFFIXES = (".asc", ".log", ".csv", ".trc")
 #: Phase step between messages (s): message of rank r (by frame id) is sent at k*cycle + r*PHASE_STEP_S.
 PHASE_STEP_S = 0.00025
@@ -78,10 +80,10 @@ def _suffix(path: Path) -> tuple[str, bool]:
 
 def _check_suffix(path: Path) -> None:
     real, gz = _suffix(path)
-    if real not in LOG_SUFFIXES or (gz and real == ".blf"):
+    if real not in CAN_LOG_SUFFIXES or (gz and real == ".blf"):
         raise UserError(
             f"{path}: unsupported CAN log format {''.join(path.suffixes) or '(no suffix)'!r}; "
-            f"use one of {', '.join(LOG_SUFFIXES)} (text formats may end in .gz)"
+            f"use one of {', '.join(CAN_LOG_SUFFIXES)} (text formats may end in .gz)"
         )
 
 
@@ -200,7 +202,7 @@ def write_log(
     seed: int = 0,
     phases: Mapping[str, float] | None = None,
 ) -> LogSummary:
-    """Write a run as a CAN log; the format follows the suffix (see :data:`LOG_SUFFIXES`).
+    """Write a run as a CAN log; the format follows the suffix (see :data:`CAN_LOG_SUFFIXES`).
 
     Args:
         path: output file (``.blf``, ``.asc``, ``.log``, ``.csv``, ``.trc``).
@@ -481,7 +483,7 @@ def read_log(
     """Read a CAN log and build the canonical table with the front-end.
 
     Args:
-        path: log file (any :data:`LOG_SUFFIXES`).
+        path: log file (any :data:`CAN_LOG_SUFFIXES`).
         matrix: CAN matrix (default bundled); a fresh E2E state is used either way.
         rate_hz: table rate (Hz).
         signals: catalogue names of the columns; all must occur in the log

@@ -209,6 +209,8 @@ TABLE_COLUMNS: tuple[str, ...] = ("time_s", *INPUTS, *OUTPUTS)
 CAN_SIGNALS: tuple[str, ...] = tuple(s.name for s in _ALL if s.message is not None)
 #: The canonical table rate of the paper (Hz).
 TABLE_RATE_HZ = 20.0
+#: One tick of the canonical table (s): the step between its rows, the period of the daemon's clock.
+TABLE_TICK_S = 1.0 / TABLE_RATE_HZ
 
 
 @dataclass(frozen=True)

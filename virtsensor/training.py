@@ -29,8 +29,8 @@ from sklearn.neural_network import MLPRegressor
 from sklearn.pipeline import Pipeline
 from sklearn.preprocessing import MinMaxScaler, RobustScaler, StandardScaler
 
-from virtsensor.features import TICK_S
 from virtsensor.metrics import r2
+from virtsensor.signals import TABLE_TICK_S as TICK_S
 
 SCALERS = {"robust": RobustScaler, "standard": StandardScaler, "minmax": MinMaxScaler}
 

@@ -25,7 +25,6 @@ Peaks are located on a 0.01 deg grid, then on a 0.0001 deg grid around the best 
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +37,7 @@ from sim.tyre import MagicFormula61
 from virtsensor import fileio, plotting
 from virtsensor.errors import UserError
 
-__all__ = ["CheckedTyre", "LOAD_FACTORS", "PRESSURE_FACTORS", "check_tyre_file", "check_writable", "format_report",
+__all__ = ["CheckedTyre", "LOAD_FACTORS", "PRESSURE_FACTORS", "check_tyre_file", "format_report",
            "parse_overrides", "plot_curves", "require_matplotlib", "resolve_tyre_file", "tyre_figures", "write_json"]
 
 LOAD_FACTORS = (0.5, 1.0, 1.5)  # x FNOMIN
@@ -237,20 +236,6 @@ def format_report(figures: Mapping[str, Any]) -> str:
 # ---------------------------------------------------------------------------------------------------------------
 # outputs
 # ---------------------------------------------------------------------------------------------------------------
-def check_writable(path: Path, option: str) -> None:
-    """Refuse (UserError) an output path that cannot be written, before any work; creates nothing.
-
-    Missing folders are fine (they are created on writing) when the nearest existing one is writable.
-    """
-    if path.is_dir():
-        raise UserError(f"{option}: {path} is a directory, give a file name")
-    folder = next(a for a in (path.parent, *path.parent.parents) if a.exists())  # "." or "/" at the latest
-    if not folder.is_dir():
-        raise UserError(f"{option}: cannot write {path}: {folder} is not a directory")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise UserError(f"{option}: cannot write {path}: {folder} is not writable")
-
-
 def write_json(figures: Mapping[str, Any], path: Path) -> None:
     """The figures as indented JSON, atomically (folders created)."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""``virtsensor bench``: the daemon's latency, jitter, throughput, CPU/RSS and soak figures (issue 6).
+"""``virtsensor bench``: the daemon's latency, jitter, throughput, CPU/RSS and soak figures.
 
 Examples::
 
@@ -36,6 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from virtsensor.daemon.bench import run_bench, to_json, write_histogram, write_markdown
+    from virtsensor.fileio import atomic_write_bytes
 
     def say(text: str) -> None:
         if not args.quiet:
@@ -45,8 +46,7 @@ def run(args: argparse.Namespace) -> int:
                   cross_process=not args.no_cross_process, progress=say)
     text = to_json(r)
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as f:
-            f.write(text)
+        atomic_write_bytes(args.json, text.encode())
     if args.markdown:
         write_markdown(r, args.markdown)
     if args.histogram:

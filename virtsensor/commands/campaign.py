@@ -12,9 +12,9 @@ from pathlib import Path
 
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
 from virtsensor.errors import UserError
+from virtsensor.recordings.files import WRITE_FORMATS as FORMATS
 
 HELP = "simulate a whole data-set preset (e.g. the paper's Table I campaign) in parallel"
-FORMATS = ("csv", "blf", "asc", "log")  # virtsensor.recordings.campaign.FORMATS (not imported: --help stays fast)
 #: joblib backends the campaign may run on (ray and dask register themselves when installed).
 BACKENDS = ("loky", "threading", "multiprocessing", "sequential", "ray", "dask")
 

@@ -15,7 +15,6 @@ it, the last third of the ``--measured`` runs is held out (when there are 3 or m
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -60,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.commands._simargs import car_from_args
     from virtsensor.diagnose import diagnose
     from virtsensor.errors import UserError
+    from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.measured import load_measured
     from virtsensor.training import RECIPES
 
@@ -100,13 +100,13 @@ def run(args: argparse.Namespace) -> int:
         res["exported_model"] = _export(art["after"], res, args)
     print(_summary(res))
     if args.json:
-        _write_json(Path(args.json), res)
+        write_json(args.json, res)
     if args.report:
         from virtsensor.diagnose.report import markdown, plots
 
         d = Path(args.report)
         d.mkdir(parents=True, exist_ok=True)
-        (d / "diagnosis.md").write_text(markdown(res))
+        atomic_write_bytes(d / "diagnosis.md", markdown(res).encode())
         files = plots(art, res, d)
         log(f"report: {d / 'diagnosis.md'}" + (f" and {len(files)} plots" if files else
                                                 " (plots skipped: matplotlib is not installed)"))
@@ -124,27 +124,6 @@ def _summary(res) -> str:
         line += (f"\nheld-out SAT MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f} Nm, "
                  f"R2 {res['r2_before']:.3f} -> {res['r2_after']:.3f}")
     return line
-
-
-def _write_json(path: Path, res) -> None:
-    tmp = path.with_name(f".partial-{path.name}")
-    try:
-        tmp.write_text(json.dumps(res, indent=1, default=_jsonable))
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def _jsonable(o):
-    import numpy as np
-
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
 
 
 def _export(est, res, args) -> str:

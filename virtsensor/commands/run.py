@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     rc = sensor.run(duration=cfg.duration)
     if _is_main_program():
         # Stopped cleanly: bus closed, shutdown logged. Flush and leave without CPython's finalisation
-        # of onnxruntime and cantools (~100 ms), so a supervisor sees the process gone within ~30 ms.
+        # of onnxruntime and cantools, so a supervisor sees the process gone at once.
         logging.shutdown()
         for stream in (sys.stdout, sys.stderr):
             try:

@@ -8,9 +8,10 @@ from pathlib import Path
 
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
 from virtsensor.errors import UserError
-from virtsensor.recordings.simulated import LOG_SUFFIXES, TABLE_SUFFIXES, write_metadata, write_run
+from virtsensor.recordings.files import LOG_SUFFIXES, TABLE_SUFFIXES
+from virtsensor.recordings.simulated import write_metadata, write_run
 
-HELP = "simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log (.blf/.asc/.log)"
+HELP = f"simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log ({'/'.join(LOG_SUFFIXES)})"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=t.seed(), default=0,
                         help="seed of the manoeuvre's levels and the sensor noise (0 to 2**32-1)")
     parser.add_argument("--out", required=True, metavar="FILE", type=t.output_file(*TABLE_SUFFIXES, *LOG_SUFFIXES),
-                        help="output: .csv table or .blf/.asc/.log CAN log")
+                        help=f"output: .csv table or {'/'.join(LOG_SUFFIXES)} CAN log")
     parser.add_argument("--inputs", metavar="FILE", type=t.existing_file(),
                         help="for MANOEUVRE 'recorded': a table (.csv) or CAN log whose steering-wheel angle and "
                              "speed (or motor torque) drive the re-simulation")
@@ -50,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     suffix = out.suffix.lower()
     if suffix not in TABLE_SUFFIXES + LOG_SUFFIXES:
-        raise UserError(f"--out {out}: unknown format {suffix or '(none)'}; use .csv, .blf, .asc or .log")
+        raise UserError(f"--out {out}: unknown format {suffix or '(none)'}; "
+                        f"use one of {', '.join(TABLE_SUFFIXES + LOG_SUFFIXES)}")
     if not out.parent.exists():
         raise UserError(f"--out {out}: directory {out.parent} does not exist")
     if args.manoeuvre == "recorded":

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     say(f"{len(ds.runs)} runs, {len(ds.X)} rows of {len(ds.feature_names)} features "
         f"({ds.dropped_nonfinite} non-finite rows dropped)")
     report: dict = {"recipe": args.recipe}
-    # small MLPs train ~5x faster on one BLAS thread than on a 2-core pool
+    # small MLPs train faster on one BLAS thread than on a pool (README, "Measured figures": the paper fit)
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore")  # convergence notes: the iteration counts go to the card instead
         if args.grid:

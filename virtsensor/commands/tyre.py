@@ -36,9 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from virtsensor.fileio import check_writable
     from virtsensor.tyres import (
         check_tyre_file,
-        check_writable,
         format_report,
         parse_overrides,
         plot_curves,

@@ -1,46 +1,35 @@
-"""``virtsensor bench``: latency, jitter, throughput, CPU/RSS and soak figures of the daemon (issue 6).
+"""``virtsensor bench``: latency, jitter, throughput, CPU/RSS and soak figures of the daemon.
 
-Everything runs a real :class:`~virtsensor.daemon.VirtualSensor` on python-can's in-process ``virtual``
-bus, fed with a replayed simulated manoeuvre (``sim.api.simulate``; the *bench* imports the simulator,
-the runtime never does). The manoeuvre's frames are encoded exactly as :func:`virtsensor.recording.iter_frames`
-writes them, with a sync frame (id ``SYNC_ID``) just after each 20 Hz grid instant, and a window of
-``LOOP_S`` seconds of them is replayed in a loop (timestamps shifted by ``LOOP_S`` per loop; the window
-holds a multiple of 16 frames of every message, so the E2E alive counters stay continuous).
+Every figure is taken on a real :class:`~virtsensor.daemon.VirtualSensor` on python-can's in-process
+``virtual`` bus (``cross_process``: ``udp_multicast`` in a private network namespace, null with a reason
+where that is not permitted). Input: a simulated manoeuvre (``sim.api.simulate``; the bench imports the
+simulator, the runtime never does) encoded as :func:`virtsensor.recording.iter_frames` writes it, a sync
+frame (:func:`~virtsensor.daemon.layout.sync_frames`) after each 20 Hz instant, and a window of ``LOOP_S``
+seconds replayed in a loop (timestamps shifted by ``LOOP_S`` per loop; the window holds a whole multiple of
+16 frames of every message, so the E2E alive counters stay continuous).
 
-Measurements (all in one run):
+Figures (keys of :func:`run_bench`'s result; times in us unless the key says otherwise):
 
-* ``stages_us``: the daemon in sync mode driven by calling :meth:`VirtualSensor.process` in this thread;
-  the calls the tick makes are *instrumented in place* on that instance (thin proxies around its generated
-  per-message receivers (``_receivers``: DLC, CRC, E2E check, decode into the sample-and-hold store) /
-  ``_builder.push`` / ``model.predict_one`` / its generated SAT_FRONT encoder and its ``_send``, timed with
-  ``perf_counter_ns``; each figure includes the ~0.1-0.3 us of the proxy call). ``decode`` is per input
-  frame (receive path), the others per tick (SAT_FRONT only for encode and send).
-* ``tick_compute_us``: the daemon's own figure (tick start -> SAT_FRONT encoded, no bus I/O), un-instrumented,
-  over every tick of the soak.
-* ``e2e_latency_us.in_process``: a started sync-mode daemon (its receive thread); per tick, the tick's
-  input frames are sent and consumed, then the clock starts just before the send of the tick's last input
-  frame (immediately followed by the sync frame) and stops when a listener bus receives the SAT_FRONT.
-* ``e2e_latency_us.cross_process``: the same, daemon (``virtsensor run``) and driver in separate processes
-  on ``udp_multicast`` inside a private network namespace (``unshare -n``); null with a reason where not
-  permitted.
-* ``jitter_us``, ``cpu_percent_at_20hz``, ``rss_mb_20hz``: the daemon free-running on its 20 Hz timer for a
-  few seconds, inputs fed in real time by a feeder thread; jitter = wake-up lateness against the
-  drift-free schedule; CPU = CPU time of the daemon's two threads (``pthread_getcpuclockid``) / wall time,
-  in % of one core (``cpu_percent_process_at_20hz``: the whole process incl. the feeder, ``os.times``).
-* ``inference_us``: onnxruntime ``predict_one``, sklearn ``Pipeline.predict`` (RobustScaler + MLPRegressor
-  rebuilt from the card's ``weights``) and the numpy forward pass on the same feature vectors (those the
-  daemon built in the stage run); skipped with a reason when the card has no ``weights``.
-* soak: ``soak_ticks`` ticks (72,000 = one hour at 20 Hz) as fast as possible (sync mode, this thread):
-  ``max_tick_rate_hz`` = ticks / wall time (input decoding included; ``max_tick_rate_hz_per_cpu_s``: ticks /
-  CPU time of the bench thread, which other jobs on a shared machine do not inflate), ``missed_ticks`` = ticks whose
-  SAT_FRONT did not reach the listener or whose compute exceeded the 50 ms budget, RSS every 1,000 ticks.
+* ``stages_us``: per stage of a sync-mode tick (decode per input frame; features, inference, encode, send per
+  tick), timed with ``perf_counter_ns`` by thin proxies put in place on that instance (each figure includes
+  the proxy call);
+* ``tick_compute_us``: the daemon's own tick start -> SAT_FRONT encoded (no bus I/O), un-instrumented;
+* ``e2e_latency_us``: send of a tick's last input frame -> SAT_FRONT received by a listener;
+* ``jitter_us``, ``cpu_percent_at_20hz``, ``rss_mb_20hz``: the daemon on its free-running 20 Hz clock, fed
+  in real time; jitter is wake-up lateness against the drift-free schedule; CPU is the CPU time of the
+  daemon's two threads over wall time, in % of one core;
+* ``inference_us``: onnxruntime, the scikit-learn pipeline rebuilt from the card's ``weights`` and the numpy
+  forward pass on the same feature vectors (skipped with a reason when the card has no ``weights``);
+* soak: ``soak_ticks`` ticks as fast as possible; ``max_tick_rate_hz`` = ticks / wall time,
+  ``missed_ticks`` = ticks whose SAT_FRONT did not arrive or whose compute exceeded :data:`BUDGET_US`.
+
+Measured figures and the command that makes them: README, "Measured figures".
 """
 
 from __future__ import annotations
 
 import gc
 import hashlib
-import json
 import math
 import os
 import platform
@@ -54,16 +43,13 @@ from typing import Any
 import numpy as np
 
 from virtsensor import assets
+from virtsensor.daemon.layout import SYNC_ID, SYNC_OFFSET_S, sync_frames
 from virtsensor.errors import UserError
+from virtsensor.fileio import atomic_write_bytes
+from virtsensor.signals import TABLE_TICK_S as TICK_S
 
-__all__ = ["run_bench", "write_markdown", "write_histogram", "percentiles", "await_frame", "Inputs", "SYNC_ID"]
+__all__ = ["run_bench", "write_markdown", "write_histogram", "percentiles", "await_frame", "Inputs"]
 
-
-#: sync frame id of the bench (not in the DBC)
-SYNC_ID = 0x7F0
-#: sync frames go this long after each 20 Hz grid instant (after the frames stamped at the instant)
-SYNC_OFFSET_S = 0.5e-6
-TICK_S = 0.05
 #: replayed window (s): 3.2 s holds a multiple of 16 frames of every 10/20/100 ms message
 LOOP_S = 3.2
 WINDOW_START_S = 1.0
@@ -137,7 +123,6 @@ class Inputs:
     """
 
     def __init__(self, manoeuvre: tuple = MANOEUVRE) -> None:
-        import can
 
         from sim.api import simulate
         from virtsensor.recording import iter_frames
@@ -162,8 +147,7 @@ class Inputs:
         batches[0] = tail + batches[0]
         self.batches = batches
         self.base_ts = [[m.timestamp for m in b_] for b_ in batches]
-        self.syncs = [can.Message(timestamp=float(g + SYNC_OFFSET_S), arbitration_id=SYNC_ID, is_extended_id=False,
-                                  dlc=0, data=b"") for g in grid]
+        self.syncs = sync_frames(grid, SYNC_ID)
         self.grid = grid
         self.n_ticks = n_ticks
         self.frames_per_tick = len(frames) / n_ticks
@@ -217,7 +201,7 @@ def _sync_rig(model: Any, matrix: Any, **kw: Any) -> tuple[str, Any, Any, int]:
 
 def _stage_timer(rec: dict[str, list[float]], xs: list[np.ndarray]) -> Callable[[str, Callable[..., Any]], Any]:
     """A ``stage_hook`` of :class:`VirtualSensor` timing each stage call into ``rec[stage]`` (us, with
-    ``perf_counter_ns``; each figure includes the ~0.1-0.3 us of the wrapper call) and keeping the
+    ``perf_counter_ns``; each figure includes the wrapper call) and keeping the
     feature vectors in ``xs``."""
     pc = time.perf_counter_ns
 
@@ -636,7 +620,7 @@ def run_bench(model_path: str | os.PathLike | None = None, *, quick: bool = Fals
 
 
 def targets(r: dict[str, Any]) -> dict[str, Any]:
-    """Issue 6 targets: value, limit, met."""
+    """The daemon's performance targets: per target its value, limit and whether it is met (None: not measured)."""
     def get(d: Any, *keys: str) -> Any:
         for k in keys:
             d = d.get(k) if isinstance(d, dict) else None
@@ -707,20 +691,20 @@ def write_markdown(r: dict[str, Any], path: str | os.PathLike) -> None:
               f"* soak: {s['ticks']} ticks in {s['wall_s']} s, missed {s['missed_ticks']} "
               f"(no SAT_FRONT {s['missed_no_sat_front']}, over budget {s['missed_over_budget']}), RSS "
               f"{s['rss_mb_start']:.1f} -> {s['rss_mb_end']:.1f} MB (drift {s['rss_mb_drift']:+.2f} MB)", "",
-              "## Issue 6 targets", "", "| target | value | limit | met |", "|---|---:|---|---|"]
+              "## Targets", "", "| target | value | limit | met |", "|---|---:|---|---|"]
     for k, t in r["targets"].items():
         lines.append(f"| {k} | {t['value']} | {t['limit']} | {'yes' if t['met'] else 'NO'} |")
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
 
 
 def write_histogram(r: dict[str, Any], path: str | os.PathLike) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """PNG histogram of the soak's tick compute times (us, log count) with p50/p99/p99.9 marked; needs the
+    ``plots`` extra (:class:`~virtsensor.extras.MissingExtra` otherwise)."""
+    from virtsensor import plotting
 
     comp = np.asarray(r.get("_samples", {}).get("tick_compute_us", []), dtype=float)
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig = plotting.figure(8, 4.5, what="virtsensor bench --histogram")
+    ax = fig.subplots()
     if comp.size:
         hi = max(float(np.percentile(comp, 99.9)) * 1.5, 1.0)
         ax.hist(np.clip(comp, 0, hi), bins=120, log=True, color="tab:blue", alpha=0.8)
@@ -732,13 +716,11 @@ def write_histogram(r: dict[str, Any], path: str | os.PathLike) -> None:
     ax.set_title(f"virtsensor tick compute, {comp.size} ticks (clipped at 1.5 x p99.9; max {comp.max():.0f} us)"
                  if comp.size else "virtsensor tick compute (no ticks)")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    plotting.save(fig, path)
 
 
 def to_json(r: dict[str, Any]) -> str:
-    from virtsensor.daemon.jsonlog import json_safe
+    """The bench result as indented JSON (keys starting with ``_`` left out; non-finite floats as null)."""
+    from virtsensor.fileio import dumps
 
-    clean = {k: v for k, v in r.items() if not k.startswith("_")}
-    return json.dumps(json_safe(clean), indent=2, allow_nan=False) + "\n"
+    return dumps({k: v for k, v in r.items() if not k.startswith("_")}) + "\n"

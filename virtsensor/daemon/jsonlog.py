@@ -8,17 +8,15 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import sys
 import time
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 from virtsensor.errors import UserError
+from virtsensor.fileio import json_safe
 
-__all__ = ["LOG_LEVELS", "JsonFormatter", "configure_logging", "event", "json_safe", "log"]
+__all__ = ["LOG_LEVELS", "JsonFormatter", "configure_logging", "event", "log"]
 
 #: the daemon's logger (its events: ``started``, ``status_change``, ``bus_error``, ``shutdown``, ...)
 log = logging.getLogger("virtsensor.daemon")
@@ -40,19 +38,6 @@ class JsonFormatter(logging.Formatter):
         if record.exc_info:
             out["exception"] = self.formatException(record.exc_info)
         return json.dumps(json_safe(out), default=str, separators=(",", ":"))
-
-
-def json_safe(obj: Any) -> Any:
-    """``obj`` with non-finite floats as None and numpy scalars as Python numbers (mappings, lists recursed)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, Mapping):
-        return {str(k): json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return json_safe(obj.item())
-    return obj
 
 
 class _StderrHandler(logging.StreamHandler):

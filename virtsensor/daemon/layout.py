@@ -9,7 +9,7 @@ comment), and the ``SAT_FRONT`` estimate/status signal pairs per model output.
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,7 +19,15 @@ from virtsensor.daemon.validity import PlausibilityRule, ValidityRules
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 
-__all__ = ["OUTPUT_SIGNALS", "InputLayout", "Wheel", "bitmap_order", "read_feature_spec"]
+__all__ = ["OUTPUT_SIGNALS", "SYNC_ID", "SYNC_OFFSET_S", "InputLayout", "Wheel", "bitmap_order", "read_feature_spec",
+           "sync_frames"]
+
+#: Sync frame id of ``demo`` and ``bench`` (standard 11-bit id, not in the DBC; ``run --sync-id`` takes any).
+SYNC_ID = 0x7F0
+#: A sync frame goes this long (s) after its 20 Hz instant: after every frame stamped at the instant (frame
+#: phases are whole multiples of 0.25 ms), before any later one, and inside the offline table's 1 us
+#: tolerance, so the daemon and the offline table see the same frames at each tick.
+SYNC_OFFSET_S = 0.5e-6
 
 #: Catalogue output -> (estimate, status) signal of SAT_FRONT.
 OUTPUT_SIGNALS = {"sat_fl_nm": ("SAT_FL", "SAT_FL_Status"), "sat_fr_nm": ("SAT_FR", "SAT_FR_Status")}
@@ -184,3 +192,12 @@ class InputLayout:
             sig_bit=tuple(1 << self.bitmap_bits[m] if m in self.bitmap_bits else 0 for m in self.signal_messages),
             msg_timeout=tuple(tc * c for c in self.cycles_s),
             bitmap_msgs=tuple((mi[m], 1 << b) for m, b in self.bitmap_bits.items()))
+
+
+def sync_frames(instants: Iterable[float], sync_id: int = SYNC_ID) -> list[Any]:
+    """One ``can.Message`` per instant (s, log time): id ``sync_id`` (standard), no data, stamped
+    :data:`SYNC_OFFSET_S` after the instant. A daemon in sync mode ticks once on each."""
+    import can
+
+    return [can.Message(timestamp=float(t) + SYNC_OFFSET_S, arbitration_id=sync_id, is_extended_id=False,
+                        dlc=0, data=b"") for t in instants]

@@ -25,12 +25,12 @@ from typing import Any
 
 from virtsensor.daemon.buslink import BusLink
 from virtsensor.daemon.jsonlog import event
-from virtsensor.features import TICK_S
+from virtsensor.signals import TABLE_TICK_S
 
 __all__ = ["TICK_NS", "SPIN_S", "TIMER_SLACK_NS", "RECV_TIMEOUT_S", "Runner", "set_timer_slack"]
 
-#: Tick period (ns): the feature spec's 20 Hz.
-TICK_NS = round(TICK_S * 1e9)
+#: Tick period (ns): the canonical table's tick.
+TICK_NS = round(TABLE_TICK_S * 1e9)
 #: Sleep until this long before a deadline, then spin (s). 0: sleep to the deadline. Spinning buys punctuality
 #: with CPU: it busy-waits SPIN_S of every tick (``virtsensor bench`` reports it as
 #: ``free_running.spin_budget_percent``), whereas a sleep wakes late only by the timer slack plus the

@@ -136,7 +136,7 @@ def main(argv: list[str]) -> int:
     """Inside the namespace: ``MODEL OUT.json N_TICKS WORKDIR``. Loopback up for multicast, daemon started,
     ticks driven, daemon stopped; the daemon's stderr goes to ``WORKDIR/daemon.log``. Returns 0, or 1 when
     the set-up or the daemon failed (the reason on stderr)."""
-    from virtsensor.daemon.bench import SYNC_ID
+    from virtsensor.daemon.layout import SYNC_ID
 
     model, out, n_ticks, work = argv[0], Path(argv[1]), int(argv[2]), Path(argv[3])
     for args in _LO_SETUP:

@@ -51,7 +51,7 @@ def diagnose(
             (studies reuse it across cases).
 
     Returns:
-        ``(result, artefacts)``: the JSON-able result (keys of issue 7) and the
+        ``(result, artefacts)``: the JSON-able result (what ``diagnose --json`` writes) and the
         objects the report draws (comparison, estimators).
     """
     from sim.effects import with_effect

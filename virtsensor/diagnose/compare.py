@@ -25,7 +25,8 @@ import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.diagnose.resim import segment_mask
-from virtsensor.measured import TICK_S, MeasuredRun
+from virtsensor.measured import MeasuredRun
+from virtsensor.signals import TABLE_TICK_S as TICK_S
 
 MAX_LAG_S = 1.0
 SPECTRA = ("sat_fl_nm", "steer_torque_nm", "yaw_rate_radps")

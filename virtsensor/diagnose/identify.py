@@ -255,7 +255,7 @@ def _sensor_prediction(data: Data, cand: Candidate, value: float):
 
 
 def _times(data: Data, r: int, s: int) -> np.ndarray:
-    return np.arange(data.runs[r].segments[s].n) * (1.0 / cat.TABLE_RATE_HZ)
+    return np.arange(data.runs[r].segments[s].n) * cat.TABLE_TICK_S
 
 
 def _fd_step(cand: Candidate, est: float) -> float:

@@ -7,6 +7,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from virtsensor import plotting
 from virtsensor import signals as cat
 
 
@@ -97,20 +98,17 @@ def markdown(res: Mapping[str, Any]) -> str:
 
 
 def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list[Path]:
-    """PNG figures into ``out_dir``; returns the files written (none without matplotlib)."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    """PNG figures into ``out_dir`` (:mod:`virtsensor.plotting`); returns the files written (none without the
+    ``plots`` extra)."""
+    if not plotting.available():
         return []
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     comp = art["comparison"]
     series = comp.series
     shown = ("sat_fl_nm", "steer_torque_nm", "ay_mps2", "yaw_rate_radps")
-    fig, axes = plt.subplots(len(shown), len(series), figsize=(4.5 * len(series), 2.2 * len(shown)), squeeze=False)
+    fig = plotting.figure(4.5 * len(series), 2.2 * len(shown), what="virtsensor diagnose --report")
+    axes = fig.subplots(len(shown), len(series), squeeze=False)
     for j, s in enumerate(series):
         for i, n in enumerate(shown):
             ax = axes[i][j]
@@ -125,21 +123,21 @@ def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list
     axes[0][0].legend(fontsize=7)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]", fontsize=7)
-    fig.tight_layout()
-    written.append(_save(fig, out_dir / "diagnose_timeseries.png", plt))
+    written.append(plotting.save(fig, out_dir / "diagnose_timeseries.png"))
     cands = res["candidates"][:10]
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig = plotting.figure(7, 3.5, what="virtsensor diagnose --report")
+    ax = fig.subplots()
     labels = [c["cause"] + (f"[{c['signal']}]" if c["signal"] else "") for c in cands]
     ax.barh(range(len(cands))[::-1], [max(c["bic_gain"], 0.0) for c in cands],
             color=["C3" if c["significant"] else "C7" for c in cands])
     ax.set_yticks(range(len(cands))[::-1], labels, fontsize=7)
     ax.axvline(10.0, color="k", lw=0.8, ls=":")
     ax.set_xlabel("BIC gain over the nominal car (> 10: decisive)")
-    fig.tight_layout()
-    written.append(_save(fig, out_dir / "diagnose_candidates.png", plt))
+    written.append(plotting.save(fig, out_dir / "diagnose_candidates.png"))
     dep = comp.dependence
     if dep:
-        fig, axes = plt.subplots(1, len(dep), figsize=(3.2 * len(dep), 2.8), squeeze=False)
+        fig = plotting.figure(3.2 * len(dep), 2.8, what="virtsensor diagnose --report")
+        axes = fig.subplots(1, len(dep), squeeze=False)
         for ax, (k, d) in zip(axes[0], dep.items(), strict=True):
             ax.plot(d["centre"], d["mean_residual_nm"], "o-", label="mean")
             ax.plot(d["centre"], d["mean_abs_residual_nm"], "s--", label="mean |.|")
@@ -147,27 +145,15 @@ def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list
             ax.axhline(0.0, color="k", lw=0.6)
         axes[0][0].set_ylabel("SAT FL residual [Nm]")
         axes[0][0].legend(fontsize=7)
-        fig.tight_layout()
-        written.append(_save(fig, out_dir / "diagnose_dependence.png", plt))
+        written.append(plotting.save(fig, out_dir / "diagnose_dependence.png"))
     if comp.spectra:
-        fig, axes = plt.subplots(1, len(comp.spectra), figsize=(3.6 * len(comp.spectra), 2.8), squeeze=False)
+        fig = plotting.figure(3.6 * len(comp.spectra), 2.8, what="virtsensor diagnose --report")
+        axes = fig.subplots(1, len(comp.spectra), squeeze=False)
         for ax, (n, d) in zip(axes[0], comp.spectra.items(), strict=True):
             ax.semilogy(d["f_hz"], d["psd_measured"], "k", label="measured")
             ax.semilogy(d["f_hz"], d["psd_simulated"], "C0", label="nominal sim")
             ax.set_title(n, fontsize=8)
             ax.set_xlabel("f [Hz]", fontsize=8)
         axes[0][0].legend(fontsize=7)
-        fig.tight_layout()
-        written.append(_save(fig, out_dir / "diagnose_spectra.png", plt))
+        written.append(plotting.save(fig, out_dir / "diagnose_spectra.png"))
     return written
-
-
-def _save(fig, path: Path, plt) -> Path:
-    tmp = path.with_name(f".partial-{path.name}")
-    try:
-        fig.savefig(tmp, dpi=110, format="png")
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-        plt.close(fig)
-    return path

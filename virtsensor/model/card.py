@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from virtsensor.errors import UserError
-from virtsensor.fileio import atomic_write_bytes
+from virtsensor.fileio import atomic_write_bytes, json_default
 from virtsensor.model.envelope import Envelope
 
 #: Card key holding the digest of the card's canonical content.
@@ -74,7 +74,7 @@ class ModelCard(Mapping[str, Any]):
 
     def __init__(self, content: Mapping[str, Any], *, path: str | os.PathLike[str] | None = None) -> None:
         # a JSON round trip: the card holds JSON values only, whatever the caller passed
-        self._data: dict[str, Any] = json.loads(json.dumps(dict(content), allow_nan=False, default=_json_default))
+        self._data: dict[str, Any] = json.loads(json.dumps(dict(content), allow_nan=False, default=json_default))
         self.path = None if path is None else Path(path)
 
     # -- Mapping ----------------------------------------------------------------------------------------------
@@ -284,17 +284,6 @@ class ModelCard(Mapping[str, Any]):
         if envelope is not None:
             fields["envelope"] = envelope.to_json()
         return fields
-
-
-def _json_default(obj: Any) -> Any:
-    """numpy scalars and arrays, paths and tuples' friends -> JSON values."""
-    if hasattr(obj, "tolist") and callable(obj.tolist):  # numpy arrays and scalars
-        return obj.tolist()
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    if isinstance(obj, (set, frozenset)):
-        return sorted(obj)
-    raise TypeError(f"card value of type {type(obj).__name__} is not JSON-serialisable")
 
 
 def seal_file(path: str | os.PathLike[str], extra: Mapping[str, Any] | None = None) -> ModelCard:

@@ -260,7 +260,7 @@ def _fix_output(model: Any, n_outputs: int) -> None:
     own (skl2onnx's ``[-1, 1]`` after an MLPRegressor), that constant becomes
     ``[-1, n_outputs]`` (row-major, so FL/FR land in the right columns); otherwise
     (e.g. a linear regressor, already ``(N, n_outputs)``) a ``Reshape`` to
-    ``[-1, n_outputs]`` is appended (about 0.4 us more at batch 1). The output is
+    ``[-1, n_outputs]`` is appended. The output is
     renamed ``sat`` and declared ``[N, n_outputs]``; the input's batch dimension
     is named ``N`` too. The ONNX checker then runs strict shape inference.
     """

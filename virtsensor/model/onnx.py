@@ -49,8 +49,8 @@ N_PARITY_INPUTS = 8
 def session_options() -> Any:
     """onnxruntime options of the real-time runtime: one thread, sequential, no spinning.
 
-    Spinning threads would burn a core waiting for work between 20 Hz ticks; one
-    thread is faster than a pool for a 12-32-12-2 MLP anyway.
+    Spinning threads would burn a core waiting for work between 20 Hz ticks; a small MLP
+    gains nothing from a pool.
     """
     import onnxruntime as ort
 
@@ -209,7 +209,7 @@ class OnnxModel:
             path: the ``.onnx`` file.
             card_path: its model card; default :func:`~virtsensor.model.card.card_path_for` ``(path)``.
             use_iobinding: run :meth:`predict_one` through an onnxruntime IOBinding
-                (default; measured faster than ``run`` at batch 1).
+                (default) instead of ``InferenceSession.run``.
 
         Raises:
             UserError: card or ONNX missing/unreadable/invalid; the card's digest does not match its
@@ -276,7 +276,7 @@ class NumpyForward:
 
     Call it with feature rows (N, n_features) to get (N, n_outputs) float64 in Nm;
     :meth:`predict_one` takes one vector (n_features,) and returns (n_outputs,).
-    Same operation order as sklearn, so it matches ``pipeline.predict`` to ~1e-13 Nm.
+    Same operation order as sklearn, so it matches ``pipeline.predict`` to float64 rounding.
     """
 
     def __init__(self, weights: Mapping[str, Any]) -> None:

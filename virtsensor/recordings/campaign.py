@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from virtsensor.errors import UserError
+from virtsensor.recordings.files import WRITE_FORMATS
 from virtsensor.recordings.manifest import (
     MANIFEST,
     MARKER,
@@ -28,7 +29,7 @@ from virtsensor.recordings.manifest import (
 from virtsensor.recordings.simulated import partial_name, write_run_file
 
 #: file formats of a campaign's runs (suffix without the dot)
-FORMATS = ("csv", "blf", "asc", "log")
+FORMATS = WRITE_FORMATS
 
 
 def run_name(request: Any, fmt: str) -> str:

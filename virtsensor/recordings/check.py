@@ -5,7 +5,7 @@ format, ``<file>: column <name>, row <k>: expected <what>, got <what>``:
 
 * ``time_s`` missing, not finite, or not strictly increasing;
 * a rate other than the canonical 20 Hz: every step between rows must be one
-  tick (0.05 s) within :data:`STEP_TOLERANCE` of a tick, or, where gaps are
+  tick (:data:`~virtsensor.signals.TABLE_TICK_S`) within :data:`STEP_TOLERANCE` of a tick, or, where gaps are
   allowed (measured runs, cut into segments at gaps), a whole number of ticks;
 * a signal a car carries (catalogue roles input, output, aux) outside its
   catalogue range; NaN is SNA (signal not available) and passes; +-inf never
@@ -29,7 +29,7 @@ from virtsensor import signals as cat
 from virtsensor.errors import UserError
 
 RATE_HZ = cat.TABLE_RATE_HZ
-TICK_S = 1.0 / RATE_HZ
+TICK_S = cat.TABLE_TICK_S
 #: largest departure of a step between rows from a whole number of ticks, as a fraction of a tick
 STEP_TOLERANCE = 0.05
 #: catalogue roles whose values must lie in their catalogue range (or be SNA)

@@ -21,17 +21,24 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from virtsensor.errors import UserError
 from virtsensor.recordings.manifest import MANIFEST, incomplete_campaign, is_hidden, listed_runs
 
-TABLE_SUFFIXES = (".csv",)
-LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc")
-MDF_SUFFIXES = (".mf4", ".mdf")
+if TYPE_CHECKING:  # numpy only in annotations: the suffixes stay cheap to import (``--help``)
+    import numpy as np
+
+#: A recording with one of these suffixes is the canonical 20 Hz CSV table.
+TABLE_SUFFIXES: tuple[str, ...] = (".csv",)
+#: ... a CAN log (python-can's formats; read through the DBC, and written by ``simulate`` and ``campaign``).
+LOG_SUFFIXES: tuple[str, ...] = (".blf", ".asc", ".log", ".trc")
+#: ... an MDF4 file (the ``mdf`` extra).
+MDF_SUFFIXES: tuple[str, ...] = (".mf4", ".mdf")
+#: Every suffix a recording may have (lower case).
 SUFFIXES = TABLE_SUFFIXES + LOG_SUFFIXES + MDF_SUFFIXES
+#: What ``simulate`` and ``campaign`` write a run as (suffix without the dot): the table or a CAN log.
+WRITE_FORMATS: tuple[str, ...] = tuple(s[1:] for s in TABLE_SUFFIXES + LOG_SUFFIXES)
 
 
 @dataclass(frozen=True)

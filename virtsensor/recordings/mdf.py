@@ -1,7 +1,7 @@
 """MDF4 files (``.mf4``, ``.mdf``) as 20 Hz tables; needs the ``mdf`` extra (asammdf).
 
 Channels named by a catalogue name or a DBC signal name are sampled and held at
-the 20 Hz ticks ``t0 + k * 0.05 s`` (k = 1, 2...; ``t0`` the first sample of any
+the 20 Hz ticks ``t0 + k * TICK_S`` (k = 1, 2...; ``t0`` the first sample of any
 channel), as the CAN front-end samples frames; the table's ``time_s`` counts
 from ``t0``. A channel's unit, when the file gives one, must be the catalogue's.
 
@@ -23,7 +23,7 @@ import numpy as np
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
 
-TICK_S = 1.0 / cat.TABLE_RATE_HZ
+TICK_S = cat.TABLE_TICK_S
 
 
 def read_mdf(path: Path) -> dict[str, np.ndarray]:

@@ -20,11 +20,7 @@ import numpy as np
 
 from virtsensor.errors import UserError
 from virtsensor.fileio import write_json
-
-#: suffixes written as the canonical CSV table; any other known suffix is a CAN log
-TABLE_SUFFIXES = (".csv",)
-#: CAN log suffixes a simulated run can be written as
-LOG_SUFFIXES = (".blf", ".asc", ".log")
+from virtsensor.recordings.files import LOG_SUFFIXES, TABLE_SUFFIXES
 
 
 def run_table(sim_run: Any) -> dict[str, np.ndarray]:
