@@ -4,7 +4,7 @@
 in one batch (vectorised across runs) and returns, per run, the truth on the
 100 Hz base grid and the sensor streams (what the CAN writer encodes). The
 canonical 20 Hz table is what a CAN receiver samples from those streams
-(:func:`virtsensor.recording.simulated_recording`).
+(:func:`virtsensor.recordings.canlog.simulated_recording`).
 """
 
 from __future__ import annotations

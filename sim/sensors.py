@@ -9,7 +9,7 @@ simulator's is modelled.
 The result is a set of *streams* on the 100 Hz base grid: what the CAN writer
 encodes at each message's cycle time. The canonical 20 Hz table is not made
 here: it is what a receiver on the bus samples from those frames
-(:func:`virtsensor.recording.simulated_recording`), so the simulator's tables
+(:func:`virtsensor.recordings.canlog.simulated_recording`), so the simulator's tables
 and its CAN logs carry the same values, and the trainer sees what the runtime sees.
 
 What each catalogue input is made of (ISO 8855 signs, see virtsensor.signals):

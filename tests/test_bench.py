@@ -17,7 +17,7 @@ from virtsensor import cli
 from virtsensor import signals as cat
 from virtsensor.features import HISTORY
 from virtsensor.model.export import export_pipeline, pipeline_weights
-from virtsensor.recording import simulated_recording
+from virtsensor.recordings.canlog import simulated_recording
 
 PCT = ("p50", "p99", "p999", "max")
 

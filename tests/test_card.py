@@ -205,7 +205,7 @@ def test_export_output_is_a_model_card(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         from runtime_support import synthetic_streams, train_model
-    from virtsensor.recording import simulated_recording
+    from virtsensor.recordings.canlog import simulated_recording
 
     table = simulated_recording(*synthetic_streams(6.0, seed=2), seed=2).table
     card = train_model([table], tmp_path / "t.onnx", spec=PAPER, max_iter=5)

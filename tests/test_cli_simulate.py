@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from virtsensor.cli import main
-from virtsensor.recording import read_csv
+from virtsensor.recordings.canlog import read_csv
 from virtsensor.signals import INPUTS, OUTPUTS, TABLE_COLUMNS
 
 

@@ -11,12 +11,12 @@ import pytest
 
 from virtsensor import signals as cat
 from virtsensor.cli import main
-from virtsensor.dataset import load_runs
 from virtsensor.errors import UserError
-from virtsensor.measured import load_measured
-from virtsensor.recording import write_csv, write_log
+from virtsensor.learning.dataset import load_runs
+from virtsensor.recordings.canlog import write_csv, write_log
 from virtsensor.recordings.check import check_table
 from virtsensor.recordings.manifest import MARKER, file_sha256, start_marker, write_manifest
+from virtsensor.recordings.measured import load_measured
 
 
 def _table(n: int = 200, dt: float = 0.05, seed: int = 0) -> dict[str, np.ndarray]:

@@ -87,7 +87,7 @@ def test_demo_figures_equal_the_offline_pipeline(demo):
     (up to SAT_FRONT's 0.02 Nm resolution): a tick paired with the wrong instant would show."""
     from virtsensor.features import FeatureSpec
     from virtsensor.model.onnx import OnnxModel
-    from virtsensor.recording import read_log
+    from virtsensor.recordings.canlog import read_log
 
     model = OnnxModel.load(default_model())
     table = read_log(default_recording()).table
@@ -175,7 +175,7 @@ def _write_log(path, frames):
 def test_demo_on_a_recording_without_reference_gives_estimates_only(tmp_path):
     from virtsensor.canbus.codec import CanMatrix
     from virtsensor.demo import run_demo
-    from virtsensor.recording import iter_log
+    from virtsensor.recordings.canlog import iter_log
 
     te = CanMatrix.load().messages["TE_WheelForceTransducer"].frame_id
     frames = [m for m in iter_log(default_recording()) if m.arbitration_id != te and m.timestamp < 5.0]
@@ -189,7 +189,7 @@ def test_demo_on_a_recording_without_reference_gives_estimates_only(tmp_path):
 
 def test_demo_refuses_a_recording_without_the_models_inputs(tmp_path, capsys):
     from virtsensor.canbus.codec import CanMatrix
-    from virtsensor.recording import iter_log
+    from virtsensor.recordings.canlog import iter_log
 
     te = CanMatrix.load().messages["TE_WheelForceTransducer"].frame_id
     _write_log(tmp_path / "te_only.blf", [m for m in iter_log(default_recording()) if m.arbitration_id == te][:200])

@@ -104,9 +104,9 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     import warnings
 
     from virtsensor.diagnose.calibrate import merge_ensemble
+    from virtsensor.learning.training import PAPER_PARAMS, make_pipeline
     from virtsensor.model.export import export_pipeline
     from virtsensor.model.onnx import OnnxModel
-    from virtsensor.training import PAPER_PARAMS, make_pipeline
 
     rng = np.random.default_rng(0)
     X = rng.normal(size=(400, 5))
@@ -155,7 +155,7 @@ def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch,
 
     from virtsensor.diagnose import identify as idn
     from virtsensor.diagnose.resim import SETTLE_S
-    from virtsensor.measured import MeasuredRun, Segment
+    from virtsensor.recordings.measured import MeasuredRun, Segment
 
     monkeypatch.setattr(idn, "simulate_hypotheses", _still_car)
     true, seeds = 0.3, 80
@@ -195,7 +195,7 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     """The diagnosis sees only the files; it must name the drawn cause, estimate its size
     within the stated tolerance and improve the estimator on the held-out runs."""
     from virtsensor.diagnose import diagnose
-    from virtsensor.measured import load_measured
+    from virtsensor.recordings.measured import load_measured
 
     h = hidden_case.hidden
     assert h is not None
@@ -299,7 +299,7 @@ def test_measured_and_holdout_must_differ(tmp_path, capsys):
     from test_measured import _table
 
     from virtsensor.cli import main
-    from virtsensor.recording import write_csv
+    from virtsensor.recordings.canlog import write_csv
 
     write_csv(tmp_path / "a.csv", _table())
     assert main(["diagnose", "--measured", str(tmp_path / "a.csv"), "--holdout", str(tmp_path / "a.csv")]) == 2

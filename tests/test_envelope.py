@@ -18,7 +18,7 @@ from virtsensor.errors import UserError
 from virtsensor.features import HISTORY
 from virtsensor.model import ModelCard
 from virtsensor.model.envelope import Envelope
-from virtsensor.recording import iter_frames, simulated_recording
+from virtsensor.recordings.canlog import iter_frames, simulated_recording
 
 MATRIX = CanMatrix.load()
 SAT_ID = MATRIX.messages["SAT_FRONT"].frame_id
@@ -234,8 +234,8 @@ def test_a_card_without_an_envelope_checks_none(models):
 
 # ------------------------------------------------------------------------------------------------ score
 def test_score_splits_the_error_at_the_envelope(models):
-    from virtsensor.dataset import Run
-    from virtsensor.scoring import markdown, score_runs
+    from virtsensor.learning.dataset import Run
+    from virtsensor.learning.scoring import markdown, score_runs
 
     t, sig = synthetic_streams(12.0, seed=11)
     plain = simulated_recording(t, sig, seed=11).table
@@ -264,9 +264,9 @@ def test_score_splits_the_error_at_the_envelope(models):
 def test_evaluate_gives_a_row_per_unseen_circuit():
     from test_features_dataset import synthetic_table
 
-    from virtsensor.dataset import Run
-    from virtsensor.evaluation import evaluate, held_out_runs, markdown_table
-    from virtsensor.training import RECIPES
+    from virtsensor.learning.dataset import Run
+    from virtsensor.learning.evaluation import evaluate, held_out_runs, markdown_table
+    from virtsensor.learning.training import RECIPES
 
     runs = [Run(f"r{i}", synthetic_table(300, 10 + i)) for i in range(6)]
     circuits = [Run("spa", synthetic_table(200, 97)), Run("monza", synthetic_table(200, 96, mu=0.6))]
@@ -307,7 +307,7 @@ def test_evaluate_command_scores_unseen_circuits_with_the_shipped_model(tmp_path
     from test_explain import _table
 
     from virtsensor.cli import main
-    from virtsensor.recording import write_csv
+    from virtsensor.recordings.canlog import write_csv
 
     rng = np.random.default_rng(7)
     (tmp_path / "data").mkdir()

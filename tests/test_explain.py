@@ -15,7 +15,7 @@ import pytest
 
 from virtsensor import signals as cat
 from virtsensor.cli import main
-from virtsensor.recording import write_csv
+from virtsensor.recordings.canlog import write_csv
 
 pytest.importorskip("shap")
 pytest.importorskip("matplotlib")
@@ -112,7 +112,7 @@ def test_permutation_explainer_is_seeded(setup, tmp_path):
 
 
 def test_choose_method_budget():
-    from virtsensor.explain import MIN_PERMUTATIONS, choose_method
+    from virtsensor.learning.explain import MIN_PERMUTATIONS, choose_method
 
     assert choose_method(500, 12, 100) == ("exact", None)
     method, perms = choose_method(500, 20, 100)

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from virtsensor import signals as cat
-from virtsensor.dataset import Run, build_dataset, load_runs, split_track_laps
 from virtsensor.errors import UserError
-from virtsensor.evaluation import evaluate, grouped_split, markdown_table, random_split
 from virtsensor.features import HISTORY, PAPER, Feature, FeatureBuilder, FeatureSpec
-from virtsensor.recording import write_csv
-from virtsensor.training import RECIPES
+from virtsensor.learning.dataset import Run, build_dataset, load_runs, split_track_laps
+from virtsensor.learning.evaluation import evaluate, grouped_split, markdown_table, random_split
+from virtsensor.learning.training import RECIPES
+from virtsensor.recordings.canlog import write_csv
 
 
 def synthetic_table(n: int, seed: int, mu: float = 1.0) -> dict[str, np.ndarray]:
@@ -167,7 +167,7 @@ def test_train_and_evaluate_from_the_command_line(tmp_path, capsys):
 def test_grid_search_scores_candidates_on_held_out_runs_and_ranks_them():
     """Section III.B: every candidate is scored by R2 on runs it never saw; a network too
     small for the function must rank below one that can fit it."""
-    from virtsensor.training import PAPER_PARAMS, grid_search
+    from virtsensor.learning.training import PAPER_PARAMS, grid_search
 
     rng = np.random.default_rng(0)
     X = rng.uniform(-2.0, 2.0, size=(1200, 3))

@@ -7,8 +7,8 @@ import pytest
 
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
-from virtsensor.measured import MIN_SEGMENT_S, NEEDED, load_measured
-from virtsensor.recording import write_csv
+from virtsensor.recordings.canlog import write_csv
+from virtsensor.recordings.measured import MIN_SEGMENT_S, NEEDED, load_measured
 
 
 def _table(n: int = 400, dt: float = 0.05) -> dict[str, np.ndarray]:

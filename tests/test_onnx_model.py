@@ -256,8 +256,8 @@ def test_numpy_forward_matches_sklearn(mlp2, activation):
 def test_numpy_forward_and_card_weights_for_every_scaler_the_grid_may_pick(scaler):
     """The grid search may choose another scaler than the paper's; the card's weights and the
     numpy back-end must follow (a StandardScaler winner once crashed `train --grid` at export)."""
+    from virtsensor.learning.training import PAPER_PARAMS, make_pipeline
     from virtsensor.model.onnx import numpy_forward
-    from virtsensor.training import PAPER_PARAMS, make_pipeline
 
     rng = np.random.default_rng(1)
     X = rng.normal(size=(300, 4)) * [1.0, 5.0, 0.1, 20.0] + [0.0, 3.0, 1.0, -5.0]

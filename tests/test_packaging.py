@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("sklearn", "skl2onnx", "scipy", "sim", "joblib", "matplotlib", "shap", "tqdm")
 #: the modules a daemon image imports to run: they must not pull in the training stack
 RUNTIME_MODULES = ("virtsensor.daemon", "virtsensor.model", "virtsensor.model.onnx", "virtsensor.model.card",
-                   "virtsensor.canbus.codec", "virtsensor.replay",
+                   "virtsensor.canbus.codec", "virtsensor.recordings.replay",
                    "virtsensor.features", "virtsensor.frontend", "virtsensor.assets", "virtsensor.cli")
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from virtsensor.dataset import Dataset
+from virtsensor.learning.dataset import Dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("paper_gap_study", ROOT / "tools" / "paper_gap_study.py")

@@ -1,4 +1,4 @@
-"""CAN logs (virtsensor.recording) and the front-end (virtsensor.frontend)."""
+"""CAN logs (virtsensor.recordings.canlog) and the front-end (virtsensor.frontend)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from virtsensor.canbus.codec import CanMatrix
 from virtsensor.canbus.e2e import E2EStatus
 from virtsensor.errors import UserError
 from virtsensor.frontend import SampleHoldStore, to_table
-from virtsensor.recording import (
+from virtsensor.recordings.canlog import (
     PHASE_STEP_S,
     iter_frames,
     iter_log,

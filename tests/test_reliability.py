@@ -20,7 +20,7 @@ from runtime_support import SYNC_ID, synthetic_streams, train_model, with_sync
 from virtsensor import signals as cat
 from virtsensor.canbus.codec import CanMatrix
 from virtsensor.daemon import INVALID, VALID, VirtualSensor
-from virtsensor.recording import iter_frames, simulated_recording
+from virtsensor.recordings.canlog import iter_frames, simulated_recording
 
 MATRIX = CanMatrix.load()
 EPAS = MATRIX.messages["EPAS_Steering"].frame_id  # critical inputs, 10 ms cycle

@@ -1,4 +1,4 @@
-"""Replay of CAN logs onto a python-can bus (virtsensor.replay, ``virtsensor replay``).
+"""Replay of CAN logs onto a python-can bus (virtsensor.recordings.replay, ``virtsensor replay``).
 
 Only the in-process ``virtual`` interface is used; every test has its own channel name.
 """
@@ -17,8 +17,8 @@ from virtsensor import cli
 from virtsensor import signals as cat
 from virtsensor.canbus.codec import CanMatrix
 from virtsensor.errors import UserError
-from virtsensor.recording import iter_frames, write_log
-from virtsensor.replay import parse_rate, replay
+from virtsensor.recordings.canlog import iter_frames, write_log
+from virtsensor.recordings.replay import parse_rate, replay
 
 MATRIX = CanMatrix.load()
 

@@ -27,8 +27,8 @@ from virtsensor.canbus.e2e import COUNTER_MAX, USABLE, E2EStatus, frame_crc, nex
 from virtsensor.daemon import DEGRADED, INIT, INVALID, VALID, VirtualSensor, load_config
 from virtsensor.features import FeatureSpec
 from virtsensor.model import OnnxModel, card_path_for
-from virtsensor.recording import iter_frames, simulated_recording
-from virtsensor.replay import replay
+from virtsensor.recordings.canlog import iter_frames, simulated_recording
+from virtsensor.recordings.replay import replay
 
 ROOT = Path(__file__).resolve().parent.parent
 MATRIX = CanMatrix.load()

@@ -25,7 +25,7 @@ import pytest
 from runtime_support import synthetic_streams, train_model
 
 from virtsensor.canbus.codec import CanMatrix
-from virtsensor.recording import simulated_recording, write_log
+from virtsensor.recordings.canlog import simulated_recording, write_log
 
 ROOT = Path(__file__).resolve().parent.parent
 GROUP = "239.74.163.2"

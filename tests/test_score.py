@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from virtsensor.cli import main
-from virtsensor.recording import read_csv, write_csv
+from virtsensor.recordings.canlog import read_csv, write_csv
 
 MODEL = Path(__file__).resolve().parent.parent / "models" / "improved.onnx"
 
@@ -49,8 +49,8 @@ def test_scores_match_the_trainers_metrics_and_the_model_file(recordings: Path, 
     """score gives scikit-learn's R2 and MAE of the model file's own predictions."""
     from sklearn.metrics import mean_absolute_error, r2_score
 
-    from virtsensor.dataset import build_dataset, load_runs
     from virtsensor.features import FeatureSpec
+    from virtsensor.learning.dataset import build_dataset, load_runs
     from virtsensor.model.onnx import OnnxModel
 
     def metrics(Y, P):

@@ -8,7 +8,7 @@ import pytest
 from sim.api import simulate
 from sim.params import car_parameters
 from virtsensor import signals as cat
-from virtsensor.recording import read_csv, read_log
+from virtsensor.recordings.canlog import read_csv, read_log
 from virtsensor.recordings.simulated import write_run
 
 

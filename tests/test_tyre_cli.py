@@ -188,7 +188,7 @@ def test_simulate_with_mfeval_tyre_follows_its_curves(tmp_path: Path) -> None:
     from sim.params import car_parameters
     from sim.tyre import MagicFormula61
     from sim.vehicle import tyre_for
-    from virtsensor.recording import read_csv
+    from virtsensor.recordings.canlog import read_csv
 
     out = tmp_path / "dlc.csv"
     assert main(["simulate", "double-lane-change", "--speed", "80", "--mu", "1", "--seed", "1",
@@ -262,7 +262,7 @@ def test_simulate_with_a_different_rear_tyre(tmp_path: Path) -> None:
     """Only the rear axle changes: the front SAT still follows the default tyre's curves, the car does not."""
     from sim.params import car_parameters
     from sim.vehicle import tyre_for
-    from virtsensor.recording import read_csv
+    from virtsensor.recordings.canlog import read_csv
 
     runs = {}
     for name, extra in (("default", []), ("rear", ["--tyre", f"rear={MFEVAL}"])):

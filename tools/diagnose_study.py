@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     from sim.params import car_parameters
     from virtsensor.diagnose import calibrate, diagnose
     from virtsensor.diagnose.hidden import make_case
-    from virtsensor.measured import load_measured
+    from virtsensor.recordings.measured import load_measured
 
     args.out.mkdir(parents=True, exist_ok=True)
     base = car_parameters()

@@ -33,7 +33,7 @@ def simulate(out: Path) -> list[str]:
 
 
 def sidecar(path: Path, args: list[str]) -> dict:
-    from virtsensor.recording import iter_log
+    from virtsensor.recordings.canlog import iter_log
 
     frames = list(iter_log(path))
     name, speed, mu, seed = DEMO_RUN

@@ -97,9 +97,9 @@ def paper_fit_s(data: Path, repeats: int) -> float:
 
     from threadpoolctl import threadpool_limits
 
-    from virtsensor.dataset import build_dataset, load_runs
     from virtsensor.features import PAPER
-    from virtsensor.training import PAPER_PARAMS, make_pipeline
+    from virtsensor.learning.dataset import build_dataset, load_runs
+    from virtsensor.learning.training import PAPER_PARAMS, make_pipeline
 
     ds = build_dataset(load_runs([data]), PAPER)
     times = []

@@ -67,8 +67,8 @@ def _ideal_sensor_params(path: Path) -> Path:
 
 
 def _dataset(directory: Path):
-    from virtsensor.dataset import build_dataset, load_runs
     from virtsensor.features import PAPER, Feature, FeatureSpec
+    from virtsensor.learning.dataset import build_dataset, load_runs
 
     spec = FeatureSpec("paper+eq1", PAPER.features + (Feature("steer_angle_rad", "rate"),
                                                       Feature("steer_angle_rad", "accel")))
@@ -80,8 +80,8 @@ def _fit(X: np.ndarray, Y: np.ndarray, train: np.ndarray, test: np.ndarray, para
     from sklearn.exceptions import ConvergenceWarning
     from threadpoolctl import threadpool_limits
 
+    from virtsensor.learning.training import make_pipeline
     from virtsensor.metrics import metrics
-    from virtsensor.training import make_pipeline
 
     t0 = time.perf_counter()
     with warnings.catch_warnings(), threadpool_limits(1):
@@ -193,8 +193,8 @@ def main(argv: list[str] | None = None) -> int:
     from joblib import Parallel, delayed
     from tqdm import tqdm
 
-    from virtsensor.evaluation import grouped_split, random_split
-    from virtsensor.training import PAPER_PARAMS
+    from virtsensor.learning.evaluation import grouped_split, random_split
+    from virtsensor.learning.training import PAPER_PARAMS
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:

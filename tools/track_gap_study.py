@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from virtsensor.dataset import build_dataset, load_runs
 from virtsensor.features import FeatureSpec
 from virtsensor.fileio import write_json
+from virtsensor.learning.dataset import build_dataset, load_runs
 from virtsensor.model.onnx import OnnxModel
 
 CELL = 0.5  # m/s^2

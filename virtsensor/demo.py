@@ -2,7 +2,7 @@
 
 What runs (all in this process, on python-can's in-process ``virtual`` bus, one fresh channel per run):
 
-* the **player** (:func:`virtsensor.replay.replay`, drift-free timing, in a worker thread) sends the
+* the **player** (:func:`virtsensor.recordings.replay.replay`, drift-free timing, in a worker thread) sends the
   recording's frames, timestamps preserved, with a sync frame (:func:`~virtsensor.daemon.layout.sync_frames`,
   an id not in the DBC) after each 20 Hz instant ``t_first + k * TABLE_TICK_S``: after every frame stamped at or
   before the instant, before any later one;
@@ -155,7 +155,7 @@ class _StampingBus:
 
 def _load_frames(recording: Path, matrix: Any) -> tuple[list[Any], int]:
     """The recording's frames in time order, without the daemon's own outputs (returned: how many dropped)."""
-    from virtsensor.recording import iter_log
+    from virtsensor.recordings.canlog import iter_log
 
     own = {matrix.messages[m].frame_id for m in ("SAT_FRONT", "VS_Health")}
     frames, dropped = [], 0
@@ -254,7 +254,7 @@ def run_demo(
 
     from virtsensor.canbus.codec import CanMatrix
     from virtsensor.daemon import VirtualSensor, configure_logging
-    from virtsensor.replay import parse_rate, replay
+    from virtsensor.recordings.replay import parse_rate, replay
 
     out = out or sys.stdout
     wall0 = time.monotonic()

@@ -60,8 +60,8 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.diagnose import diagnose
     from virtsensor.errors import UserError
     from virtsensor.fileio import atomic_write_bytes, write_json
-    from virtsensor.measured import load_measured
-    from virtsensor.training import RECIPES
+    from virtsensor.learning.training import RECIPES
+    from virtsensor.recordings.measured import load_measured
 
     if args.export_model and args.no_retrain:
         raise UserError("--export-model needs the retraining; drop --no-retrain")

@@ -42,15 +42,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from virtsensor import signals as cat
-    from virtsensor.dataset import build_dataset, load_runs, split_track_laps
     from virtsensor.errors import UserError
-    from virtsensor.evaluation import evaluate, held_out_runs, markdown_table
     from virtsensor.features import SPECS, FeatureSpec
     from virtsensor.fileio import atomic_write_bytes, write_json
+    from virtsensor.learning.dataset import build_dataset, load_runs, split_track_laps
+    from virtsensor.learning.evaluation import evaluate, held_out_runs, markdown_table
+    from virtsensor.learning.scoring import envelope_split
+    from virtsensor.learning.training import RECIPES
     from virtsensor.metrics import metrics
     from virtsensor.model.onnx import OnnxModel
-    from virtsensor.scoring import envelope_split
-    from virtsensor.training import RECIPES
 
     model = OnnxModel.load(args.model)
     card = model.card

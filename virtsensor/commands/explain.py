@@ -3,7 +3,7 @@
 Correlation of the inputs (Fig. 2), global SHAP importance (Fig. 8) and SHAP
 dependence (Fig. 9) of the ONNX model on the test rows of the paper's random
 70/30 split, and, with ``--track``, the Magny-Cours laps (Figs. 5-7). See
-:mod:`virtsensor.explain` for what is computed and why.
+:mod:`virtsensor.learning.explain` for what is computed and why.
 
 Example::
 
@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.explain import explain
+    from virtsensor.learning.explain import explain
 
     def log(msg: str) -> None:
         if not args.quiet:

@@ -7,7 +7,7 @@ Examples::
     virtsensor replay --manoeuvre double-lane-change --speed 80 --mu 1.0 --interface socketcan --channel vcan0
 
 Timing follows the log's timestamps (s) scaled by ``--rate``; see
-:mod:`virtsensor.replay`. The closing summary goes to stdout, the progress bar
+:mod:`virtsensor.recordings.replay`. The closing summary goes to stdout, the progress bar
 to stderr.
 """
 
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
-    from virtsensor.replay import open_bus, parse_rate, replay, simulated_frames
+    from virtsensor.recordings.replay import open_bus, parse_rate, replay, simulated_frames
 
     rate = parse_rate(args.rate)
     if (args.file is None) == (args.manoeuvre is None):

@@ -30,10 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.dataset import load_runs
     from virtsensor.fileio import atomic_write_bytes, write_json
+    from virtsensor.learning.dataset import load_runs
+    from virtsensor.learning.scoring import markdown, needed_signals, score_runs
     from virtsensor.model.onnx import OnnxModel
-    from virtsensor.scoring import markdown, needed_signals, score_runs
 
     if args.markdown and Path(args.markdown).resolve() == Path(args.json).resolve():
         raise UserError(f"--markdown {args.markdown}: the same file as --json")

@@ -90,7 +90,7 @@ def _resimulate(args: argparse.Namespace):
     """Re-simulate a recorded run from its driver inputs (``simulate recorded``)."""
     from sim.api import simulate_plan
     from sim.manoeuvres import MU_RANGE, from_recording
-    from virtsensor.dataset import load_runs
+    from virtsensor.learning.dataset import load_runs
 
     if args.inputs is None:
         raise UserError("recorded: --inputs FILE is required (a .csv table or a CAN log)")

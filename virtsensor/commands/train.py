@@ -43,12 +43,12 @@ def run(args: argparse.Namespace) -> int:
     from threadpoolctl import threadpool_limits
 
     from virtsensor import signals as cat
-    from virtsensor.dataset import build_dataset, load_runs
     from virtsensor.errors import UserError
-    from virtsensor.evaluation import grouped_split
     from virtsensor.features import SPECS
+    from virtsensor.learning.dataset import build_dataset, load_runs
+    from virtsensor.learning.evaluation import grouped_split
+    from virtsensor.learning.training import RECIPES, grid_search, make_pipeline
     from virtsensor.metrics import metrics
-    from virtsensor.training import RECIPES, grid_search, make_pipeline
 
     if args.recipe not in RECIPES:
         raise UserError(f"--recipe: unknown recipe {args.recipe!r}; choose one of: {', '.join(RECIPES)}")

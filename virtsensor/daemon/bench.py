@@ -3,7 +3,7 @@
 Every figure is taken on a real :class:`~virtsensor.daemon.VirtualSensor` on python-can's in-process
 ``virtual`` bus (``cross_process``: ``udp_multicast`` in a private network namespace, null with a reason
 where that is not permitted). Input: a simulated manoeuvre (``sim.api.simulate``; the bench imports the
-simulator, the runtime never does) encoded as :func:`virtsensor.recording.iter_frames` writes it, a sync
+simulator, the runtime never does) encoded as :func:`virtsensor.recordings.canlog.iter_frames` writes it, a sync
 frame (:func:`~virtsensor.daemon.layout.sync_frames`) after each 20 Hz instant, and a window of ``LOOP_S``
 seconds replayed in a loop (timestamps shifted by ``LOOP_S`` per loop; the window holds a whole multiple of
 16 frames of every message, so the E2E alive counters stay continuous).
@@ -125,7 +125,7 @@ class Inputs:
     def __init__(self, manoeuvre: tuple = MANOEUVRE) -> None:
 
         from sim.api import simulate
-        from virtsensor.recording import iter_frames
+        from virtsensor.recordings.canlog import iter_frames
 
         run = simulate(*manoeuvre)
         time_s = run.streams["time_s"]

@@ -15,7 +15,7 @@ time for frames without one), then ticks at the time the drain ended. In sync mo
 thread reads frame by frame and every ``sync_every``-th sync frame ticks, right after the frames received
 before it, at tick time = the sync frame's timestamp (frame times are the bus's own): replaying a log with a
 sync frame just after each 20 Hz grid instant gives, tick for tick, the offline table of
-:func:`virtsensor.recording.read_log`.
+:func:`virtsensor.recordings.canlog.read_log`.
 
 Real-time hygiene: every array and list the tick touches is allocated at start-up and reused, except that
 copying the receivers' list of input values into the feature builder's numpy array converts that small
@@ -182,7 +182,7 @@ class VirtualSensor:
             UserError: unreadable/invalid config, model or DBC; model inputs not in the DBC; bus not openable.
         """
         from virtsensor.model.onnx import OnnxModel
-        from virtsensor.replay import open_bus
+        from virtsensor.recordings.replay import open_bus
 
         if isinstance(config, (str, os.PathLike)):
             cfg = load_config(config)

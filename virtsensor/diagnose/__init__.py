@@ -2,7 +2,7 @@
 
 :func:`diagnose` is the whole procedure behind ``virtsensor diagnose``:
 
-1. load and check the measured runs (:mod:`virtsensor.measured`);
+1. load and check the measured runs (:mod:`virtsensor.recordings.measured`);
 2. re-simulate them from their driver inputs and compare signal by signal
    (:mod:`virtsensor.diagnose.compare`);
 3. identify every candidate effect of :mod:`sim.effects` and name the best
@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from virtsensor.measured import MeasuredRun
+from virtsensor.recordings.measured import MeasuredRun
 
 
 def diagnose(

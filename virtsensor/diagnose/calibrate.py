@@ -18,11 +18,11 @@ from typing import Any
 import numpy as np
 
 from virtsensor import signals as cat
-from virtsensor.dataset import Run, build_dataset
 from virtsensor.features import SPECS
-from virtsensor.measured import MeasuredRun
+from virtsensor.learning.dataset import Run, build_dataset
+from virtsensor.learning.training import RECIPES, make_pipeline
 from virtsensor.metrics import metrics
-from virtsensor.training import RECIPES, make_pipeline
+from virtsensor.recordings.measured import MeasuredRun
 
 
 def campaign_runs(params: Mapping[str, Any], preset: str, seed: int, n_jobs: int) -> list[Run]:

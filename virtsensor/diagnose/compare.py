@@ -25,7 +25,7 @@ import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.diagnose.resim import segment_mask
-from virtsensor.measured import MeasuredRun
+from virtsensor.recordings.measured import MeasuredRun
 from virtsensor.signals import TABLE_TICK_S as TICK_S
 
 MAX_LAG_S = 1.0

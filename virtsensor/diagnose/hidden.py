@@ -71,7 +71,7 @@ def make_case(seed: int, out_dir: str | Path, *, control: bool = False, causes: 
     for i, run in enumerate(simulate_many(reqs, params), start=1):
         path = out / f"run{i:02d}{suffix}"
         if suffix == ".csv":
-            from virtsensor.recording import write_csv
+            from virtsensor.recordings.canlog import write_csv
 
             table = run_table(run)
             write_csv(path, {k: table[k] for k in measured})

@@ -52,7 +52,7 @@ from virtsensor.diagnose.resim import (
     segment_mask,
     simulate_hypotheses,
 )
-from virtsensor.measured import MeasuredRun
+from virtsensor.recordings.measured import MeasuredRun
 
 #: a BIC gain above this is decisive evidence (Kass & Raftery: > 10)
 BIC_DECISIVE = 10.0

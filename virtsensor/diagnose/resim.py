@@ -29,7 +29,7 @@ import numpy as np
 from sim.effects import DRIVE_SIGNALS, effect_overrides
 from sim.params import apply_overrides
 from virtsensor import signals as cat
-from virtsensor.measured import MeasuredRun
+from virtsensor.recordings.measured import MeasuredRun
 from virtsensor.signals import TABLE_TICK_S as TICK_S
 
 #: the re-simulation starts from straight-line running: its first seconds are not compared

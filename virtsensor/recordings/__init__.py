@@ -10,5 +10,5 @@
   reads recordings applies (rate, time order, catalogue ranges, targets).
 * :mod:`virtsensor.recordings.mdf`: MDF4 files sampled on the 20 Hz ticks.
 
-The low-level CAN log and CSV codecs are :mod:`virtsensor.recording`.
+The low-level CAN log and CSV codecs are :mod:`virtsensor.recordings.canlog`.
 """

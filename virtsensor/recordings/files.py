@@ -120,7 +120,7 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
     Raises:
         UserError: an unreadable, malformed or truncated file, naming it.
     """
-    from virtsensor.recording import read_csv, read_log
+    from virtsensor.recordings.canlog import read_csv, read_log
 
     path = Path(path)
     suffix = path.suffix.lower()

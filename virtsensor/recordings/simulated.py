@@ -1,10 +1,10 @@
 """A simulated run as data: the canonical 20 Hz table and the file that holds it.
 
 The table is what a receiver on the bus samples from the run's frames (inputs
-and reference SATs, see :func:`virtsensor.recording.simulated_recording`), with
+and reference SATs, see :func:`virtsensor.recordings.canlog.simulated_recording`), with
 the simulator's truth columns (slip angles, loads, forces...) at the same ticks.
 A CSV file holds that table; a CAN log holds the frames, and reading it back
-(:func:`virtsensor.recording.read_log`) gives the same inputs and SATs at the
+(:func:`virtsensor.recordings.canlog.read_log`) gives the same inputs and SATs at the
 same ticks.
 
 The simulator (package ``sim``) is imported only when a function here runs.
@@ -28,7 +28,7 @@ def run_table(sim_run: Any) -> dict[str, np.ndarray]:
     ``time_s`` (s), the catalogue's inputs and reference SATs as a receiver decodes
     them from the run's frames, then the truth columns at the same ticks."""
     from sim.sensors import truth_at
-    from virtsensor.recording import simulated_recording
+    from virtsensor.recordings.canlog import simulated_recording
 
     streams = sim_run.streams
     rec = simulated_recording(streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
@@ -46,7 +46,7 @@ def write_run_file(sim_run: Any, path: Path) -> dict[str, np.ndarray]:
     Raises:
         ValueError: a suffix that is neither a table nor a CAN log.
     """
-    from virtsensor.recording import write_csv, write_log
+    from virtsensor.recordings.canlog import write_csv, write_log
 
     path = Path(path)
     fmt = path.suffix.lower()

@@ -22,7 +22,7 @@ What is explained
 -----------------
 The shipped ONNX graph itself, through :meth:`virtsensor.model.onnx.OnnxModel.predict`,
 on rows of the test side of the paper's random 70/30 split
-(:func:`virtsensor.evaluation.random_split`), against a background of
+(:func:`virtsensor.learning.evaluation.random_split`), against a background of
 :data:`BACKGROUND_ROWS` rows drawn from the training side. Both draws and the
 explainer's permutations derive from one seed: the same seed gives the same numbers.
 
@@ -431,10 +431,10 @@ def _lap_figures(out_dir: Path, model: Any, ds: Any, lap: str, name: str, axle_n
                  figures: list[str], say: Callable[[str], None]) -> dict[str, Any]:
     """Estimate vs truth over one lap or circuit (:func:`plot_track`, and :func:`plot_axle` when ``axle_name``),
     out-of-envelope rows shaded; appends the file names to ``figures``; returns the metrics, with
-    ``envelope`` (:func:`virtsensor.scoring.envelope_split`; None without an envelope in the card)."""
+    ``envelope`` (:func:`virtsensor.learning.scoring.envelope_split`; None without an envelope in the card)."""
+    from virtsensor.learning.scoring import envelope_split
     from virtsensor.metrics import metrics as fit_metrics
     from virtsensor.model.envelope import Envelope
-    from virtsensor.scoring import envelope_split
 
     P = model.predict(ds.X)
     m = fit_metrics(ds.Y, P)
@@ -476,9 +476,9 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
         UserError: missing/invalid model, data lacking a signal, output directory not creatable,
             shap or matplotlib not installed, nothing to explain.
     """
-    from virtsensor.dataset import build_dataset, load_runs, split_track_laps
-    from virtsensor.evaluation import random_split
     from virtsensor.features import FeatureSpec
+    from virtsensor.learning.dataset import build_dataset, load_runs, split_track_laps
+    from virtsensor.learning.evaluation import random_split
     from virtsensor.model.onnx import OnnxModel
 
     say = log or (lambda _msg: None)

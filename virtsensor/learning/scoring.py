@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from virtsensor import signals as cat
-from virtsensor.dataset import Run, build_dataset
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
+from virtsensor.learning.dataset import Run, build_dataset
 from virtsensor.metrics import metrics
 from virtsensor.model.envelope import Envelope
 

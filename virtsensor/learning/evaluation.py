@@ -24,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from virtsensor.dataset import Dataset, Run, build_dataset, split_track_laps
 from virtsensor.features import PAPER, SPECS
+from virtsensor.learning.dataset import Dataset, Run, build_dataset, split_track_laps
+from virtsensor.learning.training import SteeringObserver, linear_pipeline, make_pipeline
 from virtsensor.metrics import metrics
-from virtsensor.training import SteeringObserver, linear_pipeline, make_pipeline
 
 TEST_FRACTION = 0.3
 

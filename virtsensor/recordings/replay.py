@@ -143,7 +143,7 @@ def simulated_frames(
         from sim.tir import TirError
     except ImportError as exc:
         raise UserError(f"the simulator is not available ({exc})") from None
-    from virtsensor.recording import iter_frames
+    from virtsensor.recordings.canlog import iter_frames
 
     try:
         time_s, signals = simulate_streams(manoeuvre, speed_kmh=speed_kmh, mu=mu, seed=seed, overrides=overrides)
@@ -155,7 +155,7 @@ def simulated_frames(
 def _sources(frames_or_path, loop: bool):
     """(factory returning a fresh iterator per pass, total frames per pass or None, label)."""
     if isinstance(frames_or_path, (str, os.PathLike)):
-        from virtsensor.recording import iter_log
+        from virtsensor.recordings.canlog import iter_log
 
         path = Path(frames_or_path)
         # validate now (missing file, bad format, truncation) rather than after the first pass
@@ -211,7 +211,7 @@ def replay(
     """Send frames onto ``bus`` with their original timing (or as fast as possible).
 
     Args:
-        frames_or_path: a log file (any format :func:`virtsensor.recording.iter_log`
+        frames_or_path: a log file (any format :func:`virtsensor.recordings.canlog.iter_log`
             reads) or python-can ``Message`` objects in time order.
         bus: an open python-can bus (not shut down here).
         rate: time scale (2.0 = twice as fast); ``None``/``"max"``: no timing.

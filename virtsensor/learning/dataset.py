@@ -3,7 +3,7 @@
 A *recording* is a canonical CSV table, a CAN log (.blf, .asc, .log, .trc) or an
 MDF4 file (:mod:`virtsensor.recordings.files`). Logs are decoded through the DBC
 and sampled by the same front-end the runtime uses
-(:func:`virtsensor.recording.read_log`); simulated CSV tables were made by that
+(:func:`virtsensor.recordings.canlog.read_log`); simulated CSV tables were made by that
 same path. A directory of recordings may hold the ``manifest.json`` a campaign
 writes last; the directory must then hold exactly its runs, each as listed, and
 their metadata (manoeuvre, speed, friction, seed) travel with each run.
