@@ -211,3 +211,106 @@ def test_vehicle_speed_disagreeing_with_the_wheel_speeds_is_not_valid_and_named(
     change = [e for e in handler.events if e["event"] == "status_change" and e.get("implausible_checks")]
     assert change and change[0]["implausible_checks"] == ["vx_vs_front_wheel_speed"]
     assert "vx_mps" in change[0]["bad_inputs"]
+
+
+# ------------------------------------------------------------------------- the command line's named mistakes
+def _table_without_time(path) -> None:
+    names = [*cat.INPUTS, *cat.OUTPUTS]
+    path.write_text(",".join(names) + "\n" + "\n".join(",".join(["0.0"] * len(names)) for _ in range(5)) + "\n")
+
+
+def _one_run(path) -> None:
+    names = ["time_s", *cat.INPUTS, *cat.OUTPUTS]
+    path.write_text(",".join(names) + "\n" + "\n".join(
+        ",".join([f"{0.05 * i:.2f}", *["0.0"] * (len(names) - 1)]) for i in range(5)) + "\n")
+
+
+def _campaign_of(directory, runs_from, rows) -> None:
+    """A completed campaign's directory (runs and a manifest of their rows and sha256) of copies of the runs."""
+    import json
+    import shutil
+
+    from virtsensor.recordings.manifest import MANIFEST, file_sha256
+
+    directory.mkdir()
+    entries = []
+    for f in sorted(runs_from.iterdir()):
+        shutil.copy(f, directory / f.name)
+        entries.append({"file": f.name, "rows": rows, "sha256": file_sha256(directory / f.name)})
+    (directory / MANIFEST).write_text(json.dumps({"runs": entries}))
+
+
+@pytest.fixture()
+def cli_scratch(tmp_path):
+    """Inputs of the named mistakes: a secret non-tyre file, a binary file, runs without ``time_s``, one run,
+    directories named like files and files named like directories, a read-only directory."""
+    d = tmp_path
+    (d / "secret.txt").write_text("password = hunter2-SECRET\n")
+    (d / "binary.bin").write_bytes(bytes(range(256)) * 4)
+    (d / "notime").mkdir()
+    for k in range(2):
+        _table_without_time(d / "notime" / f"run{k}.csv")
+    _table_without_time(d / "notime.csv")
+    _campaign_of(d / "camp_notime", d / "notime", rows=5)
+    _campaign_of(d / "camp_badrows", d / "notime", rows="5")
+    _one_run(d / "one.csv")
+    (d / "dir.csv").mkdir()
+    (d / "file.txt").write_text("not a directory\n")
+    (d / "ro").mkdir()
+    (d / "ro").chmod(0o555)
+    yield d
+    (d / "ro").chmod(0o755)
+
+
+#: The mistakes issue-listed for "never a traceback": argv ({tmp}: the scratch directory), a word the line names.
+NAMED_MISTAKES = [
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--seed", "-1", "--out", "{tmp}/x.csv"], "--seed"),
+    (["campaign", "tiny", "--jobs", "0", "--out", "{tmp}/camp"], "--jobs"),
+    (["train", "--data", "{tmp}/notime", "--grid-rows", "0", "--out", "{tmp}/m.onnx"], "--grid-rows"),
+    (["replay", "{tmp}/one.csv", "-i", "virtual", "-c", "rel", "--rate", "1e-300"], "--rate"),
+    (["train", "--data", "{tmp}/one.csv", "--out", "{tmp}/m.onnx"], "at least 2"),
+    (["train", "--data", "{tmp}/notime", "--out", "{tmp}/m.onnx"], "time_s"),
+    (["train", "--data", "{tmp}/notime.csv", "{tmp}/one.csv", "--out", "{tmp}/m.onnx"], "time_s"),
+    (["evaluate", "--model", "models/improved.onnx", "--data", "{tmp}/notime", "--json", "{tmp}/e.json"], "time_s"),
+    (["train", "--data", "{tmp}/camp_notime", "--out", "{tmp}/m.onnx"], "time_s"),
+    (["evaluate", "--model", "models/improved.onnx", "--data", "{tmp}/camp_notime", "--json", "{tmp}/e.json"],
+     "time_s"),
+    (["explain", "--model", "models/improved.onnx", "--data", "{tmp}/camp_notime", "--out", "{tmp}/figs"], "time_s"),
+    (["train", "--data", "{tmp}/camp_badrows", "--out", "{tmp}/m.onnx"], "rows"),
+    (["evaluate", "--model", "models/improved.onnx", "--data", "{tmp}/one.csv", "--track", "{tmp}/notime.csv",
+      "--json", "{tmp}/e.json"], "time_s"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--params", "{tmp}/binary.bin",
+      "--out", "{tmp}/x.csv"], "binary.bin"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--out", "{tmp}/ro/x.csv"], "not writable"),
+    (["campaign", "tiny", "--out", "{tmp}/ro/camp"], "not writable"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--out", "{tmp}/dir.csv"], "is a directory"),
+    (["campaign", "tiny", "--out", "{tmp}/file.txt"], "not a directory"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--set", "tyres.file={tmp}/secret.txt",
+      "--out", "{tmp}/x.csv"], "secret.txt"),
+]
+
+
+@pytest.mark.parametrize(("argv", "needle"), NAMED_MISTAKES, ids=[" ".join(a[:1] + [n]) for a, n in NAMED_MISTAKES])
+def test_named_mistakes_are_one_line_exit_2_and_write_nothing(cli_scratch, monkeypatch, capsys, argv, needle):
+    """Each: exit 2, one line on stderr naming what is wrong, no traceback, no file content echoed, nothing
+    written. (Root writes into read-only directories, so their permission check is faked as the OS would
+    answer anyone else.)"""
+    import os
+    from pathlib import Path
+
+    from virtsensor import cli
+
+    d = cli_scratch
+    ro, real = str(d / "ro"), os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if str(p).startswith(ro) and mode & os.W_OK
+                        else real(p, mode, **kw))
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])  # models/ of the checkout
+    before = sorted(p.relative_to(d) for p in d.rglob("*"))
+    rc = cli.main([a.replace("{tmp}", str(d)) for a in argv])
+    out, err = capsys.readouterr()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2, err
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert needle in lines[0], lines[0]
+    assert "SECRET" not in out + err
+    assert sorted(p.relative_to(d) for p in d.rglob("*")) == before
