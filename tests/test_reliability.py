@@ -184,6 +184,8 @@ def test_vehicle_speed_disagreeing_with_the_wheel_speeds_is_not_valid_and_named(
     """vx 89 m/s while the front wheels roll at 19 m/s: in range, fresh and intact, but implausible."""
     t, sig = synthetic_streams(8.0, seed=5)
     sig["vx_mps"] = 19.0 + 0.5 * np.sin(t)
+    sig["ax_mps2"] = 0.5 * np.cos(t)  # cruising: neither brakes nor drive could lock or spin a wheel
+    sig["motor_torque_nm"] = 15.0 + 5.0 * np.sin(t)
     for w in ("fl", "fr"):
         sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
     sig["vx_mps"] = np.where(t >= 4.0, 89.0, sig["vx_mps"])
