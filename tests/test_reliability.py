@@ -316,3 +316,68 @@ def test_named_mistakes_are_one_line_exit_2_and_write_nothing(cli_scratch, monke
     assert needle in lines[0], lines[0]
     assert "SECRET" not in out + err
     assert sorted(p.relative_to(d) for p in d.rglob("*")) == before
+
+
+# ------------------------------------------------------------------------------------ fault-injection soak
+def _fault_soak():
+    import importlib
+    import sys
+    from pathlib import Path
+
+    tools = str(Path(__file__).resolve().parents[1] / "tools")
+    if tools not in sys.path:
+        sys.path.insert(0, tools)
+    return importlib.import_module("fault_soak")
+
+
+def test_fault_soak_one_minute_of_bus_time():
+    """The soak of docs/reliability.md, short: 60 s of the demo recording with a fault every few seconds (seed 6
+    draws nine of the eleven kinds, the falsified speed among them): no VALID tick on a dead or implausible
+    input, no tick error, no crash, and the daemon VALID on most other ticks."""
+    fs = _fault_soak()
+    out = fs.soak(1.0, 6, pool=(fs.DEMO_LOG,), log=lambda _m: None)
+    assert out["bus_time_s"] == 60.0 and out["faults"] >= 10 and len(out["faults_by_kind"]) >= 8
+    assert out["dead_ticks"] > 100 and out["implausible_ticks"] > 20  # the oracle has something to check
+    assert out["valid_on_dead_or_implausible"] == 0, out["first_violations"]
+    assert out["tick_errors"] == 0 and out["crashes"] == 0, out["first_crash"]
+    assert out["valid_share_of_other_ticks"] > 0.8
+    assert out["counters"]["implausible_checks"] >= 1 and out["log_events"]["implausible"] >= 1
+
+
+@pytest.mark.parametrize("sabotage", ["inputs always VALID", "no plausibility check"])
+def test_fault_soak_oracle_catches_a_daemon_that_ignores_faults(monkeypatch, sabotage):
+    """The soak's oracle is not vacuous: a daemon that ignores freshness, or its plausibility checks, fails it."""
+    import virtsensor.daemon.sensor as sensor_mod
+    from virtsensor.daemon.validity import Plausibility, assess_inputs
+
+    fs = _fault_soak()
+    if sabotage == "inputs always VALID":
+        monkeypatch.setattr(sensor_mod, "assess_inputs", lambda *a, **k: (VALID, assess_inputs(*a, **k)[1]))
+    else:
+        monkeypatch.setattr(Plausibility, "update", lambda self, values: 0)
+    out = fs.soak(1.0, 6, pool=(fs.DEMO_LOG,), log=lambda _m: None)
+    assert out["valid_on_dead_or_implausible"] > 0
+    if sabotage == "no plausibility check":
+        assert all(v["implausible"] and not v["dead"] for v in out["first_violations"])
+
+
+@pytest.mark.parametrize("pool", ["demo", pytest.param("low-mu", marks=pytest.mark.slow)])
+def test_simulated_runs_never_trip_a_plausibility_check(pool):
+    """The daemon on the simulator's own frames (the bundled demo; a fishhook and a braking in a turn on
+    μ 0.3, a wheel-spinning launch on μ 0.2): no implausible tick, no check ever failing."""
+    fs = _fault_soak()
+    from virtsensor.daemon import VirtualSensor
+    from virtsensor.model.onnx import OnnxModel
+
+    runs = (fs.DEMO_LOG,) if pool == "demo" else (("fishhook", 80.0, 0.3, 1), ("braking-in-turn", 80.0, 0.3, 2),
+                                                   ("brake-accel", 100.0, 0.2, 6))
+    minutes = 20.0 / 60.0 if pool == "demo" else 27.5 / 60.0
+    sensor = VirtualSensor(fs._NullBus(), OnnxModel.load(str(fs.ROOT / "models" / "improved.onnx")), MATRIX,
+                           freeze_gc=False)
+    s, end = fs.build_stream(MATRIX, minutes, runs, log=lambda _m: None)
+    s.order()
+    ticks = np.arange(1, int(round(end / fs.TICK_S)) + 1) * fs.TICK_S + 1e-6
+    res = fs.drive(s, sensor, ticks, {})
+    assert sensor.counters["implausible_checks"] == 0 and not any(sensor._plaus.failing)
+    assert res["crashes"] == 0 and sensor.counters["tick_errors"] == 0
+    assert (res["statuses"] == VALID).all(axis=1).mean() > 0.9
