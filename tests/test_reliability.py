@@ -354,7 +354,7 @@ def test_fault_soak_oracle_catches_a_daemon_that_ignores_faults(monkeypatch, sab
     if sabotage == "inputs always VALID":
         monkeypatch.setattr(sensor_mod, "assess_inputs", lambda *a, **k: (VALID, assess_inputs(*a, **k)[1]))
     else:
-        monkeypatch.setattr(Plausibility, "update", lambda self, values: 0)
+        monkeypatch.setattr(Plausibility, "update", lambda self, *args: 0)
     out = fs.soak(1.0, 6, pool=(fs.DEMO_LOG,), log=lambda _m: None)
     assert out["valid_on_dead_or_implausible"] > 0
     if sabotage == "no plausibility check":

@@ -273,7 +273,7 @@ class VirtualSensor:
             if not self._complete:
                 self._complete = min(rx.times) > -math.inf
             plaus = self._plaus
-            if plaus.update(rx.values):
+            if plaus.update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
                 _log_implausible(self, t)
             status, bitmap = assess_inputs(t, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
                                            self._rules, self._state, plaus.implausible)

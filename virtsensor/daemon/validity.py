@@ -267,7 +267,7 @@ class Plausibility:
     """Debounced plausibility checks, fed the latest input values once per tick (:meth:`update`).
 
     A failing check marks its *subject* implausible (:attr:`implausible`); a NaN among the compared values (an
-    input never received) passes: staleness is judged elsewhere.
+    input never received) passes, and a check on a stale input is not judged: staleness is judged elsewhere.
 
     Attributes:
         rules: the checks. failing: per check, its debounced verdict. implausible: per input signal.
@@ -284,13 +284,15 @@ class Plausibility:
         self._run = [0] * len(self.rules)  # consecutive judged ticks disagreeing with the current verdict
         self._prev = [math.nan] * n_signals  # the values of the previous update (steadiness)
 
-    def update(self, values: Sequence[float]) -> int:
-        """Run every check on ``values`` (per input signal); returns how many checks newly failed."""
+    def update(self, values: Sequence[float], stale: Sequence[bool] | None = None) -> int:
+        """Run every check on ``values`` (per input signal); returns how many checks newly failed. A check that
+        compares a ``stale`` signal (a held value, not news) is not judged at this tick."""
         n_new = 0
         failing, run, imp, new, prev = self.failing, self._run, self.implausible, self.new, self._prev
         for k, r in enumerate(self.rules):
             new[k] = False
-            if (r.steady or r.within or r.turn is not None) and not _judged(r, values, prev):
+            if (stale is not None and (stale[r.subject] or any(stale[i] for i in r.refs))) or (
+                    (r.steady or r.within or r.turn is not None) and not _judged(r, values, prev)):
                 run[k] = 0
                 continue
             v = values[r.subject]
