@@ -415,6 +415,10 @@ def drive(s: Stream, sensor: Any, ticks: np.ndarray, marks: dict[int, list[int]]
     return {"statuses": statuses, "crashes": crashes, "first_crash": first_crash, "snapshots": snaps}
 
 
+#: counters that move on every tick or frame (left out of the observed fault matrix)
+_ALWAYS = ("frames", "input_frames", "other_frames", "ticks", "drained_frames", "sent", "e2e_ok", "status_changes")
+
+
 def _observed_matrix(faults: list[dict[str, Any]], ticks: np.ndarray, statuses: np.ndarray,
                      snaps: dict[int, dict[str, int]], forbidden: np.ndarray) -> dict[str, Any]:
     """Per fault kind: how many were injected, the daemon's statuses while they lasted (+1 s), the counters
@@ -430,9 +434,9 @@ def _observed_matrix(faults: list[dict[str, Any]], ticks: np.ndarray, statuses: 
         for st in statuses[k0:k1].min(axis=1).tolist():
             e["statuses"][STATUS_NAMES[st]] += 1
         e["forbidden_ticks"] += int(forbidden[k0:k1].sum())
-        a, b = snaps.get(k0, {}), snaps.get(k1 - 1, {})
+        a, b = snaps.get(max(k0 - 1, 0), {}), snaps.get(min(k1, len(ticks) - 1), {})
         for key, v in b.items():
-            if key not in ("frames", "input_frames", "ticks", "drained_frames", "sent", "e2e_ok") and v > a.get(key, 0):
+            if key not in _ALWAYS and v > a.get(key, 0):
                 e["counters"][key] += 1
     return {k: {**v, "statuses": dict(v["statuses"]), "counters": dict(v["counters"])} for k, v in sorted(out.items())}
 
