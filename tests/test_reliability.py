@@ -381,3 +381,56 @@ def test_simulated_runs_never_trip_a_plausibility_check(pool):
     assert sensor.counters["implausible_checks"] == 0 and not any(sensor._plaus.failing)
     assert res["crashes"] == 0 and sensor.counters["tick_errors"] == 0
     assert (res["statuses"] == VALID).all(axis=1).mean() > 0.9
+
+
+def _steady_left_turn(duration_s: float):
+    """Synthetic streams of a steady left turn with grip at 20 m/s (every catalogue check holds): yaw rate
+    0.2 rad/s, ay = r vx, the steering a little above the kinematic angle, the assist on the boost curve."""
+    t, sig = synthetic_streams(duration_s, seed=5)
+    vx, r = 20.0, 0.2 + 0.01 * np.sin(0.5 * t)
+    sig["vx_mps"] = np.full_like(t, vx)
+    sig["yaw_rate_radps"] = r
+    sig["ay_mps2"] = r * vx
+    sig["steer_angle_rad"] = 1.2 * r * cat.STEADY_TURN.steer_ratio * cat.STEADY_TURN.wheelbase_m / vx
+    sig["ax_mps2"] = 0.1 * np.sin(t)
+    sig["motor_torque_nm"] = 15.0 + 2.0 * np.sin(t)
+    for w in ("fl", "fr"):
+        sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
+    sig["steer_torque_nm"] = 2.0 + 0.2 * np.sin(t)
+    b = cat.EPAS_BOOST
+    gain = np.interp(vx, b.speeds_mps, b.gains)
+    tb = sig["steer_torque_nm"]
+    sig["assist_torque_nm"] = gain * tb * np.abs(tb) / (np.abs(tb) + b.knee_nm)
+    return t, sig
+
+
+@pytest.mark.parametrize(("check", "subject", "bit", "fault"), [
+    ("ay_vs_yaw_rate_times_speed", "ay_mps2", 0, lambda s: 0.0 * s),  # the lateral accelerometer reads 0
+    ("assist_vs_boosted_steer_torque", "assist_torque_nm", 1, lambda s: -s),  # the assist pushes the wrong way
+])
+def test_daemon_trips_a_redundancy_check_in_a_steady_turn_and_names_it(model, check, subject, bit, fault):
+    """Plausible for 6 s (VALID), then the subject disagrees from 6 s on: INVALID once the check's debounce
+    has run, the message's health bit cleared, the check counted once and named in the logs."""
+    t, sig = _steady_left_turn(10.0)
+    sig[subject] = np.where(t >= 6.0, fault(sig[subject]), sig[subject])
+    frames = list(iter_frames(t, sig, seed=5))
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    handler = _Events()
+    logger = logging.getLogger("virtsensor.daemon")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        ticks, vs = _drive_sync(model, merged)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    cut = next(i for i, m in enumerate(merged) if m.timestamp >= 6.0)
+    _valid_before(ticks, cut)
+    rule = next(r for r in cat.REDUNDANCIES if r.name == check)
+    late = [(s, b) for p, tt, s, b in ticks if p > cut and tt > 6.0 + (rule.debounce_ticks + 2) * 0.05]
+    assert late and all(s == (INVALID, INVALID) for s, _ in late), f"{subject} is critical: INVALID"
+    assert not any(b & (1 << bit) for _, b in late)
+    assert vs.counters["implausible_checks"] == 1
+    bad = [e for e in handler.events if e["event"] == "implausible"]
+    assert len(bad) == 1 and bad[0]["check"] == check and bad[0]["subject"] == subject

@@ -246,6 +246,15 @@ def _expected(r: PlausibilityRule, values: Sequence[float]) -> float:
     return r.scale * ref / len(r.refs)
 
 
+def _any_stale(r: PlausibilityRule, stale: Sequence[bool]) -> bool:
+    if stale[r.subject]:
+        return True
+    for i in r.refs:
+        if stale[i]:
+            return True
+    return False
+
+
 def _judged(r: PlausibilityRule, values: Sequence[float], prev: Sequence[float]) -> bool:
     """The check applies at this tick (steady signals, bounded signals, a steady turn with grip); False on NaN."""
     for i, step in r.steady:
@@ -291,7 +300,7 @@ class Plausibility:
         failing, run, imp, new, prev = self.failing, self._run, self.implausible, self.new, self._prev
         for k, r in enumerate(self.rules):
             new[k] = False
-            if (stale is not None and (stale[r.subject] or any(stale[i] for i in r.refs))) or (
+            if (stale is not None and _any_stale(r, stale)) or (
                     (r.steady or r.within or r.turn is not None) and not _judged(r, values, prev)):
                 run[k] = 0
                 continue
