@@ -9,6 +9,7 @@ wraps (14 -> 0), repetitions and jumps.
 
 from __future__ import annotations
 
+import math
 import random
 
 import e2e
@@ -166,7 +167,43 @@ def test_poll_nonewdata_does_not_touch_the_counter():
     rx.check(1, True, 0.01)
     assert rx.poll(0.05) is E2EStatus.OK  # 40 ms since the last frame: within the timeout
     assert rx.poll(0.07) is E2EStatus.NONEWDATA  # 60 ms > 50 ms
-    assert rx.check(2, True, 0.08) is E2EStatus.OK  # judged against the last counter, as the profile does
+    assert rx.counter == 1
+
+
+def test_poll_future_stamped_last_frame_is_nonewdata():
+    """The same freshness rule as the daemon's: 0 <= now - last_rx_s <= timeout; a frame stamped after
+    ``now`` is not data within the timeout, whatever its age's magnitude."""
+    rx = E2EReceiver(max_delta=3, timeout_s=0.05)
+    rx.check(0, True, 10.0)
+    assert rx.poll(9.99) is E2EStatus.NONEWDATA  # stamped 10 ms after now
+    assert rx.poll(10.0) is E2EStatus.NONEWDATA  # (the status stays until the next frame)
+    rx.check(1, True, 10.01)
+    assert rx.poll(10.01) is E2EStatus.OK and rx.poll(10.05) is E2EStatus.OK
+    assert rx.poll(float("nan")) is E2EStatus.NONEWDATA
+
+
+@pytest.mark.parametrize("t_next, why", [(0.005, "time step back"), (0.08, "gap past the timeout"),
+                                          (float("nan"), "no time")])
+def test_check_outside_the_timeout_window_is_wrongsequence_and_resynchronises(t_next, why):
+    """A frame whose gap since the last one is negative or longer than the timeout is WRONGSEQUENCE even
+    with the next counter (the counter cannot say how many frames were lost); it costs one frame."""
+    rx = E2EReceiver(max_delta=3, timeout_s=0.05)
+    assert _feed(rx, [0, 1]) == [E2EStatus.OK, E2EStatus.OK]  # last frame at t = 0.01
+    assert rx.check(2, True, t_next) is E2EStatus.WRONGSEQUENCE, why
+    assert rx.counter == 2
+    if math.isnan(t_next):  # a NaN time cannot anchor the next gap: that frame resynchronises too
+        assert rx.check(3, True, 0.02) is E2EStatus.WRONGSEQUENCE
+        t_next = 0.02
+    assert rx.check(rx.counter + 1, True, t_next + 0.01) is E2EStatus.OK
+
+
+def test_check_gap_at_the_bounds_is_within_the_timeout():
+    rx = E2EReceiver(max_delta=3, timeout_s=0.0625)
+    rx.check(0, True, 0.5)
+    assert rx.check(1, True, 0.5) is E2EStatus.OK  # gap 0
+    assert rx.check(2, True, 0.5625) is E2EStatus.OK  # gap == timeout (exact in binary)
+    assert rx.check(4, True, 0.5725) is E2EStatus.OKSOMELOST
+    assert E2EReceiver(timeout_s=0.05).check(0, True, -5.0) is E2EStatus.OK  # nothing before: counter only
 
 
 def test_reset_is_check_init():

@@ -178,3 +178,107 @@ def test_implausible_input_is_bad_not_stale():
                               implausible=[True, False, False])
     assert status == INVALID
     assert assess_inputs(T, [T] * 3, [False] * 3, [T, T], [False, False], [True, True], RULES, st)[0] == VALID
+
+
+# the catalogue's checks as the daemon builds them, on the 12 inputs in catalogue order
+def _catalogue_rules():
+    from virtsensor import signals as cat
+    from virtsensor.daemon.layout import InputLayout
+
+    class _Inputs:
+        signals = cat.INPUTS
+
+    return cat, {r.name: r for r in InputLayout.plausibility_rules(_Inputs)}  # type: ignore[arg-type]
+
+
+def _row(cat, **values) -> list[float]:
+    base = dict(ax_mps2=0.2, ay_mps2=0.0, vx_mps=20.0, yaw_rate_radps=0.0, steer_angle_rad=0.0, steer_torque_nm=0.0,
+                assist_torque_nm=0.0, motor_torque_nm=15.0, susp_defl_fl_m=0.0, susp_defl_fr_m=0.0,
+                wheel_speed_fl_radps=20.0 / cat.ROLLING_RADIUS_M, wheel_speed_fr_radps=20.0 / cat.ROLLING_RADIUS_M)
+    base.update(values)
+    return [base[n] for n in cat.INPUTS]
+
+
+def _steady_turn(cat, ay: float, vx: float = 20.0, r: float = 0.2) -> list[float]:
+    """A steady left turn with grip: yaw rate r at speed vx, the steering a little above the kinematic angle."""
+    steer = 1.2 * r * cat.STEADY_TURN.steer_ratio * cat.STEADY_TURN.wheelbase_m / vx
+    return _row(cat, ay_mps2=ay, vx_mps=vx, yaw_rate_radps=r, steer_angle_rad=steer)
+
+
+def test_lateral_acceleration_against_yaw_rate_times_speed_in_a_steady_turn():
+    cat, rules = _catalogue_rules()
+    rule = rules["ay_vs_yaw_rate_times_speed"]
+    p = Plausibility([rule], 12)
+    i_ay = cat.INPUTS.index("ay_mps2")
+    for _ in range(40):  # r vx = 4 m/s^2; body roll adds some 8 %: plausible
+        assert p.update(_steady_turn(cat, ay=4.3)) == 0
+    n = [p.update(_steady_turn(cat, ay=0.0)) for _ in range(rule.debounce)]  # ay stuck at 0 in the turn
+    assert n == [0] * (rule.debounce - 1) + [1] and p.implausible[i_ay]
+    for _ in range(rule.debounce):
+        p.update(_steady_turn(cat, ay=4.0))
+    assert not p.implausible[i_ay]
+
+
+@pytest.mark.parametrize("why", ["steering moves", "slide: yaw rate far below the steering's", "straight ahead"])
+def test_lateral_acceleration_check_is_not_judged_outside_steady_turns_with_grip(why):
+    cat, rules = _catalogue_rules()
+    p = Plausibility([rules["ay_vs_yaw_rate_times_speed"]], 12)
+    for k in range(100):
+        row = _steady_turn(cat, ay=0.0)
+        if why == "steering moves":
+            row[cat.INPUTS.index("steer_angle_rad")] += 0.05 * (k % 2)  # 1 rad/s back and forth
+        elif why.startswith("slide"):
+            row[cat.INPUTS.index("yaw_rate_radps")] = 0.05  # a quarter of the steering's kinematic yaw rate
+        else:
+            row = _row(cat, ay_mps2=-2.6, yaw_rate_radps=0.0)  # sliding sideways with the wheels straight
+        assert p.update(row) == 0
+    assert not any(p.implausible)
+
+
+def test_assist_torque_against_the_boost_curve():
+    cat, rules = _catalogue_rules()
+    rule = rules["assist_vs_boosted_steer_torque"]
+    p = Plausibility([rule], 12)
+    i_as = cat.INPUTS.index("assist_torque_nm")
+    gain_at_15 = cat.EPAS_BOOST.gains[cat.EPAS_BOOST.speeds_mps.index(15.0)]
+    boosted = gain_at_15 * 3.0 * 3.0 / (3.0 + cat.EPAS_BOOST.knee_nm)  # 3 Nm on the torsion bar at 15 m/s: 9 Nm
+    for _ in range(30):
+        assert p.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=boosted + 1.5)) == 0
+        assert p.update(_row(cat, vx_mps=15.0, steer_torque_nm=-30.0, assist_torque_nm=-60.0)) == 0  # the limit
+    for _ in range(rule.debounce):  # the assist pushes the wrong way
+        p.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted))
+    assert p.implausible[i_as] and p.failing == [True]
+    q = Plausibility([rule], 12)
+    for k in range(100):  # the same torques while the wheel turns fast (EPAS damping, back-EMF): not judged
+        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, steer_angle_rad=0.05 * (k % 2)))
+    assert not any(q.implausible)
+
+
+def test_vehicle_speed_check_is_not_judged_while_a_wheel_can_spin_or_lock():
+    cat, rules = _catalogue_rules()
+    p = Plausibility([rules["vx_vs_front_wheel_speed"]], 12)
+    spin = 52.0 / cat.ROLLING_RADIUS_M  # the driven wheels spinning on ice, no traction control
+    for _ in range(50):
+        assert p.update(_row(cat, vx_mps=11.6, motor_torque_nm=57.0, ax_mps2=1.0, wheel_speed_fl_radps=spin,
+                             wheel_speed_fr_radps=spin)) == 0
+        assert p.update(_row(cat, vx_mps=11.6, ax_mps2=-2.0, wheel_speed_fl_radps=0.0, wheel_speed_fr_radps=0.0)) == 0
+    assert not any(p.implausible)
+    for _ in range(4):  # cruising with the same disagreement: judged (once the wheel speeds are steady again)
+        p.update(_row(cat, vx_mps=11.6, wheel_speed_fl_radps=spin, wheel_speed_fr_radps=spin))
+    assert p.implausible[cat.INPUTS.index("vx_mps")]
+
+
+def test_the_catalogue_car_facts_are_the_simulated_car_s():
+    """The boost curve, steering ratio and wheelbase the checks assume are those the simulator drives with."""
+    from pathlib import Path
+
+    import tomllib
+
+    from virtsensor import signals as cat
+
+    car = tomllib.loads((Path(__file__).resolve().parents[1] / "sim/data/car_c_segment.toml").read_text())
+    st = car["steering"]
+    assert cat.EPAS_BOOST.speeds_mps == tuple(st["assist_speeds_mps"])
+    assert cat.EPAS_BOOST.gains == tuple(st["assist_gains"])
+    assert (cat.EPAS_BOOST.knee_nm, cat.EPAS_BOOST.max_nm) == (st["assist_knee_nm"], st["assist_max_nm"])
+    assert (cat.STEADY_TURN.steer_ratio, cat.STEADY_TURN.wheelbase_m) == (st["ratio"], car["vehicle"]["wheelbase_m"])

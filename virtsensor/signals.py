@@ -214,12 +214,44 @@ TABLE_TICK_S = 1.0 / TABLE_RATE_HZ
 
 
 @dataclass(frozen=True)
-class Redundancy:
-    """A plausibility check between redundant signals: ``subject`` must agree with ``scale`` times the mean
-    of ``references`` within ``tolerance_abs + tolerance_rel * |subject|`` (in the subject's unit).
+class BoostCurve:
+    """The EPAS boost curve: assist torque (column-referred, Nm) for a torsion-bar torque ``t`` (Nm) at vehicle
+    speed ``v`` (m/s), on a column at rest: ``g(v) * t * |t| / (|t| + knee_nm)`` limited to ``+-max_nm``, with
+    ``g`` interpolated linearly in ``gains`` over ``speeds_mps`` (held beyond their ends)."""
 
-    A receiver flags the subject implausible after ``debounce_ticks`` consecutive failing 20 Hz ticks and
-    clears it after as many passing ones (a skid or a wheel spin of a few ticks is not a fault).
+    speeds_mps: tuple[float, ...]
+    gains: tuple[float, ...]
+    knee_nm: float
+    max_nm: float
+
+
+@dataclass(frozen=True)
+class SteadyTurn:
+    """When a car turns with grip: the yaw rate ``r`` lies within ``[lo, hi]`` times the kinematic yaw rate
+    ``r_kin = vx * steer_angle / (steer_ratio * wheelbase_m)`` (rad/s), and ``|r_kin| >= min_yaw_radps``.
+    An understeering car with grip turns at ``r_kin / (1 + K vx^2)``; a car sliding wide, spinning or driving
+    straight is outside."""
+
+    steer_ratio: float
+    wheelbase_m: float
+    min_yaw_radps: float = 0.05
+    lo: float = 0.5
+    hi: float = 1.3
+
+
+@dataclass(frozen=True)
+class Redundancy:
+    """A plausibility check between redundant signals: ``subject`` must agree with the value its ``references``
+    predict within ``tolerance_abs + tolerance_rel * |subject|`` (in the subject's unit). The prediction, by
+    ``relation``: ``"mean"``, ``scale`` times the mean of the references; ``"product"``, ``scale`` times their
+    product; ``"boost"``, the :class:`BoostCurve` ``boost`` of references ``(torsion-bar torque, speed)``.
+
+    A receiver judges the check only on ticks where each ``steady`` signal moved by at most its rate (unit/s)
+    since the previous tick, each ``within`` signal is at most its bound in magnitude and, with ``turn``, the car
+    turns with grip (:class:`SteadyTurn`, references ``(yaw rate, vx)`` and the steering angle); other ticks
+    hold the verdict and restart the count. It flags the subject implausible after ``debounce_ticks``
+    consecutive failing judged 20 Hz ticks and clears it after as many passing ones (a skid or a wheel spin of
+    a few ticks is not a fault).
 
     Attributes:
         name: the check's name (logs, counters). subject: the signal under test.
@@ -233,18 +265,49 @@ class Redundancy:
     tolerance_abs: float
     tolerance_rel: float
     debounce_ticks: int = 3
+    relation: Literal["mean", "product", "boost"] = "mean"
+    steady: tuple[tuple[str, float], ...] = ()
+    within: tuple[tuple[str, float], ...] = ()
+    turn: SteadyTurn | None = None
+    boost: BoostCurve | None = None
 
 
 #: Rolling radius (m) the redundancy of vehicle speed and front wheel speeds assumes: the catalogue car's
 #: tyre loaded statically (the simulator's effective rolling radius is 0.304-0.307 m in its manoeuvres).
 ROLLING_RADIUS_M = 0.305
 
+#: The catalogue car's EPAS calibration (its supplier's boost curve; the simulator's ``[steering]`` assist
+#: parameters are the same numbers). Another car must state its own here.
+EPAS_BOOST = BoostCurve(speeds_mps=(0.0, 8.0, 15.0, 22.0, 30.0, 45.0), gains=(10.0, 6.0, 4.0, 3.0, 2.4, 2.0),
+                        knee_nm=1.0, max_nm=60.0)
+#: The catalogue car's steering ratio (steering-wheel / mean road-wheel angle) and wheelbase (m).
+STEADY_TURN = SteadyTurn(steer_ratio=14.8, wheelbase_m=2.685)
+
 #: Plausibility checks between redundant signals on the bus.
 REDUNDANCIES: tuple[Redundancy, ...] = (
     # the ESC speed against the front wheels: 15 % covers wheel slip under traction/braking and the
-    # outer/inner wheel paths in a turn; 1.5 m/s covers the quantisation and lags at walking speed
+    # outer/inner wheel paths in a turn; 1.5 m/s covers the quantisation and lags at walking speed. The car
+    # has no ABS or traction control: judged only while neither brakes nor drive can lock or spin the driven
+    # front wheels (|ax| <= 1 m/s^2; |motor torque| <= 30 Nm, which cruises at up to 130 km/h; wheel speeds
+    # changing by at most 2 m/s^2)
     Redundancy("vx_vs_front_wheel_speed", "vx_mps", ("wheel_speed_fl_radps", "wheel_speed_fr_radps"),
-               ROLLING_RADIUS_M, tolerance_abs=1.5, tolerance_rel=0.15),
+               ROLLING_RADIUS_M, tolerance_abs=1.5, tolerance_rel=0.15,
+               steady=(("wheel_speed_fl_radps", 2.0 / ROLLING_RADIUS_M),
+                       ("wheel_speed_fr_radps", 2.0 / ROLLING_RADIUS_M)),
+               within=(("ax_mps2", 1.0), ("motor_torque_nm", 30.0))),
+    # the IMU's lateral acceleration against yaw rate x speed (ay = r vx + dvy/dt: equal in a steady turn); the
+    # body roll puts g sin(roll), about 8 % of ay, on the sensor axis; judged only in steady turns with grip
+    # (steering within 0.25 rad/s, yaw rate within 0.2 rad/s^2 per tick), for 1 s, so that a slide or the
+    # onset of a spin (where dvy/dt is large) is never taken for a sensor fault
+    Redundancy("ay_vs_yaw_rate_times_speed", "ay_mps2", ("yaw_rate_radps", "vx_mps"), 1.0,
+               tolerance_abs=1.0, tolerance_rel=0.25, debounce_ticks=20, relation="product",
+               steady=(("steer_angle_rad", 0.25), ("yaw_rate_radps", 0.2)), turn=STEADY_TURN),
+    # the EPAS assist torque against the torsion-bar torque through the boost curve (the catalogue carries no
+    # separate EPAS motor torque: assist_torque_nm is that motor's torque referred to the column); judged while
+    # the steering wheel moves slower than 0.25 rad/s (the EPAS damping and back-EMF limit act on column speed)
+    Redundancy("assist_vs_boosted_steer_torque", "assist_torque_nm", ("steer_torque_nm", "vx_mps"), 1.0,
+               tolerance_abs=2.0, tolerance_rel=0.2, debounce_ticks=10, relation="boost",
+               steady=(("steer_angle_rad", 0.25),), boost=EPAS_BOOST),
 )
 
 
@@ -271,4 +334,7 @@ def by_message(message: str) -> tuple[Signal, ...]:
 
 assert len(INPUTS) == 12, INPUTS
 assert OUTPUTS == ("sat_fl_nm", "sat_fr_nm"), OUTPUTS
-assert all(n in SIGNALS for r in REDUNDANCIES for n in (r.subject, *r.references)), REDUNDANCIES
+assert all(n in SIGNALS for r in REDUNDANCIES
+           for n in (r.subject, *r.references, *(g for g, _ in (*r.steady, *r.within)))), REDUNDANCIES
+assert all((r.relation == "boost") == (r.boost is not None) and len(r.references) == 2 or r.relation == "mean"
+           for r in REDUNDANCIES), REDUNDANCIES

@@ -163,6 +163,7 @@ _OKSOMELOST = E2EStatus.OKSOMELOST
 _WRONGSEQUENCE = E2EStatus.WRONGSEQUENCE
 _ERROR = E2EStatus.ERROR
 _NONEWDATA = E2EStatus.NONEWDATA
+_NEVER = float("-inf")
 assert (COUNTER_MAX, COUNTER_MODULO) == (14, 15)  # E2EReceiver.check spells them out
 
 
@@ -176,12 +177,19 @@ class E2EReceiver:
       ``2 <= d <= max_delta`` -> ``OKSOMELOST``, else ``WRONGSEQUENCE``; in every one of these cases the
       state takes the received counter (so a jump costs one frame).
 
-    So the first frame after start is ``OK`` when its counter is 0 (a sender starts at 0), and a frame
-    after a reception gap is judged against the last counter received, as the profile does. No
-    ``INITIAL`` status exists in Profile 11.
+    So the first frame after start is ``OK`` when its counter is 0 (a sender starts at 0). No ``INITIAL``
+    status exists in Profile 11.
 
-    Timeout supervision (not part of the profile's check; the caller's "no new data" call):
-    :meth:`poll` reports ``NONEWDATA`` when no frame passed the CRC for longer than ``timeout_s``.
+    Time (not part of the profile's check, which sees counters only): the gap ``t - last_rx_s`` since the
+    last frame that passed the CRC must satisfy ``0 <= gap <= timeout_s``. A frame stamped before that one
+    (a time step back), or after a gap longer than ``timeout_s`` (the 4-bit counter cannot tell how many
+    frames were lost), or at a NaN time is ``WRONGSEQUENCE`` whatever its counter; the state takes its
+    counter and time, so it costs one frame, as a counter jump does. (Before any frame, ``last_rx_s`` is
+    -inf and only the counter judges.)
+
+    Timeout supervision (the caller's "no new data" call): :meth:`poll` reports ``NONEWDATA`` unless
+    ``0 <= now - last_rx_s <= timeout_s``: nothing received yet, overdue, or a last frame stamped after
+    ``now`` (a future stamp is not fresh data).
 
     Attributes:
         max_delta: ``MaxDeltaCounter``, 1..14 (default 3: up to 2 lost frames still OKSOMELOST).
@@ -199,13 +207,13 @@ class E2EReceiver:
         self.max_delta = max_delta
         self.timeout_s = timeout_s
         self.counter = COUNTER_MAX
-        self.last_rx_s = float("-inf")
+        self.last_rx_s = _NEVER
         self.status: E2EStatus = _ERROR
 
     def reset(self) -> None:
         """``E2E_P11CheckInit``: back to the initial state."""
         self.counter = COUNTER_MAX
-        self.last_rx_s = float("-inf")
+        self.last_rx_s = _NEVER
         self.status = _ERROR
 
     def check(self, counter: int, intact: bool, t: float) -> E2EStatus:
@@ -223,7 +231,10 @@ class E2EReceiver:
         d = counter - self.counter
         if d < 0:
             d += 15
-        if d == 1:
+        last = self.last_rx_s
+        if not (0.0 <= t - last <= self.timeout_s) and last != _NEVER:
+            st = _WRONGSEQUENCE  # time step back, gap past the timeout, or NaN time: the counter says nothing
+        elif d == 1:
             st = _OK
         elif d == 0:
             st = _REPEATED
@@ -237,7 +248,8 @@ class E2EReceiver:
         return st
 
     def poll(self, now: float) -> E2EStatus:
-        """Timeout supervision at ``now`` (s): ``NONEWDATA`` if the message is overdue, else the last status."""
-        if now - self.last_rx_s > self.timeout_s:
+        """Timeout supervision at ``now`` (s): ``NONEWDATA`` unless ``0 <= now - last_rx_s <= timeout_s``
+        (received, not overdue, not stamped after ``now``), else the last status."""
+        if not (0.0 <= now - self.last_rx_s <= self.timeout_s):
             self.status = _NONEWDATA
         return self.status

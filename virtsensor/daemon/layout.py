@@ -172,12 +172,27 @@ class InputLayout:
         return [i for i, m in enumerate(self.signal_messages) if m == name]
 
     def plausibility_rules(self) -> tuple[PlausibilityRule, ...]:
-        """The catalogue's redundancy checks (:data:`virtsensor.signals.REDUNDANCIES`) whose signals are all
-        inputs of this model."""
+        """The catalogue's redundancy checks (:data:`virtsensor.signals.REDUNDANCIES`) whose signals (compared,
+        steady, bounded and, for a turn, the steering angle) are all inputs of this model; steadiness rates become
+        steps per 20 Hz tick."""
         idx = {s: i for i, s in enumerate(self.signals)}
-        return tuple(PlausibilityRule(r.name, idx[r.subject], tuple(idx[x] for x in r.references), float(r.scale),
-                                      float(r.tolerance_abs), float(r.tolerance_rel), int(r.debounce_ticks))
-                     for r in cat.REDUNDANCIES if all(s in idx for s in (r.subject, *r.references)))
+        out = []
+        for r in cat.REDUNDANCIES:
+            if not all(s in idx for s in (r.subject, *r.references, *(g for g, _ in (*r.steady, *r.within)),
+                                          *(("steer_angle_rad",) if r.turn is not None else ()))):
+                continue
+            turn = None if r.turn is None else (
+                idx[r.references[0]], idx[r.references[1]], idx["steer_angle_rad"],
+                1.0 / (r.turn.steer_ratio * r.turn.wheelbase_m), r.turn.min_yaw_radps, r.turn.lo, r.turn.hi)
+            boost = None if r.boost is None else (
+                tuple(map(float, r.boost.speeds_mps)), tuple(map(float, r.boost.gains)), float(r.boost.knee_nm),
+                float(r.boost.max_nm))
+            out.append(PlausibilityRule(
+                r.name, idx[r.subject], tuple(idx[x] for x in r.references), float(r.scale), float(r.tolerance_abs),
+                float(r.tolerance_rel), int(r.debounce_ticks), r.relation,
+                tuple((idx[g], float(rate) / cat.TABLE_RATE_HZ) for g, rate in r.steady),
+                tuple((idx[g], float(bound)) for g, bound in r.within), turn, boost))
+        return tuple(out)
 
     def rules(self) -> ValidityRules:
         """The constants of :func:`~virtsensor.daemon.validity.assess_inputs` for this layout."""

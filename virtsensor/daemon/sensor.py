@@ -116,7 +116,7 @@ class VirtualSensor:
             raise ValueError("sync_every must be >= 1")
         self.model = model
         self.timeout_cycles = float(timeout_cycles)
-        # own E2E state, with our timeout (INITIAL after a gap of timeout_cycles cycles)
+        # own E2E state, with our timeout (a frame after a longer gap is WRONGSEQUENCE)
         self.matrix = CanMatrix(matrix.db, matrix.messages, matrix.source, max_delta=matrix.max_delta,
                                 timeout_cycles=self.timeout_cycles)
         self.layout = lay = InputLayout.from_model(model, self.matrix, self.timeout_cycles, model_id)
@@ -281,7 +281,7 @@ class VirtualSensor:
             if not self._complete:
                 self._complete = min(rx.times) > -math.inf
             plaus = self._plaus
-            if plaus.update(rx.values):
+            if plaus.update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
                 _log_implausible(self, t)
             status, bitmap = assess_inputs(t, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
                                            self._rules, self._state, plaus.implausible)

@@ -199,8 +199,16 @@ class FrameOrder:
 @dataclass(frozen=True)
 class PlausibilityRule:
     """One check between redundant input signals (indices into the daemon's inputs), from a catalogue
-    :class:`~virtsensor.signals.Redundancy`: ``|v[subject] - scale * mean(v[refs])| <= tol_abs + tol_rel *
-    |v[subject]|``, failed after ``debounce`` consecutive failing ticks, passed after as many passing ones."""
+    :class:`~virtsensor.signals.Redundancy`: ``|v[subject] - expected| <= tol_abs + tol_rel * |v[subject]|``,
+    failed after ``debounce`` consecutive failing judged ticks, passed after as many passing ones.
+
+    ``expected`` by ``relation``: ``"mean"``, ``scale * mean(v[refs])``; ``"product"``, ``scale * prod(v[refs])``;
+    ``"boost"``, ``boost = (speeds, gains, knee, max)`` of ``refs = (torque, speed)`` (see
+    :class:`~virtsensor.signals.BoostCurve`). A tick is judged only when every ``(i, max_step)`` of ``steady``
+    moved by at most ``max_step`` since the previous tick, every ``(i, bound)`` of ``within`` has ``|v[i]| <=
+    bound`` and, with ``turn = (yaw, vx, steer, k, min_yaw, lo,
+    hi)``, ``|r_kin| >= min_yaw`` and ``lo*|r_kin| <= |v[yaw]| <= hi*|r_kin|``, ``r_kin = k * v[vx] * v[steer]``
+    (the same sign). An unjudged tick holds the verdict and restarts the count."""
 
     name: str
     subject: int
@@ -209,39 +217,103 @@ class PlausibilityRule:
     tol_abs: float
     tol_rel: float
     debounce: int
+    relation: str = "mean"
+    steady: tuple[tuple[int, float], ...] = ()
+    within: tuple[tuple[int, float], ...] = ()
+    turn: tuple[int, int, int, float, float, float, float] | None = None
+    boost: tuple[tuple[float, ...], tuple[float, ...], float, float] | None = None
+
+
+def _boost(curve: tuple[tuple[float, ...], tuple[float, ...], float, float], t: float, v: float) -> float:
+    speeds, gains, knee, top = curve
+    if v <= speeds[0]:
+        g = gains[0]
+    elif v >= speeds[-1]:
+        g = gains[-1]
+    else:
+        k = 1
+        while speeds[k] < v:
+            k += 1
+        g = gains[k - 1] + (gains[k] - gains[k - 1]) * (v - speeds[k - 1]) / (speeds[k] - speeds[k - 1])
+    a = abs(t)
+    y = g * t * a / (a + knee)
+    return top if y > top else -top if y < -top else y
+
+
+def _expected(r: PlausibilityRule, values: Sequence[float]) -> float:
+    if r.relation == "product":
+        y = r.scale
+        for i in r.refs:
+            y *= values[i]
+        return y
+    if r.relation == "boost" and r.boost is not None:
+        return _boost(r.boost, values[r.refs[0]], values[r.refs[1]])
+    ref = 0.0
+    for i in r.refs:
+        ref += values[i]
+    return r.scale * ref / len(r.refs)
+
+
+def _any_stale(r: PlausibilityRule, stale: Sequence[bool]) -> bool:
+    if stale[r.subject]:
+        return True
+    for i in r.refs:
+        if stale[i]:
+            return True
+    return False
+
+
+def _judged(r: PlausibilityRule, values: Sequence[float], prev: Sequence[float]) -> bool:
+    """The check applies at this tick (steady signals, bounded signals, a steady turn with grip); False on NaN."""
+    for i, step in r.steady:
+        if not abs(values[i] - prev[i]) <= step:
+            return False
+    for i, bound in r.within:
+        if not abs(values[i]) <= bound:
+            return False
+    if r.turn is not None:
+        yaw, vx, steer, k, min_yaw, lo, hi = r.turn
+        r_kin = k * values[vx] * values[steer]
+        y = values[yaw]
+        if not (abs(r_kin) >= min_yaw and y * r_kin > 0.0 and lo * abs(r_kin) <= abs(y) <= hi * abs(r_kin)):
+            return False
+    return True
 
 
 class Plausibility:
     """Debounced plausibility checks, fed the latest input values once per tick (:meth:`update`).
 
-    A failing check marks its *subject* implausible (:attr:`implausible`); a NaN among the values (an input
-    never received) passes: staleness is judged elsewhere.
+    A failing check marks its *subject* implausible (:attr:`implausible`); a NaN among the compared values (an
+    input never received) passes, and a check on a stale input is not judged: staleness is judged elsewhere.
 
     Attributes:
         rules: the checks. failing: per check, its debounced verdict. implausible: per input signal.
         new: per check, it failed at the latest :meth:`update`.
     """
 
-    __slots__ = ("rules", "failing", "implausible", "new", "_run")
+    __slots__ = ("rules", "failing", "implausible", "new", "_run", "_prev")
 
     def __init__(self, rules: Sequence[PlausibilityRule], n_signals: int) -> None:
         self.rules = tuple(rules)
         self.failing = [False] * len(self.rules)
         self.implausible = [False] * n_signals
         self.new = [False] * len(self.rules)
-        self._run = [0] * len(self.rules)  # consecutive ticks disagreeing with the current verdict
+        self._run = [0] * len(self.rules)  # consecutive judged ticks disagreeing with the current verdict
+        self._prev = [math.nan] * n_signals  # the values of the previous update (steadiness)
 
-    def update(self, values: Sequence[float]) -> int:
-        """Run every check on ``values`` (per input signal); returns how many checks newly failed."""
+    def update(self, values: Sequence[float], stale: Sequence[bool] | None = None) -> int:
+        """Run every check on ``values`` (per input signal); returns how many checks newly failed. A check that
+        compares a ``stale`` signal (a held value, not news) is not judged at this tick."""
         n_new = 0
-        failing, run, imp, new = self.failing, self._run, self.implausible, self.new
+        failing, run, imp, new, prev = self.failing, self._run, self.implausible, self.new, self._prev
         for k, r in enumerate(self.rules):
             new[k] = False
+            if (stale is not None and _any_stale(r, stale)) or (
+                    (r.steady or r.within or r.turn is not None) and not _judged(r, values, prev)):
+                run[k] = 0
+                continue
             v = values[r.subject]
-            ref = 0.0
-            for i in r.refs:
-                ref += values[i]
-            ok = not (abs(v - r.scale * ref / len(r.refs)) > r.tol_abs + r.tol_rel * abs(v))
+            ok = not (abs(v - _expected(r, values)) > r.tol_abs + r.tol_rel * abs(v))
             if ok == failing[k]:  # the verdict is contradicted: count the run
                 n = run[k] + 1
                 if n >= r.debounce:
@@ -252,6 +324,7 @@ class Plausibility:
                 run[k] = n
             else:
                 run[k] = 0
+        prev[:] = values
         for r in self.rules:
             imp[r.subject] = False
         for k, r in enumerate(self.rules):

@@ -71,10 +71,10 @@ def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[R
         if missing:
             raise UserError(f"{f}: recording lacks the needed signal(s) {', '.join(missing)}")
         meta: dict[str, Any] = {}
+        check_table(f, table, targets=targets)  # (first: it refuses a table without time_s)
         if source.entry is not None:
             check_rows(f, source.entry, len(table["time_s"]))
             meta = {k: v for k, v in source.entry.items() if k != "file"}
-        check_table(f, table, targets=targets)
         runs.append(Run(f.stem, table, meta, f))
     return runs
 

@@ -503,15 +503,19 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     if missing_out:
         raise UserError(f"{model.card_path}: outputs {missing_out} are not catalogue signals")
     needed = sorted(set(cat.INPUTS) | set(spec.signals) | set(outputs))
-    out_dir = make_out_dir(out)
     runs = load_runs(data, needed=needed)
     track_run = load_runs([track], needed=sorted(set(spec.signals) | set(outputs)))[0] if track else None
-
-    # ---- Fig. 2: correlation of the raw catalogue signals --------------------------------------------------
     corr_names = (*cat.INPUTS, *cat.OUTPUTS)
     cols = table_columns([r.table for r in runs], corr_names)
     if len(cols) < 2:
         raise UserError("the data hold fewer than 2 finite rows: nothing to correlate")
+    ds = build_dataset(runs, spec, targets=outputs)
+    train_idx, test_idx = random_split(len(ds.X), seed)
+    if len(test_idx) == 0 or len(train_idx) == 0:
+        raise UserError(f"the data hold {len(ds.X)} usable rows: too few for a 70/30 split")
+    out_dir = make_out_dir(out)  # (only once the data are known good: a refusal writes nothing)
+
+    # ---- Fig. 2: correlation of the raw catalogue signals --------------------------------------------------
     C = correlation_matrix(cols)
     figures = []
     plot_correlation(out_dir / FIGURES["correlation"], corr_names, C, f"{len(cols)} rows of {len(runs)} runs")
@@ -519,10 +523,6 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     say(f"correlation of {len(corr_names)} signals over {len(cols)} rows")
 
     # ---- Figs. 8 and 9: SHAP of the ONNX model on the paper's test rows ----------------------------------
-    ds = build_dataset(runs, spec, targets=outputs)
-    train_idx, test_idx = random_split(len(ds.X), seed)
-    if len(test_idx) == 0 or len(train_idx) == 0:
-        raise UserError(f"the data hold {len(ds.X)} usable rows: too few for a 70/30 split")
     rng = np.random.default_rng(seed)
     explained = np.sort(rng.choice(test_idx, min(samples, len(test_idx)), replace=False))
     bg_idx = np.sort(rng.choice(train_idx, min(background, len(train_idx)), replace=False))

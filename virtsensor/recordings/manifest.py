@@ -109,6 +109,10 @@ def _read_manifest(path: Path) -> list[dict[str, Any]]:
         if missing:
             raise UserError(f"{path}: run {i} ({r.get('file', '?')}) lacks {', '.join(missing)} (a manifest of an "
                             f"older version or written by hand); run the campaign again")
+        if not isinstance(r["rows"], int) or isinstance(r["rows"], bool) or r["rows"] < 0:
+            raise UserError(f"{path}: run {i} ({r['file']}): rows {r['rows']!r} is not a count of rows")
+        if not isinstance(r["sha256"], str):
+            raise UserError(f"{path}: run {i} ({r['file']}): sha256 {r['sha256']!r} is not a hex digest")
         name = r["file"]
         if not isinstance(name, str) or Path(name).name != name or name.startswith("."):
             raise UserError(f"{path}: run {i}: {name!r} is not a plain, visible file name")
