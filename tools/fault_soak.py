@@ -126,7 +126,7 @@ def _protect(matrix: CanMatrix, data: np.ndarray, fid: np.ndarray, counters: dic
 
 def _log_frames(path: Path, matrix: CanMatrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A CAN log's frames of the matrix's messages as arrays (times from 0)."""
-    from virtsensor.recording import iter_log
+    from virtsensor.recordings.canlog import iter_log
 
     ts, ids, rows = [], [], []
     for m in iter_log(path):
@@ -142,7 +142,7 @@ def build_stream(matrix: CanMatrix, minutes: float, pool: tuple = POOL, log=prin
     """The runs' frames end to end for ``minutes`` of bus time; returns the stream and its end (s). A pool
     entry is ``(manoeuvre, km/h, mu, seed)`` (simulated now) or the path of a simulated CAN log."""
     from sim.api import simulate_streams
-    from virtsensor.recording import frame_arrays
+    from virtsensor.recordings.canlog import frame_arrays
 
     runs = []
     for entry in pool:

@@ -60,7 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     tay = np.concatenate([r.table["ay_mps2"] for r in train])
     ok = np.isfinite(tax) & np.isfinite(tay)
     cover = _grid(tax[ok], tay[ok]) >= MIN_ROWS
-    out: dict = {"model": a.model, "train": a.train, "cell_mps2": CELL, "min_rows": MIN_ROWS, "laps": []}
+    out: dict = {"model": Path(a.model).name, "model_sha256": model.card.get("sha256"),
+                 "train": [Path(t).name for t in a.train], "cell_mps2": CELL, "min_rows": MIN_ROWS, "laps": []}
     from virtsensor import plotting
 
     fig = plotting.figure(5.0 * len(a.laps), 4.2)
