@@ -32,10 +32,7 @@ def test_simulate_writes_the_canonical_20hz_table(tmp_path):
     for name in ("alpha_fl_rad", "kappa_fl_1", "fz_fl_n", "fy_fl_n", "fx_fl_n", "fz_fr_n"):
         assert name in table
     assert np.abs(table["sat_fl_nm"]).max() > 5.0
-    # same seed, same file; another seed, another run
-    again = tmp_path / "again.csv"
-    main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.7", "--seed", "3", "--out", str(again)])
-    assert out.read_bytes() == again.read_bytes()
+    # (same seed, same data: test_campaign_is_deterministic_whatever_the_number_of_workers)
 
 
 def test_parameter_overrides_change_the_car(tmp_path):

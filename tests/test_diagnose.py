@@ -191,6 +191,7 @@ def hidden_case(tmp_path_factory):
     return make_case(HIDDEN_SEED, d, holdout=(("single-sine", 70.0), ("fishhook", 70.0)))
 
 
+@pytest.mark.slow
 def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case):
     """The diagnosis sees only the files; it must name the drawn cause, estimate its size
     within the stated tolerance and improve the estimator on the held-out runs."""

@@ -83,6 +83,7 @@ def _timed_run(frames, channel):
     return summary, rx.close(expect=len(frames))
 
 
+@pytest.mark.slow
 def test_real_time_replay_timing(frames, channel):
     """p99 inter-frame timing error < 2 ms at the receiver, over 10 s of frames at rate 1.0.
 

@@ -83,6 +83,7 @@ def _check_outputs(frames: list[can.Message]) -> dict:
             "statuses": sorted(set(map(int, st.ravel())))}
 
 
+@pytest.mark.slow
 def test_udp_multicast_daemon_and_replay_in_private_netns(setup):
     prefix = _netns_prefix()
     pytest.importorskip("msgpack", reason="python-can's udp_multicast interface needs msgpack (pip install msgpack)")
