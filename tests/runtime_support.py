@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import logging
 import warnings
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import can
@@ -84,3 +86,28 @@ def with_sync(frames: Iterable[can.Message], t_first: float, t_last: float, sync
     syncs = sync_frames(ticks, sync_id)
     merged = sorted(frames + syncs, key=lambda m: m.timestamp)  # stable; no ties by construction
     return merged, ticks
+
+
+class LogEvents(logging.Handler):
+    """Collects the daemon's log events (name and fields)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.events: list[dict] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.events.append({"event": record.getMessage(), **getattr(record, "fields", {})})
+
+
+@contextmanager
+def daemon_events() -> Iterator[LogEvents]:
+    """The daemon's log events at INFO while the block runs (the logger's level restored after)."""
+    handler, logger = LogEvents(), logging.getLogger("virtsensor.daemon")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)

@@ -3,12 +3,10 @@ VS_Health, one log event per excursion), split by ``score``, rows in ``evaluate`
 
 from __future__ import annotations
 
-import logging
-
 import can
 import numpy as np
 import pytest
-from runtime_support import SYNC_ID, synthetic_streams, train_model, with_sync
+from runtime_support import SYNC_ID, daemon_events, synthetic_streams, train_model, with_sync
 
 from virtsensor import signals as cat
 from virtsensor.canbus.codec import CanMatrix
@@ -151,14 +149,6 @@ class _Capture(can.BusABC):
         return None, False
 
 
-class _Events(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__(logging.DEBUG)
-        self.events: list[dict] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.events.append({"event": record.getMessage(), **getattr(record, "fields", {})})
-
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):
@@ -181,20 +171,13 @@ def _drive(model):
     frames = list(iter_frames(t, sig, seed=11))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
     vs = VirtualSensor(_Capture(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
-    handler, logger = _Events(), logging.getLogger("virtsensor.daemon")
-    level = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
     ticks = []
-    try:
+    with daemon_events() as handler:
         for m in merged:
             n = vs.counters["ticks"]
             vs.process(m)
             if vs.counters["ticks"] > n:
                 ticks.append((m.timestamp, vs.last_statuses, vs.outside_envelope))
-    finally:
-        logger.removeHandler(handler)
-        logger.setLevel(level)
     assert vs.counters["tick_errors"] == 0
     health = [MATRIX.fresh().decode(HEALTH_ID, f.data, 0.0).other for f in vs.bus.sent if f.arbitration_id == HEALTH_ID]
     return vs, ticks, health, handler.events

@@ -9,13 +9,12 @@ Everything is driven by hand (``VirtualSensor.process``/``drain``/``tick``) on i
 from __future__ import annotations
 
 import collections
-import logging
 import time
 
 import can
 import numpy as np
 import pytest
-from runtime_support import SYNC_ID, synthetic_streams, train_model, with_sync
+from runtime_support import SYNC_ID, daemon_events, synthetic_streams, train_model, with_sync
 
 from virtsensor import signals as cat
 from virtsensor.canbus.codec import CanMatrix
@@ -169,16 +168,6 @@ def test_free_running_backlog_is_aged_by_its_interface_timestamps(model, frames)
     assert vs.counters["time_step_back"] == vs.counters["future_stamped"] == 0
 
 
-class _Events(logging.Handler):
-    """Collects the daemon's log events (name and fields)."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.DEBUG)
-        self.events: list[dict] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.events.append({"event": record.getMessage(), **getattr(record, "fields", {})})
-
 
 def test_vehicle_speed_disagreeing_with_the_wheel_speeds_is_not_valid_and_named(model):
     """vx 89 m/s while the front wheels roll at 19 m/s: in range, fresh and intact, but implausible."""
@@ -191,16 +180,8 @@ def test_vehicle_speed_disagreeing_with_the_wheel_speeds_is_not_valid_and_named(
     sig["vx_mps"] = np.where(t >= 4.0, 89.0, sig["vx_mps"])
     frames = list(iter_frames(t, sig, seed=5))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
-    handler = _Events()
-    logger = logging.getLogger("virtsensor.daemon")
-    level = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-    try:
+    with daemon_events() as handler:
         ticks, vs = _drive_sync(model, merged)
-    finally:
-        logger.removeHandler(handler)
-        logger.setLevel(level)
     cut = next(i for i, m in enumerate(merged) if m.timestamp >= 4.0)
     _valid_before(ticks, cut)
     after = [(tt, s, b) for p, tt, s, b in ticks if p > cut]
@@ -415,16 +396,8 @@ def test_daemon_trips_a_redundancy_check_in_a_steady_turn_and_names_it(model, ch
     sig[subject] = np.where(t >= 6.0, fault(sig[subject]), sig[subject])
     frames = list(iter_frames(t, sig, seed=5))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
-    handler = _Events()
-    logger = logging.getLogger("virtsensor.daemon")
-    level = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-    try:
+    with daemon_events() as handler:
         ticks, vs = _drive_sync(model, merged)
-    finally:
-        logger.removeHandler(handler)
-        logger.setLevel(level)
     cut = next(i for i, m in enumerate(merged) if m.timestamp >= 6.0)
     _valid_before(ticks, cut)
     rule = next(r for r in cat.REDUNDANCIES if r.name == check)
