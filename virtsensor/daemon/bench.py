@@ -74,6 +74,21 @@ def await_frame(bus, frame_id: int, timeout_s: float = 1.0) -> bool:
             return True
     return False
 
+
+def timed_response(tx: Any, rx: Any, batch: list[Any], sync: Any, sat_id: int) -> float | None:
+    """Send a tick's last input frame and its sync frame on ``tx``; the time (us) until ``SAT_FRONT`` (``sat_id``)
+    arrives on ``rx``, whose stale frames are drained first. None when none comes within :func:`await_frame`'s
+    timeout."""
+    while rx.recv(0) is not None:
+        pass
+    t0 = time.perf_counter_ns()
+    if batch:
+        tx.send(batch[-1])
+    tx.send(sync)
+    got = await_frame(rx, sat_id)
+    return (time.perf_counter_ns() - t0) / 1e3 if got else None
+
+
 def percentiles(values: Any) -> dict[str, float] | None:
     """p50/p99/p999/max (and mean, n) of ``values``; None when empty."""
     a = np.asarray(values, dtype=float).ravel()
@@ -268,7 +283,6 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
     tx = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True)
     lat: list[float] = []
     lost = 0
-    pc = time.perf_counter_ns
     vs.start()
     try:
         sent = 0
@@ -280,17 +294,10 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
             end = time.monotonic() + 2.0
             while vs.counters["frames"] < sent and time.monotonic() < end:
                 time.sleep(0)
-            while listener.recv(0) is not None:
-                pass
-            t0 = pc()
-            if batch:
-                tx.send(batch[-1])
-            tx.send(sync)
+            us = timed_response(tx, listener, batch, sync, sat_id)
             sent += 1 + bool(batch)
-            got = await_frame(listener, sat_id)
-            t1 = pc()
-            if got:
-                lat.append((t1 - t0) / 1e3)
+            if us is not None:
+                lat.append(us)
             else:
                 lost += 1
         st = vs.stats()

@@ -83,7 +83,7 @@ def _drive(out_path: Path, n_ticks: int) -> None:
     import can
 
     from virtsensor.canbus.codec import CanMatrix
-    from virtsensor.daemon.bench import Inputs, await_frame, percentiles
+    from virtsensor.daemon.bench import Inputs, percentiles, timed_response
 
     sat_id = CanMatrix.load().messages["SAT_FRONT"].frame_id
     inputs = Inputs()
@@ -92,23 +92,15 @@ def _drive(out_path: Path, n_ticks: int) -> None:
     time.sleep(0.3)
     lat: list[float] = []
     lost = run_lost = 0
-    pc = time.perf_counter_ns
     try:
         for k in range(n_ticks):
             batch, sync = inputs.tick(k)
             for m in batch[:-1]:
                 tx.send(m)
             time.sleep(0.002)  # let the daemon consume them
-            while rx.recv(0) is not None:
-                pass
-            t0 = pc()
-            if batch:
-                tx.send(batch[-1])
-            tx.send(sync)
-            got = await_frame(rx, sat_id)
-            t1 = pc()
-            if got:
-                lat.append((t1 - t0) / 1e3)
+            us = timed_response(tx, rx, batch, sync, sat_id)
+            if us is not None:
+                lat.append(us)
                 run_lost = 0
             else:
                 lost += 1
