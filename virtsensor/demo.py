@@ -223,6 +223,75 @@ def _metrics(est: np.ndarray, true: np.ndarray, status: np.ndarray) -> dict[str,
     return out
 
 
+@dataclass
+class _Options:
+    """The checked arguments of :func:`run_demo` (refusals done: output paths writable, model present)."""
+
+    model_path: Path
+    rec_path: Path
+    rate_f: float | None  # None: as fast as possible
+    plot_path: Path | None
+    plot_skip: str | None  # why no plot is drawn, None when one is
+    json_file: Path | None
+
+
+@dataclass
+class _Plan:
+    """The recording prepared for the run: its frames, the sync frames merged in, the ids to listen for."""
+
+    matrix: Any
+    frames: list[Any]
+    dropped: int  # the daemon's own outputs found in the recording, not replayed
+    sync_id: int
+    te_id: int
+    sat_id: int
+    has_truth: bool
+    duration: float  # s, first to last frame of the recording
+    merged: list[Any]  # frames and sync frames, time order
+    n_sync: int
+
+
+def _options(model: str | os.PathLike | None, recording: str | os.PathLike | None, rate: float | str | None,
+             plot: str | os.PathLike | None, json_path: str | os.PathLike | None) -> _Options:
+    """Resolve the defaults and refuse bad arguments before any work (UserError)."""
+    from virtsensor.recordings.replay import parse_rate
+
+    rate_f = parse_rate(rate) if isinstance(rate, str) else (None if rate is None else float(rate))
+    if rate_f is not None and not (rate_f > 0 and math.isfinite(rate_f)):
+        raise UserError(f"--rate: {rate!r} must be > 0 (or 'max')")
+    model_path = Path(model) if model is not None else default_model()
+    rec_path = Path(recording) if recording is not None else default_recording()
+    if recording is None and not rec_path.is_file():
+        raise UserError(f"the bundled recording {rec_path} is missing; regenerate it with "
+                        "python tools/make_demo_recording.py, or give --recording")
+    plot_path = Path(plot) if plot is not None else None
+    plot_skip = _matplotlib_missing() if plot_path is not None else "no plot asked for"
+    json_file = Path(json_path) if json_path is not None else None
+    # refusals first, before any work
+    if plot_path is not None and plot_skip is None:
+        check_writable(plot_path, "--plot")
+    if json_file is not None:
+        check_writable(json_file, "--json")
+    if not model_path.is_file():
+        raise UserError(f"--model: no such model file {model_path}")
+    return _Options(model_path, rec_path, rate_f, plot_path, plot_skip, json_file)
+
+
+def _plan(rec_path: Path) -> _Plan:
+    """Load the recording (UserError when it has no frame) and merge in the sync frames on a free id."""
+    from virtsensor.canbus.codec import CanMatrix
+
+    matrix = CanMatrix.load()
+    frames, dropped = _load_frames(rec_path, matrix)
+    sync_id = _free_id(frames, matrix)
+    te = matrix.messages["TE_WheelForceTransducer"].frame_id
+    sat_id = matrix.messages["SAT_FRONT"].frame_id
+    has_truth = any(m.arbitration_id == te and not m.is_extended_id for m in frames)
+    duration = frames[-1].timestamp - frames[0].timestamp
+    merged, n_sync = _with_sync(frames, sync_id)
+    return _Plan(matrix, frames, dropped, sync_id, te, sat_id, has_truth, duration, merged, n_sync)
+
+
 def run_demo(
     *,
     model: str | os.PathLike | None = None,
@@ -250,206 +319,255 @@ def run_demo(
     Raises:
         UserError: missing/unreadable recording or model, an output path that cannot be written, a bad rate.
     """
-    import can
-
-    from virtsensor.canbus.codec import CanMatrix
-    from virtsensor.daemon import VirtualSensor, configure_logging
-    from virtsensor.recordings.replay import parse_rate, replay
-
     out = out or sys.stdout
     wall0 = time.monotonic()
-    rate_f = parse_rate(rate) if isinstance(rate, str) else (None if rate is None else float(rate))
-    if rate_f is not None and not (rate_f > 0 and math.isfinite(rate_f)):
-        raise UserError(f"--rate: {rate!r} must be > 0 (or 'max')")
-    model_path = Path(model) if model is not None else default_model()
-    rec_path = Path(recording) if recording is not None else default_recording()
-    if recording is None and not rec_path.is_file():
-        raise UserError(f"the bundled recording {rec_path} is missing; regenerate it with "
-                        "python tools/make_demo_recording.py, or give --recording")
-    plot_path = Path(plot) if plot is not None else None
-    plot_skip = _matplotlib_missing() if plot_path is not None else "no plot asked for"
-    json_file = Path(json_path) if json_path is not None else None
-    # refusals first, before any work
-    if plot_path is not None and plot_skip is None:
-        check_writable(plot_path, "--plot")
-    if json_file is not None:
-        check_writable(json_file, "--json")
-    if not model_path.is_file():
-        raise UserError(f"--model: no such model file {model_path}")
+    opts = _options(model, recording, rate, plot, json_path)
+    plan = _plan(opts.rec_path)
+    result, model_sha256 = _run_daemon(opts, plan, live, out)
+    ticks: _Ticks = result.pop("_ticks")
+    stats = result.pop("_stats")
+    metrics = _add_figures(result, ticks, stats, opts, plan, model_sha256)
+    _write_outputs(result, ticks, metrics, opts, wall0, out)
+    return result
 
-    matrix = CanMatrix.load()
-    frames, dropped = _load_frames(rec_path, matrix)
-    sync_id = _free_id(frames, matrix)
-    te = matrix.messages["TE_WheelForceTransducer"].frame_id
-    sat_id = matrix.messages["SAT_FRONT"].frame_id
-    has_truth = any(m.arbitration_id == te and not m.is_extended_id for m in frames)
-    duration = frames[-1].timestamp - frames[0].timestamp
-    merged, n_sync = _with_sync(frames, sync_id)
+
+def _run_daemon(opts: _Options, plan: _Plan, live: bool, out: TextIO) -> tuple[dict[str, Any], str | None]:
+    """Build the daemon as ``virtsensor run`` does on a fresh virtual channel, run :func:`_run`, then stop the
+    daemon and shut the buses down whatever happens; returned: what :func:`_run` returns and the model's hash.
+
+    Raises:
+        UserError: none of the model's input messages is in the recording.
+    """
+    import can
+
+    from virtsensor.daemon import VirtualSensor, configure_logging
 
     configure_logging("warning")  # the daemon's own warnings (bus errors...) as JSON lines on stderr
     channel = f"virtsensor-demo-{uuid.uuid4().hex[:10]}"
-    sensor = VirtualSensor.from_config({"model": str(model_path), "interface": "virtual", "channel": channel,
-                                        "sync_id": sync_id, "log_level": "warning"})
+    sensor = VirtualSensor.from_config({"model": str(opts.model_path), "interface": "virtual", "channel": channel,
+                                        "sync_id": plan.sync_id, "log_level": "warning"})
     listener = tx = None
     try:
         input_ids = {sensor.matrix.messages[m].frame_id for m in sensor.input_messages}
-        if not any(m.arbitration_id in input_ids and not m.is_extended_id for m in frames):
-            raise UserError(f"{rec_path}: none of the model's input messages ({', '.join(sensor.input_messages)}) "
-                            "is in this recording")
+        if not any(m.arbitration_id in input_ids and not m.is_extended_id for m in plan.frames):
+            raise UserError(f"{opts.rec_path}: none of the model's input messages "
+                            f"({', '.join(sensor.input_messages)}) is in this recording")
         listener = can.Bus(interface="virtual", channel=channel)
         tx = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-        result = _run(sensor, listener, tx, merged, n_sync, sync_id, sat_id, te, matrix, rate_f, live, out,
-                      rec_path, model_path, duration, has_truth, replay)
+        result = _run(sensor, listener, tx, opts, plan, live, out)
     finally:
         sensor.stop()
         for b in (listener, tx):
             if b is not None:
                 b.shutdown()
-    ticks: _Ticks = result.pop("_ticks")
+    return result, sensor.model.card.get("sha256")
+
+
+def _latency_figures(lat: np.ndarray) -> dict[str, Any]:
+    """The ``latency_ms`` figures: the definition and, when there is a tick, p50, p99, max (ms) and n."""
+    return {"definition": "send of the tick's sync frame (right after its last input frame) -> send of its "
+                          "SAT_FRONT, wall-clock stamps of the virtual bus; the player, the daemon and the "
+                          "listener share one process (and its GIL): virtsensor bench measures the daemon alone",
+            **({"p50": round(float(np.percentile(lat, 50)), 3), "p99": round(float(np.percentile(lat, 99)), 3),
+                "max": round(float(lat.max()), 3), "n": int(lat.size)} if lat.size else {})}
+
+
+def _add_figures(result: dict[str, Any], ticks: _Ticks, stats: dict[str, Any], opts: _Options, plan: _Plan,
+                 model_sha256: str | None) -> dict[str, Any] | None:
+    """Add the run's description and figures to ``result`` (in place); returned: the metrics (None when n/a)."""
     est, true = np.array(ticks.est, dtype=float).reshape(-1, 2), np.array(ticks.true, dtype=float).reshape(-1, 2)
     status = np.array(ticks.status, dtype=int).reshape(-1, 2)
-    metrics = _metrics(est, true, status) if has_truth else None
+    metrics = _metrics(est, true, status) if plan.has_truth else None
     lat = np.array(ticks.latency_ms, dtype=float)
-    stats = result.pop("_stats")
     result.update(
-        recording=str(rec_path), recording_description=_describe(rec_path), model=str(model_path),
-        model_sha256=sensor.model.card.get("sha256"), rate="max" if rate_f is None else rate_f,
-        duration_s=round(duration, 3), own_frames_dropped=dropped, has_reference=has_truth,
-        ticks=len(ticks.t), sync_frames_planned=n_sync, daemon_ticks=stats.get("ticks"),
+        recording=str(opts.rec_path), recording_description=_describe(opts.rec_path), model=str(opts.model_path),
+        model_sha256=model_sha256, rate="max" if opts.rate_f is None else opts.rate_f,
+        duration_s=round(plan.duration, 3), own_frames_dropped=plan.dropped, has_reference=plan.has_truth,
+        ticks=len(ticks.t), sync_frames_planned=plan.n_sync, daemon_ticks=stats.get("ticks"),
         statuses={w: {s: int((status[:, k] == i).sum()) for i, s in enumerate(_STATUS)}
                   for k, w in enumerate(("fl", "fr"))},
         metrics=metrics,
-        latency_ms={"definition": "send of the tick's sync frame (right after its last input frame) -> send of its "
-                                  "SAT_FRONT, wall-clock stamps of the virtual bus; the player, the daemon and the "
-                                  "listener share one process (and its GIL): virtsensor bench measures the daemon "
-                                  "alone",
-                    **({"p50": round(float(np.percentile(lat, 50)), 3), "p99": round(float(np.percentile(lat, 99)), 3),
-                        "max": round(float(lat.max()), 3), "n": int(lat.size)} if lat.size else {})},
+        latency_ms=_latency_figures(lat),
         daemon_tick_latency_us={"definition": "tick start -> SAT_FRONT sent (VirtualSensor.stats)",
                                 **{k: stats.get(f"latency_{k}_us") for k in ("p50", "p99", "max")}},
         daemon_counters={k: stats.get(k) for k in ("frames", "input_frames", "other_frames", "sync_frames",
                                                     "crc_errors", "tick_errors", "overruns", "send_errors")},
     )
-    # ---- plot, JSON, summary
+    return metrics
+
+
+def _write_outputs(result: dict[str, Any], ticks: _Ticks, metrics: dict[str, Any] | None, opts: _Options,
+                   wall0: float, out: TextIO) -> None:
+    """Draw the plot (when asked for and possible), print the summary, write the JSON (atomically)."""
     result["plot"] = None
-    result["plot_skipped"] = plot_skip
-    if plot_path is not None and plot_skip is None:
+    result["plot_skipped"] = opts.plot_skip
+    if opts.plot_path is not None and opts.plot_skip is None:
         if len(ticks.t):
-            _plot(plot_path, ticks, metrics, result)
-            result["plot"] = str(plot_path)
+            _plot(opts.plot_path, ticks, metrics, result)
+            result["plot"] = str(opts.plot_path)
         else:
             result["plot_skipped"] = "no tick to plot"
     result["wall_s"] = round(time.monotonic() - wall0, 3)
     _print_summary(result, out)
-    if json_file is not None:
-        json_file.parent.mkdir(parents=True, exist_ok=True)
-        write_json(json_file, result)
-        print(f"figures: {_shown(json_file)}", file=out, flush=True)
-    return result
+    if opts.json_file is not None:
+        opts.json_file.parent.mkdir(parents=True, exist_ok=True)
+        write_json(opts.json_file, result)
+        print(f"figures: {_shown(opts.json_file)}", file=out, flush=True)
 
 
-def _run(sensor, listener, tx, merged, n_sync, sync_id, sat_id, te_id, matrix, rate_f, live, out,
-         rec_path, model_path, duration, has_truth, replay) -> dict[str, Any]:
-    """Start the daemon and the player, listen until every tick is answered; Ctrl-C ends it early."""
-    from virtsensor.daemon.layout import SYNC_OFFSET_S
+class _PlayerThread:
+    """:func:`virtsensor.recordings.replay.replay` in a daemon worker thread; its summary, or the exception
+    it raised, is kept for the main thread."""
 
-    dec = matrix.fresh()
-    stamping = _StampingBus(tx, sync_id)
-    stop = threading.Event()
-    box: dict[str, Any] = {}
+    def __init__(self, merged: list[Any], bus: _StampingBus, rate_f: float | None, matrix: Any,
+                 stop: threading.Event) -> None:
+        self._merged, self._bus, self._rate_f, self._matrix, self._stop = merged, bus, rate_f, matrix, stop
+        self.summary: Any = None
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._play, name="virtsensor-demo-replay", daemon=True)
 
-    def play() -> None:
+    def _play(self) -> None:
+        from virtsensor.recordings.replay import replay
+
         try:
-            box["summary"] = replay(merged, stamping, rate=rate_f, matrix=matrix, stop=stop,
-                                    spin_s=PLAYER_SPIN_S)
+            self.summary = replay(self._merged, self._bus, rate=self._rate_f, matrix=self._matrix, stop=self._stop,
+                                  spin_s=PLAYER_SPIN_S)
         except BaseException as exc:  # noqa: BLE001 - handed to the main thread
-            box["error"] = exc
+            self.error = exc
 
-    rate_txt = "as fast as possible" if rate_f is None else f"at {rate_f:g}x real time"
-    print(f"virtsensor demo: {_describe(rec_path)} ({duration:.1f} s, {_shown(rec_path)})", file=out)
-    print(f"  replayed {rate_txt} on a virtual CAN bus to the daemon running {_shown(model_path)} "
-          f"(sync mode, id 0x{sync_id:X})", file=out)
-    if not has_truth:
+
+@dataclass
+class _Listener:
+    """The listener's state: pairs the k-th sync frame (its tick time and the reference held then) with the
+    k-th ``SAT_FRONT`` into :class:`_Ticks`, and prints the live lines.
+
+    The player's frames reach the listener in the order they were sent, so the reference at each sync frame
+    is exact; the daemon's SAT_FRONT (another sender) may overtake a sync frame in the queue, so the k-th
+    SAT_FRONT is paired with the k-th sync frame by count, not by arrival.
+    """
+
+    dec: Any  # a fresh decoder of the CAN matrix
+    plan: _Plan
+    stamping: _StampingBus
+    live: bool
+    every: float  # s of wall time between live lines
+    out: TextIO
+    t_first: float  # stamp of the recording's first frame (the first sync frame comes after it)
+    sync_offset_s: float  # a sync frame's stamp minus its instant (virtsensor.daemon.layout.SYNC_OFFSET_S)
+    last_print: float  # time.monotonic() of the last live line
+    last_rx: float  # time.monotonic() of the last frame received
+    ticks: _Ticks = field(default_factory=_Ticks)
+    snaps: list[tuple[float, float, float]] = field(default_factory=list)  # per sync frame: tick time, ref FL, FR
+    sats: list[tuple[float, float, int, int, float]] = field(default_factory=list)  # FL, FR, statuses, wall stamp
+    truth: list[float] = field(default_factory=lambda: [math.nan, math.nan])
+
+    def on_frame(self, msg: Any, now: float) -> None:
+        """Take one received frame (``now``: time.monotonic() at its arrival)."""
+        fid = msg.arbitration_id
+        if msg.is_extended_id:
+            return
+        if fid == self.plan.te_id:
+            d = self.dec.decode(fid, msg.data, msg.timestamp)
+            if d is not None:
+                self.truth[0] = d.values.get("sat_fl_nm", self.truth[0])
+                self.truth[1] = d.values.get("sat_fr_nm", self.truth[1])
+            return
+        if fid == self.plan.sync_id:
+            self.snaps.append((msg.timestamp - self.sync_offset_s - self.t_first, self.truth[0], self.truth[1]))
+        elif fid == self.plan.sat_id:
+            d = self.dec.decode(fid, msg.data, msg.timestamp)
+            if d is None:
+                return
+            o = d.other
+            self.sats.append((o.get("SAT_FL", math.nan), o.get("SAT_FR", math.nan),
+                              int(o.get("SAT_FL_Status", 3)), int(o.get("SAT_FR_Status", 3)), msg.timestamp))
+        else:
+            return
+        self._pair(now)
+
+    def _pair(self, now: float) -> None:
+        """Append a tick for every sync frame that now has its SAT_FRONT; print the live line when due."""
+        ticks = self.ticks
+        while len(ticks.t) < min(len(self.snaps), len(self.sats)):
+            k = len(ticks.t)
+            t, y_fl, y_fr = self.snaps[k]
+            e_fl, e_fr, s_fl, s_fr, stamp = self.sats[k]
+            ticks.t.append(t)
+            ticks.est.append((e_fl, e_fr))
+            ticks.true.append((y_fl, y_fr))
+            ticks.status.append((s_fl, s_fr))
+            if k < len(self.stamping.sync_sent_at):
+                ticks.latency_ms.append((stamp - self.stamping.sync_sent_at[k]) * 1e3)
+            if self.live and (now - self.last_print >= self.every or k == 0):
+                self.last_print = now
+                print(f"  {t:6.2f}   {_fmt(e_fl)} / {_fmt(y_fl)}   {_fmt(e_fr)} / {_fmt(y_fr)}   "
+                      f"{_status_text((s_fl, s_fr))}", file=self.out, flush=True)
+
+
+def _print_header(opts: _Options, plan: _Plan, live: bool, out: TextIO) -> float:
+    """Print what runs (and the live lines' column heads); returned: the live line period (s)."""
+    rate_txt = "as fast as possible" if opts.rate_f is None else f"at {opts.rate_f:g}x real time"
+    print(f"virtsensor demo: {_describe(opts.rec_path)} ({plan.duration:.1f} s, {_shown(opts.rec_path)})", file=out)
+    print(f"  replayed {rate_txt} on a virtual CAN bus to the daemon running {_shown(opts.model_path)} "
+          f"(sync mode, id 0x{plan.sync_id:X})", file=out)
+    if not plan.has_truth:
         print("  no TE_WheelForceTransducer frames in this recording: estimates only, no reference", file=out)
     tty = bool(getattr(out, "isatty", lambda: False)())
     every = LIVE_TTY_S if tty else LIVE_PIPE_S
     if live:
         print(f"  {'t [s]':>6}   {'FL est / true [Nm]':>18}   {'FR est / true [Nm]':>18}   status", file=out)
     out.flush()
+    return every
 
-    ticks = _Ticks()
-    # The player's frames reach this listener in the order they were sent, so the reference at each sync
-    # frame is exact; the daemon's SAT_FRONT (another sender) may overtake a sync frame in this queue, so
-    # the k-th SAT_FRONT is paired with the k-th sync frame by count, not by arrival.
-    snaps: list[tuple[float, float, float]] = []  # per sync frame: tick time, reference FL, FR
-    sats: list[tuple[float, float, int, int, float]] = []  # per SAT_FRONT: FL, FR, statuses, wall stamp
-    truth = [math.nan, math.nan]
-    t_first = merged[0].timestamp  # the recording's first frame (the first sync frame comes after it)
+
+def _listen(bus: Any, rx: _Listener, player: _PlayerThread) -> None:
+    """Receive until the player has ended and every sync frame sent is answered (or no frame came for
+    :data:`DRAIN_S`), or at once once the player has ended on an error."""
+    while True:
+        msg = bus.recv(0.05)
+        now = time.monotonic()
+        if msg is None:
+            if not player.thread.is_alive():
+                if player.error is not None:
+                    break
+                if len(rx.ticks.t) >= len(rx.stamping.sync_sent_at) or now - rx.last_rx > DRAIN_S:
+                    break
+            continue
+        rx.last_rx = now
+        rx.on_frame(msg, now)
+
+
+def _run(sensor: Any, listener: Any, tx: Any, opts: _Options, plan: _Plan, live: bool,
+         out: TextIO) -> dict[str, Any]:
+    """Start the daemon and the player, listen until every tick is answered; Ctrl-C ends it early."""
+    from virtsensor.daemon.layout import SYNC_OFFSET_S
+
+    stamping = _StampingBus(tx, plan.sync_id)
+    stop = threading.Event()
+    player = _PlayerThread(plan.merged, stamping, opts.rate_f, plan.matrix, stop)
+    every = _print_header(opts, plan, live, out)
     interrupted = False
-    player = threading.Thread(target=play, name="virtsensor-demo-replay", daemon=True)
-    last_print = last_rx = time.monotonic()
+    now = time.monotonic()
+    rx = _Listener(plan.matrix.fresh(), plan, stamping, live, every, out, t_first=plan.merged[0].timestamp,
+                   sync_offset_s=SYNC_OFFSET_S, last_print=now, last_rx=now)
     try:
         sensor.start()
-        player.start()
-        while True:
-            msg = listener.recv(0.05)
-            now = time.monotonic()
-            if msg is None:
-                if not player.is_alive():
-                    if "error" in box:
-                        break
-                    if len(ticks.t) >= len(stamping.sync_sent_at) or now - last_rx > DRAIN_S:
-                        break
-                continue
-            last_rx = now
-            fid = msg.arbitration_id
-            if msg.is_extended_id:
-                continue
-            if fid == te_id:
-                d = dec.decode(fid, msg.data, msg.timestamp)
-                if d is not None:
-                    truth[0] = d.values.get("sat_fl_nm", truth[0])
-                    truth[1] = d.values.get("sat_fr_nm", truth[1])
-                continue
-            if fid == sync_id:
-                snaps.append((msg.timestamp - SYNC_OFFSET_S - t_first, truth[0], truth[1]))
-            elif fid == sat_id:
-                d = dec.decode(fid, msg.data, msg.timestamp)
-                if d is None:
-                    continue
-                o = d.other
-                sats.append((o.get("SAT_FL", math.nan), o.get("SAT_FR", math.nan),
-                             int(o.get("SAT_FL_Status", 3)), int(o.get("SAT_FR_Status", 3)), msg.timestamp))
-            else:
-                continue
-            while len(ticks.t) < min(len(snaps), len(sats)):
-                k = len(ticks.t)
-                t, y_fl, y_fr = snaps[k]
-                e_fl, e_fr, s_fl, s_fr, stamp = sats[k]
-                ticks.t.append(t)
-                ticks.est.append((e_fl, e_fr))
-                ticks.true.append((y_fl, y_fr))
-                ticks.status.append((s_fl, s_fr))
-                if k < len(stamping.sync_sent_at):
-                    ticks.latency_ms.append((stamp - stamping.sync_sent_at[k]) * 1e3)
-                if live and (now - last_print >= every or k == 0):
-                    last_print = now
-                    print(f"  {t:6.2f}   {_fmt(e_fl)} / {_fmt(y_fl)}   {_fmt(e_fr)} / {_fmt(y_fr)}   "
-                          f"{_status_text((s_fl, s_fr))}", file=out, flush=True)
+        player.thread.start()
+        _listen(listener, rx, player)
     except KeyboardInterrupt:
         interrupted = True
     finally:
         stop.set()
-        if player.ident is not None:
-            player.join(5.0)
+        if player.thread.ident is not None:
+            player.thread.join(5.0)
         stats = sensor.stop()
-    if "error" in box:
-        raise box["error"]
-    summary = box.get("summary")
+    if player.error is not None:
+        raise player.error
+    summary = player.summary
     if summary is not None and summary.interrupted:
         interrupted = True
     return {
-        "_ticks": ticks, "_stats": stats, "interrupted": interrupted, "sync_frames": len(stamping.sync_sent_at),
+        "_ticks": rx.ticks, "_stats": stats, "interrupted": interrupted, "sync_frames": len(stamping.sync_sent_at),
         "replay": None if summary is None else {
             "frames_sent": summary.frames_sent, "duration_s": round(summary.duration_s, 3),
             "timing_error_p99_ms": summary.timing_error_p99_ms},

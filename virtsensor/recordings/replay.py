@@ -23,8 +23,8 @@ import os
 import sys
 import time
 from array import array
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -196,6 +196,100 @@ def _progress_bar(progress: bool, total: int | None, label: str) -> Any:
     return tqdm(total=total, unit="frame", file=sys.stderr, mininterval=0.5, desc=label, leave=False)
 
 
+def _checked_rate(rate: float | str | None) -> float | None:
+    """``rate`` as a float > 0, or None (as fast as possible); UserError otherwise."""
+    rate_f = parse_rate(rate) if isinstance(rate, str) else (None if rate is None else float(rate))
+    if rate_f is not None and not (rate_f > 0 and math.isfinite(rate_f)):
+        raise UserError(f"rate must be > 0, got {rate!r}")
+    return rate_f
+
+
+@dataclass
+class _Pass:
+    """One pass over the frames: how many were sent, the stamps of its first and last frame (s)."""
+
+    n: int
+    ts0: float | None
+    ts_last: float | None
+
+
+@dataclass
+class _Player:
+    """The sending state of one :func:`replay` call: counters kept across passes (and up to a Ctrl-C)."""
+
+    bus: Any
+    can: Any  # the python-can module (its CanOperationError)
+    known: frozenset[int]  # ids of the DBC
+    rate_f: float | None
+    spin_s: float
+    stop: Any  # threading.Event or None
+    bar: Any  # tqdm or _NoBar
+    clock: Callable[[], float]
+    sleep: Callable[[float], None]
+    errors: array = field(default_factory=lambda: array("d"))  # send time minus deadline (s)
+    sent: int = 0
+    unknown: int = 0
+    pending: int = 0  # sent frames not yet counted on the bar
+    interrupted: bool = False
+
+    def stopped(self) -> bool:
+        return self.stop is not None and self.stop.is_set()
+
+    def wait_until(self, deadline: float) -> None:
+        """Sleep until ``spin_s`` before ``deadline``, spin up to it, record the timing error."""
+        clock = self.clock
+        rem = deadline - clock()
+        if rem > self.spin_s:
+            self.sleep(rem - self.spin_s)
+        now = clock()
+        while now < deadline:  # spin (holds the GIL for < spin_s, below the switch interval)
+            now = clock()
+        if len(self.errors) < _MAX_ERRORS:
+            self.errors.append(now - deadline)
+
+    def play_pass(self, frames: Iterable, t_pass: float) -> _Pass:
+        """Send ``frames``, the first at ``t_pass`` (timed mode); ends early (``interrupted``) when ``stop`` is
+        set, checked every 200 frames."""
+        ts0 = ts_last = None
+        n_pass = 0
+        for msg in frames:
+            ts = msg.timestamp
+            if ts0 is None:
+                ts0 = ts
+            ts_last = ts
+            if self.rate_f is not None:
+                self.wait_until(t_pass + (ts - ts0) / self.rate_f)
+            _send(self.bus, msg, self.can, self.sent)
+            self.sent += 1
+            n_pass += 1
+            if msg.arbitration_id not in self.known or msg.is_extended_id:
+                self.unknown += 1
+            self.pending += 1
+            if self.pending >= 200:
+                self.bar.update(self.pending)
+                self.pending = 0
+                if self.stopped():
+                    self.interrupted = True
+                    break
+        return _Pass(n_pass, ts0, ts_last)
+
+    def next_pass_start(self, t_pass: float, done: _Pass) -> float:
+        """When the pass after ``done`` (started at ``t_pass``) starts: one mean frame interval after its last
+        frame on the same time line (timed mode), else now."""
+        if self.rate_f is not None and done.ts0 is not None and done.ts_last is not None:
+            gap = (done.ts_last - done.ts0) / (done.n - 1) if done.n > 1 else 0.01
+            return t_pass + (done.ts_last - done.ts0 + gap) / self.rate_f
+        return self.clock()
+
+
+def _timing_stats(errors: array) -> tuple[float | None, float | None, float | None]:
+    """p50, p99 and max of the timing errors (ms); all None when there is none (max rate)."""
+    if not errors:
+        return None, None, None
+    e = np.frombuffer(errors, dtype=np.float64) * 1e3
+    return float(np.percentile(e, 50)), float(np.percentile(e, 99)), float(e.max())
+
+
 def replay(
     frames_or_path: str | os.PathLike | Iterable,
     bus,
@@ -230,79 +324,38 @@ def replay(
     """
     import can
 
-    rate_f = parse_rate(rate) if isinstance(rate, str) else (None if rate is None else float(rate))
-    if rate_f is not None and not (rate_f > 0 and math.isfinite(rate_f)):
-        raise UserError(f"rate must be > 0, got {rate!r}")
+    rate_f = _checked_rate(rate)
     matrix = matrix or CanMatrix.load()
-    known = frozenset(matrix.by_id)
     factory, total, label = _sources(frames_or_path, loop)
     clock = time.perf_counter
-    sleep = time.sleep
-    errors = array("d")
-    sent = unknown = passes = 0
-    interrupted = False
     bar = _progress_bar(progress, total if not loop else None, label[-40:])
-    pending = 0
+    player = _Player(bus, can, frozenset(matrix.by_id), rate_f, spin_s, stop, bar, clock, time.sleep)
+    passes = 0
     t_start = clock()
     t_pass = t_start
     t_last_send = t_start
     try:
         while True:
             passes += 1
-            ts0 = ts_last = None
-            n_pass = 0
-            for msg in factory():
-                ts = msg.timestamp
-                if ts0 is None:
-                    ts0 = ts
-                ts_last = ts
-                if rate_f is not None:
-                    deadline = t_pass + (ts - ts0) / rate_f
-                    rem = deadline - clock()
-                    if rem > spin_s:
-                        sleep(rem - spin_s)
-                    now = clock()
-                    while now < deadline:  # spin (holds the GIL for < spin_s, below the switch interval)
-                        now = clock()
-                    if len(errors) < _MAX_ERRORS:
-                        errors.append(now - deadline)
-                _send(bus, msg, can, sent)
-                sent += 1
-                n_pass += 1
-                if msg.arbitration_id not in known or msg.is_extended_id:
-                    unknown += 1
-                pending += 1
-                if pending >= 200:
-                    bar.update(pending)
-                    pending = 0
-                    if stop is not None and stop.is_set():
-                        interrupted = True
-                        break
+            done = player.play_pass(factory(), t_pass)
             t_last_send = clock()
-            if interrupted or not loop or n_pass == 0:
+            if player.interrupted or not loop or done.n == 0:
                 break
             if max_loops is not None and passes >= max_loops:
                 break
-            if stop is not None and stop.is_set():
-                interrupted = True
+            if player.stopped():
+                player.interrupted = True
                 break
-            if rate_f is not None and ts0 is not None and ts_last is not None:
-                gap = (ts_last - ts0) / (n_pass - 1) if n_pass > 1 else 0.01
-                t_pass = t_pass + (ts_last - ts0 + gap) / rate_f
-            else:
-                t_pass = clock()
+            t_pass = player.next_pass_start(t_pass, done)
     except KeyboardInterrupt:
-        interrupted = True
+        player.interrupted = True
         t_last_send = clock()
     finally:
-        bar.update(pending)
+        bar.update(player.pending)
         bar.close()
-    if errors:
-        e = np.frombuffer(errors, dtype=np.float64) * 1e3
-        p50, p99, mx = (float(np.percentile(e, 50)), float(np.percentile(e, 99)), float(e.max()))
-    else:
-        p50 = p99 = mx = None
-    return ReplaySummary(sent, unknown, t_last_send - t_start, passes, rate_f, p50, p99, mx, interrupted)
+    p50, p99, mx = _timing_stats(player.errors)
+    return ReplaySummary(player.sent, player.unknown, t_last_send - t_start, passes, rate_f, p50, p99, mx,
+                         player.interrupted)
 
 
 def _send(bus, msg, can, index: int) -> None:
