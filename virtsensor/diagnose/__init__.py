@@ -54,8 +54,6 @@ def diagnose(
         ``(result, artefacts)``: the JSON-able result (what ``diagnose --json`` writes) and the
         objects the report draws (comparison, estimators).
     """
-    from sim.effects import with_effect
-    from virtsensor.diagnose import calibrate
     from virtsensor.diagnose.compare import compare
     from virtsensor.diagnose.identify import identify
     from virtsensor.diagnose.resim import compared_signals
@@ -63,9 +61,26 @@ def diagnose(
     t0 = time.perf_counter()
     names = compared_signals(runs)
     idn = identify(runs, base, names, mu=mu, n_jobs=n_jobs, log=log)
-    t_id = time.perf_counter() - t0
+    result = _identification_result(idn, runs, holdout, time.perf_counter() - t0)
+    comparison = compare(runs, idn, names)
+    result["comparison"] = comparison.as_dict()
+    art: dict[str, Any] = {"comparison": comparison}
+    if not retrain:
+        return result, art
+    before, after = _estimators(idn, base, before, preset=preset, recipe=recipe, seed=seed, max_iter=max_iter,
+                                ensemble=ensemble, n_jobs=n_jobs, log=log)
+    art.update(before=before, after=after)
+    result.update(_scores(before, after, runs, holdout, idn, names, preset=preset, seed=seed))
+    result["seconds_total"] = time.perf_counter() - t0
+    return result, art
+
+
+def _identification_result(idn, runs: Sequence[MeasuredRun], holdout: Sequence[MeasuredRun],
+                           seconds: float) -> dict[str, Any]:
+    """The diagnosis part of the result: the cause named, its fit, every candidate, the runs used;
+    ``seconds`` is the identification's wall time."""
     best = idn.best
-    result: dict[str, Any] = {
+    return {
         "cause": idn.cause,
         "signal": best.candidate.signal if best else None,
         "estimate": best.estimate if best else None,
@@ -82,24 +97,38 @@ def diagnose(
         "holdout_runs": [{"name": r.name, "file": str(r.path), "duration_s": r.duration_s,
                           "gaps_s": r.gaps} for r in holdout],
         "simulations": idn.simulations,
-        "seconds_identify": t_id,
+        "seconds_identify": seconds,
     }
-    comparison = compare(runs, idn, names)
-    result["comparison"] = comparison.as_dict()
-    art: dict[str, Any] = {"comparison": comparison}
-    if not retrain:
-        return result, art
+
+
+def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recipe: str, seed: int,
+                max_iter: int | None, ensemble: int, n_jobs: int, log: Callable[[str], None]) -> tuple[Any, Any]:
+    """``(before, after)``: the estimator trained on the nominal simulator (``before`` if given) and the
+    one trained on the simulator calibrated with the named cause (``before`` itself when none is named)."""
+    from sim.effects import with_effect
+    from virtsensor.diagnose import calibrate
+
     if before is None:
         log(f"training the estimator on the nominal simulator ({preset} campaign, {recipe} recipe)")
         before = calibrate.train(base, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
                                  ensemble=ensemble)
-    after = before
-    if best is not None:
-        log(f"calibrating the simulator ({best.candidate.key} = {best.estimate:.4g}) and retraining")
-        cal = with_effect(base, best.candidate.cause, best.estimate, best.candidate.signal)
-        after = calibrate.train(cal, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
-                                ensemble=ensemble)
-    art.update(before=before, after=after)
+    best = idn.best
+    if best is None:
+        return before, before
+    log(f"calibrating the simulator ({best.candidate.key} = {best.estimate:.4g}) and retraining")
+    cal = with_effect(base, best.candidate.cause, best.estimate, best.candidate.signal)
+    after = calibrate.train(cal, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
+                            ensemble=ensemble)
+    return before, after
+
+
+def _scores(before: Any, after: Any, runs: Sequence[MeasuredRun], holdout: Sequence[MeasuredRun], idn, names,
+            *, preset: str, seed: int) -> dict[str, Any]:
+    """The estimator part of the result: the campaigns, the ``before`` estimator on the diagnosis runs
+    measured and re-simulated, and both estimators on ``holdout`` (None, with a note, when it is empty)."""
+    from virtsensor.diagnose import calibrate
+
+    result: dict[str, Any] = {}
     result["estimator"] = {"preset": preset, "recipe": before.recipe, "seed": seed,
                            "train_samples_before": before.samples, "train_samples_after": after.samples}
     # the estimator on measured data vs on its own simulation (the diagnosis runs, re-simulated)
@@ -114,8 +143,7 @@ def diagnose(
     else:
         result.update(mae_before_nm=None, mae_after_nm=None, r2_before=None, r2_after=None,
                       gain_note="no held-out measured runs: the gain was not measured")
-    result["seconds_total"] = time.perf_counter() - t0
-    return result, art
+    return result
 
 
 def _unit(fit) -> str:

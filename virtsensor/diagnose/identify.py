@@ -372,78 +372,25 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     """Identify every candidate effect on ``runs`` and name the best explanation."""
     data = Data(runs, names)
     cands = candidates()
-    sim_cands = [c for c in cands if c.needs_sim]
-    searches = {c.key: _Search(c) for c in sim_cands}
+    searches = {c.key: _Search(c) for c in cands if c.needs_sim}
     # 1. the nominal car, the messages' reading ages, then the screening in one batch
-    log(f"re-simulating {len(runs)} run(s) with the nominal car")
-    nominal = simulate_hypotheses(runs, [NOMINAL], base, mu, names, n_jobs=n_jobs, keep_streams=[True])[0]
-    shifts = align(runs, nominal, names)
-    data.shifts = shifts
-    for r, per_run in enumerate(nominal):
-        for g, item in enumerate(per_run):
-            item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, shifts)
-    hyps: list[Hypothesis] = []
-    owners: list[str] = []
-    for c in sim_cands:
-        for v in searches[c.key].screening():
-            hyps.append(c.hyp(v))
-            owners.append(c.key)
-    log(f"screening {len(hyps)} hypotheses")
-    sims = [nominal, *simulate_hypotheses(runs, hyps, base, mu, names, n_jobs=n_jobs, shifts=shifts)]
-    n_sim = 1 + len(hyps)
+    nominal = _simulate_nominal(data, base, mu, n_jobs, log)
+    sims_of, n_sim = _screen(data, searches, base, mu, n_jobs, log)
     rss0 = data.rss(nominal)
     f0 = data.m2ll(rss0)
-    sims_of: dict[tuple[str, float], Any] = {}
-    for hyp, owner, sim in zip(hyps, owners, sims[1:], strict=True):
-        searches[owner].add(hyp.value, data.m2ll(data.rss(sim)))
-        sims_of[(owner, hyp.value)] = sim
     for s in searches.values():
         s.add(s.cand.nominal, f0)
     # 2. exact fits of the sensor effects on non-drive signals
     fits = [_exact_fit(data, nominal, c, rss0) for c in cands if not c.needs_sim and _excited(data, nominal, c)]
     # 3. refine the most promising sim-based candidates, their proposals in one batch per round
     ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP]
-    for rnd in range(REFINE_ROUNDS):
-        props = [(s, v) for s in ranked if not s.done for v in [s.propose()] if v is not None]
-        if not props:
-            break
-        log(f"refining {', '.join(s.cand.key for s, _ in props)} (round {rnd + 1})")
-        hs = [s.cand.hyp(v) for s, v in props]
-        out = simulate_hypotheses(runs, hs, base, mu, names, n_jobs=n_jobs, shifts=shifts)
-        n_sim += len(hs)
-        for (s, v), sim in zip(props, out, strict=True):
-            s.add(v, data.m2ll(data.rss(sim)))
-            sims_of[(s.cand.key, v)] = sim
+    n_sim += _refine(data, ranked, sims_of, base, mu, n_jobs, log)
     # 4. a fit per sim-based candidate; the refined ones are re-simulated at their estimate
-    final_h: list[Hypothesis] = []
-    final_s: list[_Search] = []
-    for s in searches.values():
-        v, c = s.estimate()
-        if s in ranked and (s.cand.key, v) not in sims_of and abs(v - s.cand.nominal) > 1e-12:
-            final_h.append(s.cand.hyp(v))
-            final_s.append(s)
-    if final_h:
-        out = simulate_hypotheses(runs, final_h, base, mu, names, n_jobs=n_jobs,
-                                  keep_streams=[True] * len(final_h), shifts=shifts)
-        n_sim += len(final_h)
-        for s, h, sim in zip(final_s, final_h, out, strict=True):
-            s.add(h.value, data.m2ll(data.rss(sim)))
-            sims_of[(s.cand.key, h.value)] = sim
-    for s in searches.values():
-        v, c = s.estimate()
-        # the estimate if it was simulated, else the best point evaluated, else the nominal car
-        for v_use in (v, s.value(s.best()[0])):
-            if (s.cand.key, v_use) in sims_of:
-                sim = sims_of[(s.cand.key, v_use)]
-                break
-        else:
-            v_use, sim = s.cand.nominal, nominal
-        rss = data.rss(sim)
-        fits.append(Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())]))
+    n_sim += _simulate_estimates(data, searches, ranked, sims_of, base, mu, n_jobs)
+    fits.extend(_search_fit(data, s, sims_of, nominal) for s in searches.values())
     # 5. scores
     best_fit = min(fits, key=lambda f: f.m2ll)
-    best_sims = _sims_for(best_fit, nominal, sims_of, data)
-    rho = data.rho(best_sims)
+    rho = data.rho(_sims_for(best_fit, nominal, sims_of, data))
     feff = (1.0 - rho) / (1.0 + rho)
     n_tot = sum(data.n.values())
     for f in fits:
@@ -453,7 +400,97 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     # below its practical floor (a 1 % gain, a few ms) is a small mismatch, not a cause
     chosen = next((f for f in fits if f.significant), None)
     return Identification(fits, chosen, rss0, dict(data.n), feff, nominal,
-                          _sims_for(chosen, nominal, sims_of, data) if chosen else nominal, n_sim, names, shifts)
+                          _sims_for(chosen, nominal, sims_of, data) if chosen else nominal, n_sim, data.names,
+                          data.shifts)
+
+
+def _simulate_nominal(data: Data, base: Mapping[str, Any], mu: float, n_jobs: int, log) -> Any:
+    """Re-simulate ``data.runs`` with the nominal car, set ``data.shifts`` (the messages' reading ages) and
+    each item's ``pred`` (the compared signals on the table's ticks); return the nominal re-simulation."""
+    runs, names = data.runs, data.names
+    log(f"re-simulating {len(runs)} run(s) with the nominal car")
+    nominal = simulate_hypotheses(runs, [NOMINAL], base, mu, names, n_jobs=n_jobs, keep_streams=[True])[0]
+    data.shifts = align(runs, nominal, names)
+    for r, per_run in enumerate(nominal):
+        for g, item in enumerate(per_run):
+            item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, data.shifts)
+    return nominal
+
+
+def _screen(data: Data, searches: Mapping[str, _Search], base: Mapping[str, Any], mu: float, n_jobs: int,
+            log) -> tuple[dict[tuple[str, float], Any], int]:
+    """Simulate every search's screening values in one batch and add their -2 log L to the searches.
+
+    Returns the simulations by ``(candidate key, value)`` and the number of simulations run (the
+    nominal car counted)."""
+    hyps: list[Hypothesis] = []
+    owners: list[str] = []
+    for key, search in searches.items():
+        for v in search.screening():
+            hyps.append(search.cand.hyp(v))
+            owners.append(key)
+    log(f"screening {len(hyps)} hypotheses")
+    sims = simulate_hypotheses(data.runs, hyps, base, mu, data.names, n_jobs=n_jobs, shifts=data.shifts)
+    sims_of: dict[tuple[str, float], Any] = {}
+    for hyp, owner, sim in zip(hyps, owners, sims, strict=True):
+        searches[owner].add(hyp.value, data.m2ll(data.rss(sim)))
+        sims_of[(owner, hyp.value)] = sim
+    return sims_of, 1 + len(hyps)
+
+
+def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, float], Any],
+            base: Mapping[str, Any], mu: float, n_jobs: int, log) -> int:
+    """Up to :data:`REFINE_ROUNDS` rounds of the ``ranked`` searches' proposals, one batch per round; the
+    simulations go into ``sims_of``. Returns the number of simulations run."""
+    n_sim = 0
+    for rnd in range(REFINE_ROUNDS):
+        props = [(s, v) for s in ranked if not s.done for v in [s.propose()] if v is not None]
+        if not props:
+            break
+        log(f"refining {', '.join(s.cand.key for s, _ in props)} (round {rnd + 1})")
+        hs = [s.cand.hyp(v) for s, v in props]
+        out = simulate_hypotheses(data.runs, hs, base, mu, data.names, n_jobs=n_jobs, shifts=data.shifts)
+        n_sim += len(hs)
+        for (s, v), sim in zip(props, out, strict=True):
+            s.add(v, data.m2ll(data.rss(sim)))
+            sims_of[(s.cand.key, v)] = sim
+    return n_sim
+
+
+def _simulate_estimates(data: Data, searches: Mapping[str, _Search], ranked: Sequence[_Search],
+                        sims_of: dict[tuple[str, float], Any], base: Mapping[str, Any], mu: float,
+                        n_jobs: int) -> int:
+    """Simulate, in one batch, the estimates of the ``ranked`` searches not yet simulated (and not nominal);
+    the simulations go into ``sims_of``. Returns the number of simulations run."""
+    final_h: list[Hypothesis] = []
+    final_s: list[_Search] = []
+    for s in searches.values():
+        v, _ = s.estimate()
+        if s in ranked and (s.cand.key, v) not in sims_of and abs(v - s.cand.nominal) > 1e-12:
+            final_h.append(s.cand.hyp(v))
+            final_s.append(s)
+    if not final_h:
+        return 0
+    out = simulate_hypotheses(data.runs, final_h, base, mu, data.names, n_jobs=n_jobs,
+                              keep_streams=[True] * len(final_h), shifts=data.shifts)
+    for s, h, sim in zip(final_s, final_h, out, strict=True):
+        s.add(h.value, data.m2ll(data.rss(sim)))
+        sims_of[(s.cand.key, h.value)] = sim
+    return len(final_h)
+
+
+def _search_fit(data: Data, s: _Search, sims_of: Mapping[tuple[str, float], Any], nominal: Any) -> Fit:
+    """A sim-based candidate's fit: at its estimate if that was simulated, else at the best point
+    evaluated, else at the nominal car."""
+    v, c = s.estimate()
+    for v_use in (v, s.value(s.best()[0])):
+        if (s.cand.key, v_use) in sims_of:
+            sim = sims_of[(s.cand.key, v_use)]
+            break
+    else:
+        v_use, sim = s.cand.nominal, nominal
+    rss = data.rss(sim)
+    return Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())])
 
 
 def _sims_for(fit: Fit, nominal, sims_of, data: Data):

@@ -476,32 +476,14 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
         UserError: missing/invalid model, data lacking a signal, output directory not creatable,
             shap or matplotlib not installed, nothing to explain.
     """
-    from virtsensor.features import FeatureSpec
-    from virtsensor.learning.dataset import build_dataset, load_runs, split_track_laps
+    from virtsensor.learning.dataset import build_dataset, load_runs
     from virtsensor.learning.evaluation import random_split
-    from virtsensor.model.onnx import OnnxModel
 
     say = log or (lambda _msg: None)
-    if samples < 1:
-        raise UserError(f"--samples {samples}: must be at least 1")
-    if background < 1:
-        raise UserError(f"--background {background}: must be at least 1")
-    if method not in ("auto", "exact", "permutation"):
-        raise UserError(f"--method {method!r}: choose auto, exact or permutation")
+    _check_options(samples, background, method)
     shap = require_shap()
     plotting.require("virtsensor explain")
-    model = OnnxModel.load(model_path)
-    try:
-        spec = FeatureSpec.from_json(model.card["feature_spec"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"{model.card_path}: no usable feature_spec in the model card ({exc})") from None
-    if spec.names != model.input_names:
-        raise UserError(f"{model.card_path}: feature_spec names {list(spec.names)} differ from the graph's "
-                        f"feature_names {list(model.input_names)}")
-    outputs = tuple(model.outputs)
-    missing_out = [o for o in outputs if o not in cat.SIGNALS]
-    if missing_out:
-        raise UserError(f"{model.card_path}: outputs {missing_out} are not catalogue signals")
+    model, spec, outputs = _load_model(model_path)
     needed = sorted(set(cat.INPUTS) | set(spec.signals) | set(outputs))
     runs = load_runs(data, needed=needed)
     track_run = load_runs([track], needed=sorted(set(spec.signals) | set(outputs)))[0] if track else None
@@ -517,7 +499,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
 
     # ---- Fig. 2: correlation of the raw catalogue signals --------------------------------------------------
     C = correlation_matrix(cols)
-    figures = []
+    figures: list[str] = []
     plot_correlation(out_dir / FIGURES["correlation"], corr_names, C, f"{len(cols)} rows of {len(runs)} runs")
     figures.append(FIGURES["correlation"])
     say(f"correlation of {len(corr_names)} signals over {len(cols)} rows")
@@ -526,10 +508,75 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     rng = np.random.default_rng(seed)
     explained = np.sort(rng.choice(test_idx, min(samples, len(test_idx)), replace=False))
     bg_idx = np.sort(rng.choice(train_idx, min(background, len(train_idx)), replace=False))
-    chosen, perms = choose_method(len(explained), len(spec.names), len(bg_idx), method)
+    shap_doc = _shap_figures(shap, out_dir, model, spec, outputs, ds.X[explained], ds.X[bg_idx],
+                             seed=seed, method=method, figures=figures, say=say)
+    doc: dict[str, Any] = {
+        "model": {"file": str(model_path), "sha256": model.card["sha256"], "feature_spec": spec.name,
+                  "features": list(spec.names), "outputs": list(outputs)},
+        "data": {"sources": [str(p) for p in data], "runs": len(runs), "rows": int(len(ds.X)),
+                 "dropped_nonfinite": int(ds.dropped_nonfinite)},
+        "seed": int(seed),
+        "correlation": {"signals": list(corr_names), "rows": int(len(cols)), "pearson": C.tolist()},
+        **shap_doc,
+    }
+
+    # ---- Figs. 5-7: the Magny-Cours laps ----------------------------------------------------------------
+    if track_run is not None:
+        doc["track"] = _track_figures(out_dir, model, spec, outputs, track_run, track, figures, say)
+    if circuits:
+        doc["circuits"] = _circuit_figures(out_dir, model, spec, outputs, circuits, figures, say)
+    doc["figures"] = figures
+    doc = _round(doc)
+    write_json(out_dir / "explain.json", doc)
+    say(f"wrote {len(figures)} figures and explain.json to {out_dir}")
+    return doc
+
+
+def _check_options(samples: int, background: int, method: str) -> None:
+    """Raise :class:`UserError` for a row count below 1 or an unknown method."""
+    if samples < 1:
+        raise UserError(f"--samples {samples}: must be at least 1")
+    if background < 1:
+        raise UserError(f"--background {background}: must be at least 1")
+    if method not in ("auto", "exact", "permutation"):
+        raise UserError(f"--method {method!r}: choose auto, exact or permutation")
+
+
+def _load_model(model_path: str | os.PathLike[str]) -> tuple[Any, Any, tuple[str, ...]]:
+    """``(model, feature spec, output names)`` of the shipped ``.onnx`` and its model card.
+
+    Raises:
+        UserError: no usable feature_spec in the card, its names differ from the graph's inputs, or an
+            output is not a catalogue signal.
+    """
+    from virtsensor.features import FeatureSpec
+    from virtsensor.model.onnx import OnnxModel
+
+    model = OnnxModel.load(model_path)
+    try:
+        spec = FeatureSpec.from_json(model.card["feature_spec"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{model.card_path}: no usable feature_spec in the model card ({exc})") from None
+    if spec.names != model.input_names:
+        raise UserError(f"{model.card_path}: feature_spec names {list(spec.names)} differ from the graph's "
+                        f"feature_names {list(model.input_names)}")
+    outputs = tuple(model.outputs)
+    missing_out = [o for o in outputs if o not in cat.SIGNALS]
+    if missing_out:
+        raise UserError(f"{model.card_path}: outputs {missing_out} are not catalogue signals")
+    return model, spec, outputs
+
+
+def _shap_figures(shap: Any, out_dir: Path, model: Any, spec: Any, outputs: tuple[str, ...], X: np.ndarray,
+                  X_background: np.ndarray, *, seed: int, method: str, figures: list[str],
+                  say: Callable[[str], None]) -> dict[str, Any]:
+    """Figs. 8 and 9: SHAP values of ``model`` on the rows ``X`` against ``X_background`` (``method`` as in
+    :func:`explain`); appends the file names to ``figures``; returns the ``explain.json`` entries
+    ``shap``, ``mean_abs_shap_nm``, ``mean_abs_shap_stderr_nm``, ``ranking`` and ``dependence``."""
+    chosen, perms = choose_method(len(X), len(spec.names), len(X_background), method)
     say(f"SHAP ({chosen}{'' if perms is None else f', {perms} antithetic permutations'}) of {model.path.name} "
-        f"on {len(explained)} test rows, {len(bg_idx)} background rows...")
-    res = shap_values(model.predict, ds.X[explained], ds.X[bg_idx], seed=seed, feature_names=spec.names,
+        f"on {len(X)} test rows, {len(X_background)} background rows...")
+    res = shap_values(model.predict, X, X_background, seed=seed, feature_names=spec.names,
                       output_names=outputs, method=method)
     say(f"SHAP: {res.model_rows:,} model rows in {res.seconds:.1f} s")
     # local accuracy: the values add up to the prediction minus the mean background prediction
@@ -542,13 +589,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     figures.append(FIGURES["dependence"])
 
     imp, se = res.mean_abs(), res.mean_abs_stderr()
-    doc: dict[str, Any] = {
-        "model": {"file": str(model_path), "sha256": model.card["sha256"], "feature_spec": spec.name,
-                  "features": list(spec.names), "outputs": list(outputs)},
-        "data": {"sources": [str(p) for p in data], "runs": len(runs), "rows": int(len(ds.X)),
-                 "dropped_nonfinite": int(ds.dropped_nonfinite)},
-        "seed": int(seed),
-        "correlation": {"signals": list(corr_names), "rows": int(len(cols)), "pearson": C.tolist()},
+    return {
         "shap": {
             "library": f"shap {shap.__version__}",
             "explainer": "shap.explainers.Exact" if res.method == "exact" else "shap.explainers.Permutation",
@@ -558,7 +599,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
             "masker": "shap.maskers.Independent (interventional Shapley values)",
             "background_rows": res.background_rows,
             "background_from": "training side of the random 70/30 split",
-            "explained_rows": int(len(explained)),
+            "explained_rows": int(len(X)),
             "explained_from": "test side of the random 70/30 split (evaluation.random_split)",
             "model_rows_evaluated": res.model_rows,
             "model": "the ONNX graph through OnnxModel.predict",
@@ -574,29 +615,46 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
                        "colour_by": [None if p is None else spec.names[p] for p in partners]},
     }
 
-    # ---- Figs. 5-7: the Magny-Cours laps ----------------------------------------------------------------
-    if track_run is not None:
-        laps = split_track_laps(track_run)
-        for lap in ("dry", "wet"):
-            if lap not in laps:
-                raise UserError(f"--track {track}: no {lap} lap found (road_mu must drop for the wet lap)")
-        doc["track"] = {}
-        for lap, key in (("dry", "track_dry"), ("wet", "track_wet")):
-            lds = build_dataset([laps[lap]], spec, targets=outputs)
-            if len(lds.X) < 2:
-                raise UserError(f"--track {track}: the {lap} lap has {len(lds.X)} usable rows")
-            doc["track"][lap] = _lap_figures(out_dir, model, lds, f"{lap} lap", FIGURES[key],
-                                             FIGURES["axle"] if lap == "wet" else None, figures, say)
-    if circuits:
-        doc["circuits"] = {}
-        for r in load_runs(circuits, needed=sorted(set(spec.signals) | set(outputs))):
-            cds = build_dataset([r], spec, targets=outputs)
-            if len(cds.X) < 2:
-                raise UserError(f"--circuits {r.path}: {len(cds.X)} usable rows")
-            doc["circuits"][r.name] = _lap_figures(out_dir, model, cds, f"circuit {r.name}",
-                                                   f"circuit_{r.name}.png", None, figures, say)
-    doc["figures"] = figures
-    doc = _round(doc)
-    write_json(out_dir / "explain.json", doc)
-    say(f"wrote {len(figures)} figures and explain.json to {out_dir}")
+
+def _track_figures(out_dir: Path, model: Any, spec: Any, outputs: tuple[str, ...], track_run: Any,
+                   track: str | os.PathLike[str], figures: list[str], say: Callable[[str], None]) -> dict[str, Any]:
+    """Figs. 5-7 on the dry and wet laps of ``track_run`` (:func:`_lap_figures`); returns the metrics by lap.
+
+    Raises:
+        UserError: a lap is missing or has fewer than 2 usable rows.
+    """
+    from virtsensor.learning.dataset import build_dataset, split_track_laps
+
+    laps = split_track_laps(track_run)
+    for lap in ("dry", "wet"):
+        if lap not in laps:
+            raise UserError(f"--track {track}: no {lap} lap found (road_mu must drop for the wet lap)")
+    doc: dict[str, Any] = {}
+    for lap, key in (("dry", "track_dry"), ("wet", "track_wet")):
+        lds = build_dataset([laps[lap]], spec, targets=outputs)
+        if len(lds.X) < 2:
+            raise UserError(f"--track {track}: the {lap} lap has {len(lds.X)} usable rows")
+        doc[lap] = _lap_figures(out_dir, model, lds, f"{lap} lap", FIGURES[key],
+                                FIGURES["axle"] if lap == "wet" else None, figures, say)
+    return doc
+
+
+def _circuit_figures(out_dir: Path, model: Any, spec: Any, outputs: tuple[str, ...],
+                     circuits: Sequence[str | os.PathLike[str]], figures: list[str],
+                     say: Callable[[str], None]) -> dict[str, Any]:
+    """An estimate-vs-truth figure per recording of ``circuits`` (:func:`_lap_figures`); returns the metrics
+    by run name.
+
+    Raises:
+        UserError: a recording lacks a signal or has fewer than 2 usable rows.
+    """
+    from virtsensor.learning.dataset import build_dataset, load_runs
+
+    doc: dict[str, Any] = {}
+    for r in load_runs(circuits, needed=sorted(set(spec.signals) | set(outputs))):
+        cds = build_dataset([r], spec, targets=outputs)
+        if len(cds.X) < 2:
+            raise UserError(f"--circuits {r.path}: {len(cds.X)} usable rows")
+        doc[r.name] = _lap_figures(out_dir, model, cds, f"circuit {r.name}",
+                                   f"circuit_{r.name}.png", None, figures, say)
     return doc
