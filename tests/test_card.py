@@ -168,10 +168,10 @@ def test_card_read_errors_name_the_file_and_never_quote_it(tmp_path):
         ModelCard.read(bad)
 
 
-@pytest.fixture
-def tampered(tmp_path) -> Path:
+@pytest.fixture(params=[_flip_first_critical, _swap_outputs], ids=["critical-flag", "swapped-outputs"])
+def tampered(tmp_path, request) -> Path:
     onnx_path = _copy_shipped(tmp_path)
-    _edit(onnx_path, _flip_first_critical)
+    _edit(onnx_path, request.param)
     return onnx_path
 
 
@@ -179,6 +179,7 @@ def tampered(tmp_path) -> Path:
     ["run", "--model", "{m}", "--interface", "virtual", "--channel", "card-test", "--duration", "0.1"],
     ["bench", "--model", "{m}", "--quick", "--json", "{tmp}/b.json"],
     ["evaluate", "--model", "{m}", "--data", "{tmp}", "--json", "{tmp}/e.json"],
+    ["score", "--model", "{m}", "--data", "{tmp}", "--json", "{tmp}/s.json"],
     ["explain", "--model", "{m}", "--data", "{tmp}", "--out", "{tmp}/fig"],
     ["demo", "--model", "{m}", "--no-live", "--rate", "max", "--plot", "{tmp}/d.png"],
 ])
