@@ -209,8 +209,8 @@ def load_track(spec: str | Path, **derive_options: float) -> Track:
         return Track._from_text(text, f"sim/data/{rel}")
     path = Path(name)
     if path.suffix == "" and not path.exists():
-        raise TrackError(f"unknown circuit {name!r}: name one of {', '.join(BUNDLED_TRACKS)} or give a .csv or "
-                         ".geojson file")
+        raise TrackError(f"unknown circuit {name!r}: name one of {', '.join(BUNDLED_TRACKS)}, random:SEED, "
+                         "or give a .csv or .geojson file")
     if path.suffix.lower() == ".csv" and path.is_file():
         text = path.read_text(encoding="utf-8", errors="replace")
         header = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")

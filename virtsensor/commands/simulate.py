@@ -37,8 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--longitudinal", choices=("speed", "torque"), default="speed",
                         help="for 'recorded': follow the recorded speed (default) or apply the recorded motor torque")
     parser.add_argument("--track", metavar="FILE", type=t.track_spec(),
-                        help="for 'circuit': a bundled circuit (magny-cours, hungaroring, zandvoort, red-bull-ring) "
-                             "or a closed centreline, .csv with header x_m,y_m or .geojson LineString of lon/lat")
+                        help="for 'circuit': a bundled circuit (magny-cours, hungaroring, zandvoort, red-bull-ring), "
+                             "a random one (random:SEED), or a closed centreline, .csv with header x_m,y_m or "
+                             ".geojson LineString of lon/lat")
     parser.add_argument("--laps", type=t.positive_int(100), default=None, metavar="N",
                         help="for 'circuit': laps to drive, 1 to 100 (default 1)")
     add_car_arguments(parser)
