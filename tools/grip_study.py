@@ -35,9 +35,9 @@ from virtsensor import grip  # noqa: E402
 from virtsensor.learning import gripscore as gs  # noqa: E402
 
 TRAIL_KNOTS = tuple(round(x, 4) for x in np.arange(-0.015, 0.0376, 0.0025))
-WARN_ON = (0.7, 0.75, 0.8, 0.85, 0.9)
-WARN_HORIZON_S = (0.0, 0.2, 0.4)
-DEMAND_WEIGHT = (0.0, 1.0)
+WARN_ON = (0.65, 0.7, 0.75, 0.8, 0.85)
+WARN_HORIZON_S = (0.0, 0.2)
+DEMAND_WEIGHT = (0.0,)
 #: the warning setting chosen keeps false warnings at most this (per 10 min below 70 % utilisation) on the fit data
 FALSE_BUDGET = 1.0
 
@@ -85,11 +85,11 @@ def car_params() -> dict:
 
 def _initial() -> grip.GripParams:
     k = len(TRAIL_KNOTS)
-    return grip.GripParams(**car_params(), filter_s=0.1, min_force_ratio=0.1, max_force_rate=2.0,
+    return grip.GripParams(**car_params(), filter_s=0.1, min_force_ratio=0.1, max_force_rate=2.0, max_long_ratio=0.15,
                            understeer_s2pm2=0.002, kappa_limit=0.1, trail_m=TRAIL_KNOTS,
                            util_at_trail=(0.5,) * k, use_at_trail=(0.5,) * k, rel_err90_at_trail=(1.0,) * k,
                            rel_err_max=0.3, halfwidth_max=0.1, mu_max=1.5, warn_on=0.8, warn_off=0.7,
-                           warn_horizon_s=0.3, warn_hold_s=0.5, demand_weight=0.0,
+                           warn_horizon_s=0.3, warn_hold_s=0.5, demand_weight=0.0, mu_hold_s=0.0,
                            source="tools/grip_study.py fit (calibrated on simulated campaigns)")
 
 
@@ -106,7 +106,7 @@ def _binned(trail: np.ndarray, y: np.ndarray, q: float) -> np.ndarray:
     return np.interp(np.arange(len(out)), np.flatnonzero(ok), out[ok])
 
 
-def fit(runs: list[dict], seed: int) -> grip.GripParams:
+def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripParams:
     """The calibrated parameters (curves, then warning) from ``runs``."""
     p0 = replace(_initial(), understeer_s2pm2=_understeer(runs))
     tr, n, u, mu = [], [], [], []
@@ -127,7 +127,7 @@ def fit(runs: list[dict], seed: int) -> grip.GripParams:
     p = replace(p0, util_at_trail=tuple(np.round(util, 4)), use_at_trail=tuple(np.round(use, 4)),
                 rel_err90_at_trail=tuple(np.round(rel, 4)),
                 source=f"tools/grip_study.py fit --seed {seed}: paper + circuits campaigns, shipped SAT model")
-    return _fit_warning(runs, p)
+    return p if curves_only else _fit_warning(runs, p)
 
 
 def _understeer(runs: list[dict]) -> float:
@@ -147,10 +147,10 @@ def _understeer(runs: list[dict]) -> float:
 def _fit_warning(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
     best = None
     for on, hz, dw in ((a, b, c) for a in WARN_ON for b in WARN_HORIZON_S for c in DEMAND_WEIGHT):
-        q = replace(p, warn_on=on, warn_off=min(on, 0.7) - 0.05, warn_horizon_s=hz, demand_weight=dw)
+        q = replace(p, warn_on=on, warn_off=on - 0.1, warn_horizon_s=hz, demand_weight=dw)
         o = measure(runs, q)["overall"]
         ok = (o["false_warnings_per_10min"] or 0.0) <= FALSE_BUDGET
-        lead = o["warning_lead_s_median"] or -1e9
+        lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
         print(f"  warning on {on:.2f}, look-ahead {hz:.1f} s, demand {dw:.1f}: median lead {lead:.2f} s, "
               f"false {o['false_warnings_per_10min']:.2f}/10 min", file=sys.stderr)
         if ok and (best is None or lead > best[0]):

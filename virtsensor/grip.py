@@ -17,10 +17,11 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   front load and the longitudinal load transfer, ``Fz = m g b / L - m h ax / L``;
 * the force ratio ``n = |F| / Fz`` (the friction the axle uses) and the axle trail ``t = -Mz sgn(Fy) / |Fy|``
   (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`);
-* the utilisation ``u``: the calibrated trail-to-utilisation curve (:attr:`GripParams.util_at_trail`, the
-  brush model's monotone curve measured on the car's own tyres, see ``tools/grip_study.py``) where the lateral
-  force is large enough to give a trail (``n >= min_force_ratio``), else ``n / mu_ref`` with ``mu_ref`` the
-  latest given friction (1 until one is given);
+* the utilisation ``u``: ``n / mu_ref`` with ``mu_ref`` the latest given friction (1 until one is given), or
+  more where the calibrated trail-to-utilisation curve says so (:attr:`GripParams.util_at_trail`, the brush
+  model's monotone curve measured on the car's own tyres, see ``tools/grip_study.py``); the trail is read
+  where the lateral force is large enough to give one (``|Fy| >= min_force_ratio Fz``) and the longitudinal
+  force small enough (``|Fx| <= max_long_ratio Fz``: the brush model's trail is that of pure side slip);
 * the road friction ``mu = n / k(t)``, with ``k`` the calibrated force ratio per unit of friction at that
   trail (:attr:`GripParams.use_at_trail`; the axle's ``n / mu`` is below the utilisation of its more used
   tyre), and its interval half-width ``mu * rel_err90(t)`` (the calibrated 90th
@@ -54,10 +55,13 @@ import numpy as np
 
 from virtsensor.errors import UserError
 
-__all__ = ["GripParams", "GripEstimator", "GripState", "estimate_run", "load_params", "PARAMS_FILE"]
+__all__ = ["GRIP_INPUTS", "GripParams", "GripEstimator", "GripState", "estimate_run", "load_params", "PARAMS_FILE"]
 
 #: the catalogue car's grip parameters, package data beside this module
 PARAMS_FILE = "grip_car.json"
+#: the estimator inputs :meth:`GripEstimator.step` reads, in its argument order (after the two SATs)
+GRIP_INPUTS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "motor_torque_nm",
+               "wheel_speed_fl_radps", "wheel_speed_fr_radps")
 G = 9.81
 
 
@@ -76,6 +80,8 @@ class GripParams:
         rel_err90_at_trail: the 90th percentile of |mu error| / mu at each trail knot (calibration).
         max_force_rate: the friction is given only while the axle force ratio changes slower than this (1/s):
             in a fast transient the force from the accelerations and the SAT are not in step.
+        max_long_ratio: the trail is read only while the axle's longitudinal force is at most this times its load
+            (the brush model's trail is that of pure side slip; drive or brake torque moves it).
         steer_ratio, understeer_s2pm2: the linear car (steering ratio; understeer gradient K, s^2/m^2): the
             lateral acceleration the steering asks for, ``vx^2 delta / (L (1 + K vx^2))``.
         kappa_limit: front longitudinal slip (wheel speeds against ``vx``) taken as the longitudinal limit.
@@ -85,6 +91,8 @@ class GripParams:
         warn_on, warn_off: utilisation thresholds of the warning (hysteresis).
         warn_horizon_s: the warning looks this far ahead along the utilisation's rate of rise.
         warn_hold_s: the warning stays on at least this long below ``warn_off``.
+        mu_hold_s: for this long after a friction is given, the force used against it (``n / mu_ref``) counts
+            for the warning too (the road may change after that).
         demand_weight: the warning also looks at the utilisation scaled by the ratio of the steering's demand to
             the force delivered, times this (0: not).
         source: where the numbers come from (free text).
@@ -101,6 +109,7 @@ class GripParams:
     filter_s: float
     min_force_ratio: float
     max_force_rate: float
+    max_long_ratio: float
     steer_ratio: float
     understeer_s2pm2: float
     kappa_limit: float
@@ -116,6 +125,7 @@ class GripParams:
     warn_horizon_s: float
     warn_hold_s: float
     demand_weight: float
+    mu_hold_s: float
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -124,9 +134,9 @@ class GripParams:
             raise ValueError("grip params: trail_m and its curves need >= 2 knots each, as many of each")
         if min(self.use_at_trail) <= 0:
             raise ValueError("grip params: use_at_trail must be > 0")
-        if any(b <= a for a, b in zip(self.trail_m, self.trail_m[1:])):
+        if any(b <= a for a, b in zip(self.trail_m, self.trail_m[1:], strict=False)):
             raise ValueError("grip params: trail_m must be strictly ascending")
-        if any(b > a for a, b in zip(self.util_at_trail, self.util_at_trail[1:])):
+        if any(b > a for a, b in zip(self.util_at_trail, self.util_at_trail[1:], strict=False)):
             raise ValueError("grip params: util_at_trail must not increase with the trail")
         if not 0.0 < self.warn_off <= self.warn_on <= 1.0:
             raise ValueError("grip params: need 0 < warn_off <= warn_on <= 1")
@@ -137,9 +147,9 @@ class GripParams:
     def from_json(cls, doc: Mapping[str, Any], where: str = "grip params") -> GripParams:
         """Parameters from a JSON object (every field, lists for the curves). Raises UserError naming ``where``."""
         try:
-            kw = {f.name: (tuple(float(v) for v in doc[f.name]) if isinstance(doc[f.name], list)
-                           else doc[f.name])
-                  for f in fields(cls) if f.name in doc or f.name != "source"}
+            kw: dict[str, Any] = {f.name: (tuple(float(v) for v in doc[f.name]) if isinstance(doc[f.name], list)
+                                           else doc[f.name])
+                                  for f in fields(cls) if f.name in doc or f.name != "source"}
             return cls(**kw)
         except (KeyError, TypeError, ValueError) as exc:
             raise UserError(f"{where}: not usable grip parameters ({exc})") from None
@@ -223,8 +233,10 @@ class GripEstimator:
         self._below = 0.0
         self.state.warning = False
         if not hasattr(self, "mu_ref"):
-            #: the friction assumed for the utilisation where the trail cannot tell: the latest given one
+            #: the friction assumed for the utilisation where the trail cannot tell: the upper end of the latest
+            #: given one's interval (1 until one is given)
             self.mu_ref = 1.0
+            self._mu_age = math.inf
 
     def _lp(self, prev: float, x: float) -> float:
         return x if prev != prev else prev + self._a * (x - prev)  # (prev != prev: nan, the first tick)
@@ -255,30 +267,37 @@ class GripEstimator:
         n = math.sqrt(fx * fx + fy * fy) / fz
         s.force_ratio = n
         steady = fy_prev == fy_prev and abs(fy - fy_prev) <= p.max_force_rate * fz * self.dt
-        if abs(fy) >= p.min_force_ratio * fz:
+        lateral = abs(fx) <= p.max_long_ratio * fz  # (under drive or braking the trail reads combined slip)
+        ev = 0.0  # the limit's own evidence, whatever the road: the trail's collapse, the wheels' slip
+        if lateral and abs(fy) >= p.min_force_ratio * fz:
             t = -mz / fy
             s.trail_m = t
-            u = _interp(t, self._trail, self._util)
+            ev = _interp(t, self._trail, self._util)
             mu = n / _interp(t, self._trail, self._use)
             rel = _interp(t, self._trail, self._err)
             hw = mu * rel
             if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
                 s.mu, s.halfwidth = mu, hw
-                self.mu_ref = mu
+                self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
+                self._mu_age = 0.0
             else:
                 s.mu = s.halfwidth = math.nan
         else:
             s.trail_m = s.mu = s.halfwidth = math.nan
-            u = n / self.mu_ref
         if vx > 3.0:  # the driven front wheels spinning or locking: the longitudinal limit
             kappa = 0.5 * (wheel_fl + wheel_fr) * p.rolling_radius_m / vx - 1.0
-            u = max(u, abs(kappa) / p.kappa_limit)
-        u = min(max(u, 0.0), 1.0)
+            ev = max(ev, abs(kappa) / p.kappa_limit)
+        self._mu_age += self.dt
+        u_force = n / self.mu_ref
+        if self._mu_age <= p.mu_hold_s:  # a friction given lately: the force used against it is evidence too
+            ev = max(ev, u_force)
+        ev = min(ev, 1.0)
+        u = min(max(u_force, ev), 1.0)
         s.util = u
         # the steering's demand: the linear car's lateral acceleration for this steering at this speed
         ay_lin = vx * vx * steer_angle / (self._steer_l * (1.0 + p.understeer_s2pm2 * vx * vx))
         q = abs(ay_lin) / (G * n) if n >= p.min_force_ratio else 1.0
-        self._warn(u, u * min(max(q, 1.0), 3.0))
+        self._warn(ev, ev * min(max(q, 1.0), 3.0))
         return s
 
     def _warn(self, u: float, demand: float) -> None:
@@ -310,9 +329,7 @@ def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np
         ``util``, ``mu``, ``halfwidth`` (nan where unknown), ``warning`` (bool), ``trail_m``, ``force_ratio``.
     """
     est = GripEstimator(params)
-    names = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "motor_torque_nm",
-             "wheel_speed_fl_radps", "wheel_speed_fr_radps")
-    ax, ay, vx, r, sw, tm, wl, wr = (np.asarray(table[k], dtype=float).tolist() for k in names)
+    ax, ay, vx, r, sw, tm, wl, wr = (np.asarray(table[k], dtype=float).tolist() for k in GRIP_INPUTS)
     n = len(sat_fl)
     out = {k: np.full(n, np.nan) for k in ("util", "mu", "halfwidth", "trail_m", "force_ratio")}
     warn = np.zeros(n, dtype=bool)

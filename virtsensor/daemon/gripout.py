@@ -21,13 +21,10 @@ from virtsensor.canbus.codec import CanMatrix, compile_encoder
 from virtsensor.canbus.dbcgen import GRIP_SIGNALS, GRIP_STATUS
 from virtsensor.canbus.e2e import next_counter
 from virtsensor.daemon.validity import DEGRADED, INIT, INVALID, VALID
-from virtsensor.grip import GripEstimator, GripParams
+from virtsensor.grip import GRIP_INPUTS, GripEstimator, GripParams
 
 __all__ = ["GRIP_INPUTS", "GripOutput", "grip_output", "worse_status"]
 
-#: the inputs :meth:`virtsensor.grip.GripEstimator.step` reads, in its argument order (after the two SATs)
-GRIP_INPUTS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "motor_torque_nm",
-               "wheel_speed_fl_radps", "wheel_speed_fr_radps")
 _RANK = {VALID: 0, DEGRADED: 1, INIT: 2, INVALID: 3}
 
 

@@ -63,6 +63,7 @@ import numpy as np
 
 from virtsensor import plotting
 from virtsensor import signals as cat
+from virtsensor.demogrip import grip_figure
 from virtsensor.errors import UserError
 from virtsensor.fileio import write_json
 
@@ -525,6 +526,11 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
         doc["track"] = _track_figures(out_dir, model, spec, outputs, track_run, track, figures, say)
     if circuits:
         doc["circuits"] = _circuit_figures(out_dir, model, spec, outputs, circuits, figures, say)
+    # ---- the grip margin (issue 19) over the run that gets nearest the limit, where the data carry its truth ---
+    doc["grip"] = grip_figure(out_dir / "grip.png", runs, model)
+    if doc["grip"] is not None:
+        figures.append("grip.png")
+        say(f"grip margin on {doc['grip']['run']}")
     doc["figures"] = figures
     doc = _round(doc)
     write_json(out_dir / "explain.json", doc)

@@ -12,10 +12,11 @@ Figures (keys of :func:`grip_metrics` and of the pooled :func:`pool`):
 * ``mu_abs_err_p90``: the 90th percentile of the friction's absolute error where given;
 * ``mu_given_share_above_0_6``: of the samples whose true front utilisation exceeds 0.6, the share where the
   friction is given;
-* ``warning_lead_s``: for a run whose true front utilisation reaches 0.95, the time from the onset of the
-  warning episode that is on at that first instant to that instant (s; negative: the warning came that late
-  after it; a run never warned after reaching it scores minus the time from then to the run's end);
-  ``warning_lead_s_median`` pools the runs' leads (null where no run reaches 0.95);
+* ``warning_lead_s``: for a run whose true front utilisation reaches 0.95 (after its first
+  :data:`STARTUP_S`), the time from the onset of the warning episode that is on at that first instant to that
+  instant (s; negative: the warning came that late after it; a run never warned after reaching it scores minus
+  the time from then to the run's end); ``warning_lead_s_median`` pools the runs' leads (null where no run
+  reaches 0.95);
 * ``false_warnings_per_10min``: warning onsets while the true utilisation stays below 0.7 from
   :data:`FALSE_WINDOW_S` before to as long after the onset, per 10 minutes of driving below 0.7.
 
@@ -29,10 +30,11 @@ from typing import Any
 
 import numpy as np
 
-from virtsensor.grip import GripParams, estimate_run
+from virtsensor.grip import GRIP_INPUTS, GripParams, estimate_run
 
 __all__ = ["GRIP_TRUTH", "FALSE_WINDOW_S", "LIMIT_UTIL", "EXCITED_UTIL", "CALM_UTIL", "has_grip_truth",
-           "true_front_util", "grip_metrics", "pool", "public", "grip_of_run", "model_sats"]
+           "true_front_util", "grip_metrics", "pool", "public", "grip_of_run", "model_sats", "score_grip",
+           "grip_markdown"]
 
 #: the truth columns a run needs to be scored for grip
 GRIP_TRUTH = ("road_mu", "util_fl_1", "util_fr_1")
@@ -41,6 +43,9 @@ LIMIT_UTIL, EXCITED_UTIL, CALM_UTIL = 0.95, 0.6, 0.7
 #: a warning onset is false when the true utilisation stays below CALM_UTIL this long before and after it (s)
 FALSE_WINDOW_S = 1.0
 MU_TOLERANCE = 0.1
+#: a limit reached in a run's first second is not counted for the lead (the estimator is still starting: the
+#: daemon publishes INIT until its features have their history, and its filters settle)
+STARTUP_S = 1.0
 
 
 def has_grip_truth(table: Mapping[str, Any]) -> bool:
@@ -59,7 +64,7 @@ def _onsets(warning: np.ndarray) -> np.ndarray:
 
 
 def _lead(time_s: np.ndarray, util: np.ndarray, warning: np.ndarray) -> float | None:
-    hit = np.flatnonzero(util >= LIMIT_UTIL)
+    hit = np.flatnonzero((util >= LIMIT_UTIL) & (time_s >= time_s[0] + STARTUP_S))
     if not len(hit):
         return None
     i = int(hit[0])
@@ -153,3 +158,47 @@ def model_sats(model: Any, table: Mapping[str, Any]) -> tuple[np.ndarray, np.nda
     if ok.any():
         P[ok] = model.predict(X[ok])
     return P[:, 0], P[:, 1]
+
+
+def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None) -> dict[str, Any] | None:
+    """The grip estimate of ``model``'s SATs on each run that carries the grip truth, and all together.
+
+    Args:
+        model: an :class:`~virtsensor.model.onnx.OnnxModel` (its card's feature spec gives the SATs' features).
+        runs: :class:`~virtsensor.learning.dataset.Run` objects (``table``, ``path``, ``name``).
+
+    Returns:
+        ``{"overall": pooled figures, "runs": {file: figures | None}}`` (None for a run without the grip truth
+        or without an input the estimate reads), or None when no run can be scored.
+    """
+    per: dict[str, Any] = {}
+    scored = []
+    for run in runs:
+        where = str(run.path or run.name)
+        if not has_grip_truth(run.table) or any(k not in run.table for k in GRIP_INPUTS):
+            per[where] = None
+            continue
+        fl, fr = model_sats(model, run.table)
+        res = grip_of_run(run.table, fl, fr, params)
+        assert res is not None
+        scored.append(res[0])
+        per[where] = public(res[0])
+    if not scored:
+        return None
+    return {"overall": pool(scored), "runs": per}
+
+
+def grip_markdown(result: Mapping[str, Any] | None) -> str:
+    """One Markdown line of the pooled grip figures (empty without any)."""
+    if not result:
+        return ""
+    o = result["overall"]
+
+    def f(v: Any, fmt: str) -> str:
+        return "—" if v is None else format(v, fmt)
+
+    return (f"Grip ({o['runs']} runs with the truth): mu within +-0.1 {f(o['mu_within_0_1_share'], '.3f')} of "
+            f"{o['mu_given']} samples given, p90 |error| {f(o['mu_abs_err_p90'], '.3f')}; given in "
+            f"{f(o['mu_given_share_above_0_6'], '.3f')} of samples above 0.6 utilisation; warning lead median "
+            f"{f(o['warning_lead_s_median'], '.2f')} s over {o['runs_reaching_limit']} runs reaching 0.95; "
+            f"{f(o['false_warnings_per_10min'], '.2f')} false warnings per 10 min below 0.7.\n")
