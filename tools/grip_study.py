@@ -10,10 +10,11 @@ training seed 0 nor the calibration seed 1901), runs the shipped SAT model and t
 and, with matplotlib, ``figures/grip_study.png``.
 
 ``fit`` simulates the same campaigns with its own seed and derives the calibrated curves of
-:class:`virtsensor.grip.GripParams` from them: per trail bin the median true front utilisation (made
-non-increasing), the median axle force ratio per unit of road friction and the 90th percentile of the friction's
-relative error; then the warning's threshold and look-ahead, chosen on that data as the longest median lead
-with at most FALSE_BUDGET false warnings per 10 minutes below 70 % utilisation. The car's own numbers come from the
+:class:`virtsensor.grip.GripParams` from them: per trail bin the median true lateral utilisation of the front
+tyres (made non-increasing; the trail reads the lateral slip), the median axle force ratio per unit of road
+friction, the 90th percentile of the friction's relative error and, per band of the estimate, of its absolute
+error (the interval); then the warning's threshold, chosen on that data as the longest median lead with at most
+FALSE_BUDGET false warnings per 10 minutes below 70 % utilisation. The car's own numbers come from the
 simulator's parameter file (``sim/data/car_c_segment.toml``) and the catalogue's rolling radius.
 """
 
@@ -35,11 +36,13 @@ from virtsensor import grip  # noqa: E402
 from virtsensor.learning import gripscore as gs  # noqa: E402
 
 TRAIL_KNOTS = tuple(round(x, 4) for x in np.arange(-0.015, 0.0376, 0.0025))
-WARN_ON = (0.65, 0.7, 0.75, 0.8, 0.85)
-WARN_HORIZON_S = (0.0, 0.2)
+WARN_ON = (0.65, 0.7, 0.75, 0.8)
+WARN_HORIZON_S = (0.0,)
 DEMAND_WEIGHT = (0.0,)
 #: the warning setting chosen keeps false warnings at most this (per 10 min below 70 % utilisation) on the fit data
 FALSE_BUDGET = 1.0
+#: upper edges of the friction-estimate bands of the interval calibration
+MU_BANDS = (0.35, 0.6, 0.85, 1.5)
 
 
 def simulate(work: Path, seed: int) -> list[Path]:
@@ -88,13 +91,15 @@ def _initial() -> grip.GripParams:
     return grip.GripParams(**car_params(), filter_s=0.1, min_force_ratio=0.1, max_force_rate=2.0, max_long_ratio=0.15,
                            understeer_s2pm2=0.002, kappa_limit=0.1, trail_m=TRAIL_KNOTS,
                            util_at_trail=(0.5,) * k, use_at_trail=(0.5,) * k, rel_err90_at_trail=(1.0,) * k,
+                           mu_bands=MU_BANDS, abs_err90_at_trail=((1.0,) * k,) * len(MU_BANDS),
                            rel_err_max=0.3, halfwidth_max=0.1, mu_max=1.5, warn_on=0.8, warn_off=0.7,
                            warn_horizon_s=0.3, warn_hold_s=0.5, demand_weight=0.0, mu_hold_s=0.0,
                            source="tools/grip_study.py fit (calibrated on simulated campaigns)")
 
 
 def _binned(trail: np.ndarray, y: np.ndarray, q: float) -> np.ndarray:
-    """The ``q`` quantile of ``y`` per trail knot (samples within half a knot spacing), gaps filled."""
+    """The ``q`` quantile of ``y`` per trail knot (samples within half a knot spacing), gaps filled (all 1 when
+    fewer than 20 samples anywhere: no calibration, never given)."""
     h = 0.5 * (TRAIL_KNOTS[1] - TRAIL_KNOTS[0])
     out = np.full(len(TRAIL_KNOTS), np.nan)
     for i, k in enumerate(TRAIL_KNOTS):
@@ -103,6 +108,8 @@ def _binned(trail: np.ndarray, y: np.ndarray, q: float) -> np.ndarray:
         if s.sum() >= 20:
             out[i] = np.quantile(y[s], q)
     ok = np.isfinite(out)
+    if not ok.any():
+        return np.ones(len(out))
     return np.interp(np.arange(len(out)), np.flatnonzero(ok), out[ok])
 
 
@@ -115,7 +122,7 @@ def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripPara
         steady = np.abs(np.diff(e["force_ratio"], prepend=np.nan)) <= p0.max_force_rate * 0.05
         tr.append(np.where(steady, e["trail_m"], np.nan))
         n.append(e["force_ratio"])
-        u.append(gs.true_front_util(r["table"]))
+        u.append(_lateral_util(r["table"]))
         mu.append(np.asarray(r["table"]["road_mu"], float))
     T, N, U, MU = (np.concatenate(a) for a in (tr, n, u, mu))
     ok = np.isfinite(T)
@@ -124,10 +131,20 @@ def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripPara
     use = _binned(T, N / MU, 0.5)
     k = np.interp(T, TRAIL_KNOTS, use)
     rel = np.maximum.accumulate(_binned(T, np.abs(N / k - MU) / MU, 0.9))  # (never tighter at a longer trail)
+    mu_hat = N / k
+    band = np.minimum(np.searchsorted(MU_BANDS, mu_hat), len(MU_BANDS) - 1)
+    absr = tuple(tuple(np.round(np.maximum.accumulate(_binned(T[band == i], np.abs(mu_hat - MU)[band == i], 0.9)), 4))
+                 for i in range(len(MU_BANDS)))
     p = replace(p0, util_at_trail=tuple(np.round(util, 4)), use_at_trail=tuple(np.round(use, 4)),
-                rel_err90_at_trail=tuple(np.round(rel, 4)),
+                rel_err90_at_trail=tuple(np.round(rel, 4)), abs_err90_at_trail=absr,
                 source=f"tools/grip_study.py fit --seed {seed}: paper + circuits campaigns, shipped SAT model")
     return p if curves_only else _fit_warning(runs, p)
+
+
+def _lateral_util(t: dict) -> np.ndarray:
+    """The front tyres' lateral utilisation |Fy| / (mu Fz), the more used one (truth): what the trail reads."""
+    mu = np.asarray(t["road_mu"], float)
+    return np.maximum(*(np.abs(t[f"fy_{w}_n"]) / (mu * np.maximum(t[f"fz_{w}_n"], 1.0)) for w in ("fl", "fr")))
 
 
 def _understeer(runs: list[dict]) -> float:
@@ -213,7 +230,28 @@ def main(argv: list[str] | None = None) -> int:
     md = _md(res, seed)
     (ROOT / "docs" / "grip_study.md").write_text(md)
     print(md)
+    _figure(runs)
     return 0
+
+
+def _figure(runs: list[dict]) -> None:
+    """``figures/grip_study.png``: the estimate against the truth over the held-out wet (mu 0.5) fishhook that gets
+    nearest the limit (skipped without matplotlib)."""
+    from types import SimpleNamespace
+
+    from virtsensor.assets import model_path
+    from virtsensor.demogrip import grip_figure
+    from importlib.util import find_spec
+    from virtsensor.model.onnx import OnnxModel
+
+    if find_spec("matplotlib") is None:
+        print("figure skipped: matplotlib is not installed", file=sys.stderr)
+        return
+    pick = [SimpleNamespace(name=r["name"], table=r["table"]) for r in runs
+            if r["name"].startswith("fishhook") and float(r["table"]["road_mu"][0]) == 0.5]
+    (ROOT / "figures").mkdir(exist_ok=True)
+    doc = grip_figure(ROOT / "figures" / "grip_study.png", pick, OnnxModel.load(str(model_path())))
+    print(f"figure: figures/grip_study.png ({None if doc is None else doc['run']})", file=sys.stderr)
 
 
 if __name__ == "__main__":

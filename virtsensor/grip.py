@@ -78,6 +78,9 @@ class GripParams:
         trail_m: ascending trail knots (m); util_at_trail: the front utilisation at each (non-increasing).
         use_at_trail: the axle force ratio per unit of road friction, ``n / mu``, at each trail knot.
         rel_err90_at_trail: the 90th percentile of |mu error| / mu at each trail knot (calibration).
+        mu_bands: ascending upper edges of the bands of the friction estimate (the last one holds the rest).
+        abs_err90_at_trail: per band, the 90th percentile of |mu error| at each trail knot: the interval's
+            half-width (the error is partly a noise floor, partly proportional to mu: a band each).
         max_force_rate: the friction is given only while the axle force ratio changes slower than this (1/s):
             in a fast transient the force from the accelerations and the SAT are not in step.
         max_long_ratio: the trail is read only while the axle's longitudinal force is at most this times its load
@@ -117,6 +120,8 @@ class GripParams:
     util_at_trail: tuple[float, ...]
     use_at_trail: tuple[float, ...]
     rel_err90_at_trail: tuple[float, ...]
+    mu_bands: tuple[float, ...]
+    abs_err90_at_trail: tuple[tuple[float, ...], ...]
     rel_err_max: float
     halfwidth_max: float
     mu_max: float
@@ -132,6 +137,9 @@ class GripParams:
         k = len(self.trail_m)
         if k < 2 or any(len(c) != k for c in (self.util_at_trail, self.use_at_trail, self.rel_err90_at_trail)):
             raise ValueError("grip params: trail_m and its curves need >= 2 knots each, as many of each")
+        if not self.mu_bands or len(self.abs_err90_at_trail) != len(self.mu_bands) or any(
+                len(c) != k for c in self.abs_err90_at_trail):
+            raise ValueError("grip params: one abs_err90_at_trail curve per mu band, a value per trail knot")
         if min(self.use_at_trail) <= 0:
             raise ValueError("grip params: use_at_trail must be > 0")
         if any(b <= a for a, b in zip(self.trail_m, self.trail_m[1:], strict=False)):
@@ -147,15 +155,20 @@ class GripParams:
     def from_json(cls, doc: Mapping[str, Any], where: str = "grip params") -> GripParams:
         """Parameters from a JSON object (every field, lists for the curves). Raises UserError naming ``where``."""
         try:
-            kw: dict[str, Any] = {f.name: (tuple(float(v) for v in doc[f.name]) if isinstance(doc[f.name], list)
-                                           else doc[f.name])
-                                  for f in fields(cls) if f.name in doc or f.name != "source"}
+            kw: dict[str, Any] = {f.name: _tuples(doc[f.name]) for f in fields(cls)
+                                  if f.name in doc or f.name != "source"}
             return cls(**kw)
         except (KeyError, TypeError, ValueError) as exc:
             raise UserError(f"{where}: not usable grip parameters ({exc})") from None
 
     def to_json(self) -> dict[str, Any]:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+        return json.loads(json.dumps(asdict(self)))  # (tuples -> lists)
+
+
+def _tuples(v: Any) -> Any:
+    """JSON lists (nested) as tuples of floats; other values as they are."""
+    return tuple(_tuples(x) for x in v) if isinstance(v, list) else (float(v) if isinstance(v, int) and
+                                                                      not isinstance(v, bool) else v)
 
 
 def load_params(path: str | Path | None = None) -> GripParams:
@@ -221,6 +234,7 @@ class GripEstimator:
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
+        self._bands, self._abs = tuple(p.mu_bands), tuple(tuple(c) for c in p.abs_err90_at_trail)
         self.state = GripState()
         self.reset()
 
@@ -275,7 +289,8 @@ class GripEstimator:
             ev = _interp(t, self._trail, self._util)
             mu = n / _interp(t, self._trail, self._use)
             rel = _interp(t, self._trail, self._err)
-            hw = mu * rel
+            b = bisect.bisect_left(self._bands, mu)
+            hw = _interp(t, self._trail, self._abs[min(b, len(self._abs) - 1)])
             if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
                 s.mu, s.halfwidth = mu, hw
                 self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
@@ -305,7 +320,8 @@ class GripEstimator:
         if self._u_prev == self._u_prev:
             self._rate += self._a * ((u - self._u_prev) / self.dt - self._rate)
         self._u_prev = u
-        ahead = max(u + max(self._rate, 0.0) * p.warn_horizon_s, demand * p.demand_weight)
+        rise = max(self._rate, 0.0) * p.warn_horizon_s if u >= p.warn_off else 0.0  # (look ahead near the limit)
+        ahead = max(u + rise, demand * p.demand_weight)
         if ahead >= p.warn_on:
             s.warning = True
             self._below = 0.0
