@@ -134,7 +134,7 @@ def _drive(model, frames: list[can.Message]):
     tx = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True)
     merged, ticks = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
     vs = VirtualSensor(dbus, model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
-    assert vs.grip is not None
+    assert vs._out.grip.enabled
     vs.start()
     sat: list[can.Message] = []
     grip: list[can.Message] = []
@@ -244,3 +244,16 @@ def test_offline_estimate_is_the_daemons(model, run_frames):
 def test_replace_keeps_params_valid():
     p = replace(load_params(), warn_on=0.9, warn_off=0.6)
     assert p.warn_on == 0.9
+
+
+def test_no_vs_grip_in_the_dbc_publishes_none():
+    from types import SimpleNamespace
+
+    from virtsensor.daemon.gripout import NoGrip, grip_output
+
+    older = SimpleNamespace(messages={k: v for k, v in MATRIX.messages.items() if k != "VS_Grip"})
+    wheels = (SimpleNamespace(estimate="SAT_FL", status="SAT_FL_Status"),
+              SimpleNamespace(estimate="SAT_FR", status="SAT_FR_Status"))
+    assert isinstance(grip_output(older, cat.INPUTS, wheels), NoGrip)
+    assert isinstance(grip_output(MATRIX, cat.INPUTS[:5], wheels), NoGrip)  # an input the estimate reads missing
+    assert grip_output(MATRIX, cat.INPUTS, wheels).enabled

@@ -237,11 +237,11 @@ def main(argv: list[str] | None = None) -> int:
 def _figure(runs: list[dict]) -> None:
     """``figures/grip_study.png``: the estimate against the truth over the held-out wet (mu 0.5) fishhook that gets
     nearest the limit (skipped without matplotlib)."""
+    from importlib.util import find_spec
     from types import SimpleNamespace
 
     from virtsensor.assets import model_path
     from virtsensor.demogrip import grip_figure
-    from importlib.util import find_spec
     from virtsensor.model.onnx import OnnxModel
 
     if find_spec("matplotlib") is None:

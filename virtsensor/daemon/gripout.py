@@ -8,7 +8,7 @@ while INVALID or INIT its values are SNA, the warning 0 and the estimate's filte
 whenever it is unknown (the tyres not excited enough), whatever its status.
 
 A CAN matrix without ``VS_Grip`` (an older DBC) or a model whose inputs lack a signal the estimate needs gives
-no :class:`GripOutput` (:func:`grip_output` returns None): the daemon then publishes SAT_FRONT and VS_Health only.
+a :class:`NoGrip` stand-in (:func:`grip_output`): the daemon then publishes SAT_FRONT and VS_Health only.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from virtsensor.canbus.e2e import next_counter
 from virtsensor.daemon.validity import DEGRADED, INIT, INVALID, VALID
 from virtsensor.grip import GRIP_INPUTS, GripEstimator, GripParams
 
-__all__ = ["GRIP_INPUTS", "GripOutput", "grip_output", "worse_status"]
+__all__ = ["GRIP_INPUTS", "GripOutput", "NoGrip", "grip_output", "worse_status"]
 
 _RANK = {VALID: 0, DEGRADED: 1, INIT: 2, INVALID: 3}
 
@@ -39,10 +39,13 @@ class GripOutput:
     Args:
         matrix: the daemon's CAN matrix (with ``VS_Grip``).
         signals: the daemon's input signals (the order of the values :meth:`fill` gets).
+        wheels: the daemon's two published wheels (front left, front right; their ``estimate``/``status``
+            SAT_FRONT signal names), read by :meth:`fill_tick`.
         params: the car's grip parameters (default: the catalogue car's, shipped with the package).
     """
 
-    def __init__(self, matrix: CanMatrix, signals: Sequence[str], params: GripParams | None = None) -> None:
+    def __init__(self, matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any] = (),
+                 params: GripParams | None = None) -> None:
         import can
 
         from virtsensor.daemon.publish import _Payload
@@ -59,6 +62,19 @@ class GripOutput:
         for s in GRIP_STATUS:
             self.values[s] = INIT
         self._ctr = 0
+        self._sat = tuple((w.estimate, w.status) for w in wheels)
+
+    #: this output publishes VS_Grip (the :class:`NoGrip` stand-in does not)
+    enabled = True
+
+    def fill_tick(self, sat_values: Any, inputs: Sequence[float]) -> Any:
+        """:meth:`fill` from the tick's SAT_FRONT values (signal -> value) and input values; returns the message."""
+        (e_fl, s_fl), (e_fr, s_fr) = self._sat
+        return self.fill(sat_values[e_fl], sat_values[e_fr], sat_values[s_fl], sat_values[s_fr], inputs)
+
+    def send(self, send: Any) -> None:
+        """Hand the latest filled frame to ``send`` (the bus link's)."""
+        send(self.msg)
 
     @property
     def frame_id(self) -> int:
@@ -87,8 +103,22 @@ class GripOutput:
         return m
 
 
-def grip_output(matrix: CanMatrix, signals: Sequence[str], params: GripParams | None = None) -> GripOutput | None:
-    """A :class:`GripOutput`, or None when the matrix lacks VS_Grip or the inputs lack a signal it needs."""
-    if "VS_Grip" not in matrix.messages or any(s not in signals for s in GRIP_INPUTS):
+class NoGrip:
+    """The stand-in of a daemon that publishes no VS_Grip: :meth:`fill_tick` and :meth:`send` do nothing."""
+
+    enabled = False
+
+    def fill_tick(self, sat_values: Any, inputs: Sequence[float]) -> None:
         return None
-    return GripOutput(matrix, signals, params)
+
+    def send(self, send: Any) -> None:
+        return None
+
+
+def grip_output(matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any],
+                params: GripParams | None = None) -> GripOutput | NoGrip:
+    """A :class:`GripOutput`, or a :class:`NoGrip` when the matrix lacks VS_Grip, the inputs lack a signal it
+    needs or the model does not give both front SATs."""
+    if "VS_Grip" not in matrix.messages or any(s not in signals for s in GRIP_INPUTS) or len(wheels) != 2:
+        return NoGrip()
+    return GripOutput(matrix, signals, wheels, params)

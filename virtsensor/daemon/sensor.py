@@ -43,7 +43,6 @@ from virtsensor.canbus.codec import STATUS_KEYS, CanMatrix
 from virtsensor.canbus.e2e import E2EStatus
 from virtsensor.daemon.buslink import BusLink
 from virtsensor.daemon.config import RuntimeConfig, load_config
-from virtsensor.daemon.gripout import grip_output
 from virtsensor.daemon.jsonlog import event, log
 from virtsensor.daemon.layout import InputLayout
 from virtsensor.daemon.publish import Publisher
@@ -70,6 +69,8 @@ __all__ = ["VirtualSensor", "STAGES"]
 #: ``feature_vector``, ``inference``, ``encode`` (SAT_FRONT) and ``send`` (SAT_FRONT).
 STAGES = ("decode", "feature_vector", "inference", "encode", "send")
 
+#: the daemon's own frames (a sync id may not be one of them)
+_OWN_MESSAGES = ("SAT_FRONT", "VS_Health", "VS_Grip")
 _COUNTERS = ("frames", "input_frames", "other_frames", "unknown_ids", "error_frames", "remote_frames", "sync_frames",
              "crc_errors", "dlc_errors", "sna_values", "implausible_values",
              *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
@@ -123,8 +124,7 @@ class VirtualSensor:
         self.layout = lay = InputLayout.from_model(model, self.matrix, self.timeout_cycles, model_id)
         self.spec, self.signals, self.critical = lay.spec, lay.signals, lay.critical
         self.input_messages, self.bitmap_bits, self.model_id = lay.input_messages, lay.bitmap_bits, lay.model_id
-        own_ids = {self.matrix.messages[n].frame_id for n in ("SAT_FRONT", "VS_Health", "VS_Grip")
-                   if n in self.matrix.messages}
+        own_ids = {m.frame_id for n, m in self.matrix.messages.items() if n in _OWN_MESSAGES}
         if sync_id is not None and sync_id in own_ids:
             raise UserError(f"sync id 0x{sync_id:X} is one of the daemon's own frames (SAT_FRONT/VS_Health)")
         self.sync_id = sync_id
@@ -138,8 +138,6 @@ class VirtualSensor:
         self.inputs.on_sync = self._on_sync
         self.process = self.inputs.handle  # type: ignore[method-assign]  # (see process)
         self._out = Publisher(lay, self.matrix, stage_hook)
-        #: the VS_Grip output (None: the DBC has no VS_Grip, or the inputs lack what the grip estimate needs)
-        self.grip = grip_output(self.matrix, lay.signals) if len(lay.wheels) == 2 else None
         self._stop = threading.Event()
         self._link = BusLink(bus, bus_factory, self.counters, self._stop, reconnect_backoff_s, reconnect_max_s)
         self._push = hook("feature_vector", FeatureBuilder(lay.spec).push)
@@ -337,14 +335,10 @@ class VirtualSensor:
     def _publish(self, start_ns: int, bitmap: int) -> None:
         out = self._out
         m = out.fill_sat()
-        g = self.grip
-        if g is not None:  # (in the tick's compute: the grip step runs on the SATs just encoded)
-            sv, w = out.sat_values, self._wheels
-            gm = g.fill(sv[w[0][1]], sv[w[1][1]], sv[w[0][2]], sv[w[1][2]], self.inputs.values)
+        out.grip.fill_tick(out.sat_values, self.inputs.values)  # (VS_Grip, in the tick's compute)
         compute_us = (time.monotonic_ns() - start_ns) // 1000
         self._send_sat(m)
-        if g is not None:
-            self._link.send(gm)
+        out.grip.send(self._link.send)
         lat_us = (time.monotonic_ns() - start_ns) // 1000
         c = self.counters
         self._link.send(out.fill_health(c["overruns"], lat_us, bitmap, self.outside_envelope, c["envelope_exits"]))
