@@ -183,15 +183,15 @@ def load_params(path: str | Path | None = None) -> GripParams:
     return GripParams.from_json(doc, str(path))
 
 
-def _interp(x: float, xs: Sequence[float], ys: Sequence[float]) -> float:
-    """Piecewise-linear interpolation, held beyond the ends (scalar, no numpy: cheap per tick)."""
+def _locate(x: float, xs: Sequence[float]) -> tuple[int, float]:
+    """``(i, w)`` with ``x`` at ``xs[i] + w (xs[i + 1] - xs[i])``, ``0 <= w <= 1``, held beyond the ends: every
+    curve on the knots ``xs`` is then ``ys[i] + w (ys[i + 1] - ys[i])`` (one search for all of them)."""
     if x <= xs[0]:
-        return ys[0]
+        return 0, 0.0
     if x >= xs[-1]:
-        return ys[-1]
-    i = bisect.bisect_right(xs, x)
-    x0, x1 = xs[i - 1], xs[i]
-    return ys[i - 1] + (ys[i] - ys[i - 1]) * (x - x0) / (x1 - x0)
+        return len(xs) - 2, 1.0
+    i = bisect.bisect_right(xs, x) - 1
+    return i, (x - xs[i]) / (xs[i + 1] - xs[i])
 
 
 @dataclass
@@ -286,11 +286,16 @@ class GripEstimator:
         if lateral and abs(fy) >= p.min_force_ratio * fz:
             t = -mz / fy
             s.trail_m = t
-            ev = _interp(t, self._trail, self._util)
-            mu = n / _interp(t, self._trail, self._use)
-            rel = _interp(t, self._trail, self._err)
+            i, w = _locate(t, self._trail)
+            c = self._util
+            ev = c[i] + w * (c[i + 1] - c[i])
+            c = self._use
+            mu = n / (c[i] + w * (c[i + 1] - c[i]))
+            c = self._err
+            rel = c[i] + w * (c[i + 1] - c[i])
             b = bisect.bisect_left(self._bands, mu)
-            hw = _interp(t, self._trail, self._abs[min(b, len(self._abs) - 1)])
+            c = self._abs[min(b, len(self._abs) - 1)]
+            hw = c[i] + w * (c[i + 1] - c[i])
             if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
                 s.mu, s.halfwidth = mu, hw
                 self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
