@@ -17,27 +17,29 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   front load and the longitudinal load transfer, ``Fz = m g b / L - m h ax / L``;
 * the force ratio ``n = |F| / Fz`` (the friction the axle uses) and the axle trail ``t = -Mz sgn(Fy) / |Fy|``
   (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`);
-* the utilisation ``u``: ``n / mu_ref`` with ``mu_ref`` the latest given friction (1 until one is given), or
-  more where the calibrated trail-to-utilisation curve says so (:attr:`GripParams.util_at_trail`, the brush
-  model's monotone curve measured on the car's own tyres, see ``tools/grip_study.py``); the trail is read
-  where the lateral force is large enough to give one (``|Fy| >= min_force_ratio Fz``) and the longitudinal
-  force small enough (``|Fx| <= max_long_ratio Fz``: the brush model's trail is that of pure side slip);
 * the road friction ``mu = n / k(t)``, with ``k`` the calibrated force ratio per unit of friction at that
   trail (:attr:`GripParams.use_at_trail`; the axle's ``n / mu`` is below the utilisation of its more used
-  tyre), and its interval half-width ``mu * rel_err90(t)`` (the calibrated 90th
-  percentile of the relative friction error at that trail), given only while the force changes slowly
-  (:attr:`GripParams.max_force_rate`), the calibrated relative error is at most ``rel_err_max`` and the
-  half-width at most :attr:`GripParams.halfwidth_max` (else nan: unknown);
-* the utilisation is at least the front wheels' longitudinal slip over ``kappa_limit`` (a spinning or locking
-  driven wheel is at the limit whatever the road);
-* the warning: on when ``u`` reaches ``warn_on``, or is predicted to reach it, rising at its rate for
-  ``warn_horizon_s``, or scaled by how much more lateral force the steering asks for than the axle delivers
-  (the linear car's response to the steering angle: the steering leads the tyre forces);
-  off when ``u`` falls below ``warn_off`` for ``warn_hold_s``.
+  tyre), and the half-width of its 90 % interval, the calibrated 90th percentile of the absolute error at that
+  trail for estimates in that band (:attr:`GripParams.abs_err90_at_trail`); it is given only where the trail
+  is read (``|Fy| >= min_force_ratio Fz`` and ``|Fx| <= max_long_ratio Fz``: the brush trail is that of pure
+  side slip), while the force changes slowly (:attr:`GripParams.max_force_rate`), with a calibrated relative
+  error at most ``rel_err_max`` and a half-width at most :attr:`GripParams.halfwidth_max` (else nan: unknown);
+* the limit's own evidence, whatever the road: the trail-to-lateral-utilisation curve (the brush model's
+  monotone curve measured on the car's own tyres, :attr:`GripParams.util_at_trail`, see
+  ``tools/grip_study.py``) where the trail is read, and the front wheels' longitudinal slip over
+  ``kappa_limit`` (a spinning or locking driven wheel is at the limit);
+* the utilisation ``u``: ``n / mu_ref``, with ``mu_ref`` the upper end of the latest given friction's interval
+  (1 until one is given), or the evidence where that is higher; clipped to [0, 1];
+* the warning: on when the evidence (plus, for :attr:`GripParams.mu_hold_s` after a friction was given,
+  ``n / mu_ref``) reaches ``warn_on``, or, above ``warn_off``, is predicted to reach it rising at its rate for
+  ``warn_horizon_s``, or scaled by ``demand_weight`` times how much more lateral force the steering asks for
+  than the axle delivers (the linear car's response to the steering angle); off when it stays below
+  ``warn_off`` for ``warn_hold_s``. (The shipped calibration uses the evidence alone: no look-ahead, no
+  demand, no held friction; the others gave many false warnings, see the README.)
 
 The numbers of a car (mass, geometry, drive, the calibrated curves) are :class:`GripParams`, read from the JSON
-shipped with the package (:func:`load_params`, the catalogue car). Only the standard library and numpy are used
-(the daemon imports this module).
+shipped with the package (:func:`load_params`, the catalogue car). The per-tick code uses the standard library
+only; numpy serves :func:`estimate_run` (the daemon imports this module: no scipy, no scikit-learn).
 """
 
 from __future__ import annotations
