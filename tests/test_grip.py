@@ -257,3 +257,21 @@ def test_no_vs_grip_in_the_dbc_publishes_none():
     assert isinstance(grip_output(older, cat.INPUTS, wheels), NoGrip)
     assert isinstance(grip_output(MATRIX, cat.INPUTS[:5], wheels), NoGrip)  # an input the estimate reads missing
     assert grip_output(MATRIX, cat.INPUTS, wheels).enabled
+
+
+def test_score_reports_grip_per_run_and_overall(model, run_frames, tmp_path):
+    from virtsensor.learning.dataset import load_runs
+    from virtsensor.learning.scoring import markdown, score_runs
+    from virtsensor.recordings.simulated import write_run_file
+
+    _, run, _ = run_frames
+    write_run_file(run, tmp_path / "fh.csv")
+    write_run_file(run, tmp_path / "fh.blf")  # a CAN log carries no grip truth
+    res = score_runs(model, load_runs([tmp_path / "fh.csv", tmp_path / "fh.blf"]))
+    keys = {"mu_within_0_1_share", "mu_abs_err_p90", "mu_given_share_above_0_6", "warning_lead_s_median",
+            "false_warnings_per_10min"}
+    g = res["overall"]["grip"]
+    assert keys <= set(g) and g["runs"] == 1 and g["mu_given"] > 0
+    assert keys <= set(res["runs"][0]["grip"]) and res["runs"][1]["grip"] is None
+    assert 0.9 <= g["mu_within_0_1_share"] <= 1.0
+    assert "Grip (1 runs with the truth)" in markdown(res)
