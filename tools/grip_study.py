@@ -13,7 +13,8 @@ and, with matplotlib, ``figures/grip_study.png``.
 :class:`virtsensor.grip.GripParams` from them: per trail bin the median true lateral utilisation of the front
 tyres (made non-increasing; the trail reads the lateral slip), the median axle force ratio per unit of road
 friction, the 90th percentile of the friction's relative error and, per band of the estimate, of its absolute
-error (the interval); then the warning's threshold, chosen on that data as the longest median lead with at most
+error (the interval), for each longitudinal-force gate, keeping the gate that gives the friction most often
+(with 95 % within +-0.1); then the warning's threshold, chosen on that data as the longest median lead with at most
 FALSE_BUDGET false warnings per 10 minutes below 70 % utilisation. The car's own numbers come from the
 simulator's parameter file (``sim/data/car_c_segment.toml``) and the catalogue's rolling radius.
 """
@@ -41,6 +42,8 @@ WARN_HORIZON_S = (0.0,)
 DEMAND_WEIGHT = (0.0,)
 #: the warning setting chosen keeps false warnings at most this (per 10 min below 70 % utilisation) on the fit data
 FALSE_BUDGET = 1.0
+#: the longitudinal-force gates (|Fx| / Fz below which the trail is read) the fit chooses from
+MAX_LONG_RATIO = (0.15, 0.25, 0.3, 0.35, 0.4, 0.5)
 #: upper edges of the friction-estimate bands of the interval calibration
 MU_BANDS = (0.35, 0.6, 0.85, 1.5)
 
@@ -114,8 +117,26 @@ def _binned(trail: np.ndarray, y: np.ndarray, q: float) -> np.ndarray:
 
 
 def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripParams:
-    """The calibrated parameters (curves, then warning) from ``runs``."""
-    p0 = replace(_initial(), understeer_s2pm2=_understeer(runs))
+    """The calibrated parameters from ``runs``: the curves for each longitudinal-force gate of
+    :data:`MAX_LONG_RATIO`, keeping the one that gives the friction on most samples above 0.6 utilisation with
+    at least 95 % of them within +-0.1; then the warning."""
+    best = None
+    k_us = _understeer(runs)
+    for mlr in MAX_LONG_RATIO:
+        p = _fit_curves(runs, seed, replace(_initial(), max_long_ratio=mlr, understeer_s2pm2=k_us))
+        o = measure(runs, p)["overall"]
+        share, within = o["mu_given_share_above_0_6"] or 0.0, o["mu_within_0_1_share"] or 0.0
+        print(f"  trail read below |Fx| = {mlr:.2f} Fz: friction given on {share:.3f} of samples above 0.6, "
+              f"{within:.3f} within +-0.1", file=sys.stderr)
+        if within >= 0.95 and (best is None or share > best[0]):
+            best = (share, p)
+    if best is None:
+        raise SystemExit("no longitudinal-force gate gives the friction within +-0.1 on 95 % of the samples")
+    return best[1] if curves_only else _fit_warning(runs, best[1])
+
+
+def _fit_curves(runs: list[dict], seed: int, p0: grip.GripParams) -> grip.GripParams:
+    """The trail curves and the interval calibration for the gates of ``p0``."""
     tr, n, u, mu = [], [], [], []
     for r in runs:
         e = grip.estimate_run(r["table"], r["fl"], r["fr"], p0)
@@ -138,7 +159,7 @@ def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripPara
     p = replace(p0, util_at_trail=tuple(np.round(util, 4)), use_at_trail=tuple(np.round(use, 4)),
                 rel_err90_at_trail=tuple(np.round(rel, 4)), abs_err90_at_trail=absr,
                 source=f"tools/grip_study.py fit --seed {seed}: paper + circuits campaigns, shipped SAT model")
-    return p if curves_only else _fit_warning(runs, p)
+    return p
 
 
 def _lateral_util(t: dict) -> np.ndarray:
