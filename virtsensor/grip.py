@@ -133,6 +133,7 @@ class GripParams:
     warn_hold_s: float
     demand_weight: float
     mu_hold_s: float
+    mu_road_max: float
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -313,13 +314,14 @@ class GripEstimator:
         u_force = n / self.mu_ref
         if self._mu_age <= p.mu_hold_s:  # a friction given lately: the force used against it is evidence too
             ev = max(ev, u_force)
+        if p.mu_road_max > 0.0:  # whatever the road, the axle uses at least n / (k_limit mu_road_max) of it
+            ev = max(ev, n / p.mu_road_max)
         ev = min(ev, 1.0)
         u = min(max(u_force, ev), 1.0)
         s.util = u
         # the steering's demand: the linear car's lateral acceleration for this steering at this speed
         ay_lin = vx * vx * steer_angle / (self._steer_l * (1.0 + p.understeer_s2pm2 * vx * vx))
-        q = abs(ay_lin) / (G * n) if n >= p.min_force_ratio else 1.0
-        self._warn(ev, ev * min(max(q, 1.0), 3.0))
+        self._warn(ev, abs(ay_lin) / (G * self.mu_ref))
         return s
 
     def _warn(self, u: float, demand: float) -> None:
