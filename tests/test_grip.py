@@ -65,6 +65,46 @@ def test_collapsed_trail_gives_friction_and_warning():
     assert math.isnan(est.state.mu) and not est.state.warning and est.state.util < 0.5
 
 
+def test_force_floor_warns_in_combined_slip_where_the_trail_is_gated_off():
+    """A hard corner under drive on a dry road: the drive force gates the trail off (no friction, no trail
+    evidence), yet the axle already uses n = |F| / Fz of its load, at least n / mu_road_max of any rated road's
+    grip: the warning comes from that floor, and not without it."""
+    p = load_params()
+    assert p.mu_road_max > 0 and p.demand_weight * 0.5 < p.warn_on
+
+    def run(params: GripParams) -> tuple[bool, float]:
+        est = GripEstimator(params)
+        vx, ay, torque = 25.0, 0.6 * 9.81, 120.0  # 120 Nm: |Fx| ~ 0.42 Fz, beyond the trail's gate
+        for _ in range(40):
+            est.step(-0.02 * 2000, -0.02 * 2000, 1.5, ay, vx, ay / vx, 0.0, torque, vx / 0.305, vx / 0.305)
+        return est.state.warning, est.state.force_ratio
+
+    warned, n = run(p)
+    assert math.isnan(GripEstimator(p).state.trail_m)
+    assert n >= p.warn_on * p.mu_road_max and warned
+    assert not run(replace(p, mu_road_max=0.0))[0]
+
+
+def test_steering_demand_warns_before_the_force_builds():
+    """A sharp steering input at speed on a straight: the linear car asks for far more lateral acceleration than
+    any rated road gives before the axle force has built up: the demand term warns on the first tick, and
+    without it the same tick is silent."""
+    p = load_params()
+    assert p.demand_weight > 0
+
+    def first_tick(params: GripParams) -> bool:
+        est = GripEstimator(params)
+        _steady(est, 20, 0.0, 0.03, vx=25.0)
+        v2 = 25.0 ** 2  # the steering-wheel angle whose linear-car demand is twice what warns (p's numbers)
+        wheel = 2.0 * p.warn_on / p.demand_weight * 9.81 * p.steer_ratio * p.wheelbase_m * (
+            1.0 + p.understeer_s2pm2 * v2) / v2
+        est.step(0.0, 0.0, 0.0, 0.3, 25.0, 0.0, wheel, 20.0, 25.0 / 0.305, 25.0 / 0.305)
+        return est.state.warning
+
+    assert first_tick(p)
+    assert not first_tick(replace(p, demand_weight=0.0))
+
+
 def test_non_finite_input_gives_nan_and_restarts():
     est = GripEstimator()
     _steady(est, 20, 4.0, 0.0)

@@ -30,12 +30,16 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   ``kappa_limit`` (a spinning or locking driven wheel is at the limit);
 * the utilisation ``u``: ``n / mu_ref``, with ``mu_ref`` the upper end of the latest given friction's interval
   (1 until one is given), or the evidence where that is higher; clipped to [0, 1];
+* the warning's evidence also holds the floor ``n / mu_road_max``: whatever the road (the car is rated up to
+  ``mu_road_max``), the axle uses at least that share of its grip, so a hard combined-slip corner on a dry road
+  (the trail gated off) is seen coming by the force it already uses;
 * the warning: on when the evidence (plus, for :attr:`GripParams.mu_hold_s` after a friction was given,
   ``n / mu_ref``) reaches ``warn_on``, or, above ``warn_off``, is predicted to reach it rising at its rate for
-  ``warn_horizon_s``, or scaled by ``demand_weight`` times how much more lateral force the steering asks for
-  than the axle delivers (the linear car's response to the steering angle); off when it stays below
-  ``warn_off`` for ``warn_hold_s``. (The shipped calibration uses the evidence alone: no look-ahead, no
-  demand, no held friction; the others gave many false warnings, see the README.)
+  ``warn_horizon_s``, or when ``demand_weight`` times the steering's demand, ``|ay_lin| / (g mu_ref)`` (the
+  linear car's lateral acceleration for this steering angle and speed, against the friction assumed), reaches
+  it: the steering asks for the force before the tyres deliver it; off when it stays below ``warn_off`` for
+  ``warn_hold_s``. (The shipped calibration: floor and demand, no look-ahead along the rate, no held friction;
+  those gave many false warnings, see the README.)
 
 The numbers of a car (mass, geometry, drive, the calibrated curves) are :class:`GripParams`, read from the JSON
 shipped with the package (:func:`load_params`, the catalogue car). The per-tick code uses the standard library
@@ -98,8 +102,10 @@ class GripParams:
         warn_hold_s: the warning stays on at least this long below ``warn_off``.
         mu_hold_s: for this long after a friction is given, the force used against it (``n / mu_ref``) counts
             for the warning too (the road may change after that).
-        demand_weight: the warning also looks at the utilisation scaled by the ratio of the steering's demand to
-            the force delivered, times this (0: not).
+        demand_weight: the warning also looks at the steering's demand ``|ay_lin| / (g mu_ref)`` times this
+            (0: not).
+        mu_road_max: the highest road friction the car is rated for; ``n / mu_road_max`` is a floor of the
+            warning's evidence (0: none).
         source: where the numbers come from (free text).
     """
 
