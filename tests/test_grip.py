@@ -105,6 +105,37 @@ def test_steering_demand_warns_before_the_force_builds():
     assert not first_tick(replace(p, demand_weight=0.0))
 
 
+def test_friction_is_held_while_excited_and_only_so_far():
+    """After a turn with the trail collapsed (friction given), the same road under hard drive (the trail gated
+    off) keeps the held friction with a wider interval; a gentle stretch gives none (never a guess); beyond
+    ``hold_m`` of driving without a new estimate it is unknown again."""
+    p = load_params()
+    assert p.hold_m > 0 and p.hold_count >= 1
+    est = GripEstimator(p)
+    _steady(est, 60, 0.4 * 9.81, 0.0)
+    mu, hw = est.state.mu, est.state.halfwidth
+    assert math.isfinite(mu)
+
+    def drive(ticks: int, torque: float, vx: float = 20.0) -> None:
+        for _ in range(ticks):
+            est.step(-0.03 * 1000, -0.03 * 1000, 1.0, 1.0, vx, 1.0 / vx, 0.0, torque, vx / 0.305, vx / 0.305)
+
+    drive(5, 150.0)  # |Fx| ~ 0.5 Fz: the trail is not read
+    s = est.state
+    assert math.isnan(s.trail_m) and s.force_ratio >= p.hold_min_use * mu
+    assert s.mu == pytest.approx(mu, rel=0.1) and hw < s.halfwidth <= p.halfwidth_max
+    drive(5, 5.0)  # gentle: the axle uses little of the road
+    assert math.isnan(est.state.mu)
+    drive(int(p.hold_m / (20.0 * 0.05)) + 1, 5.0)
+    drive(2, 150.0)
+    assert math.isnan(est.state.mu)
+    unheld = GripEstimator(replace(p, hold_m=0.0))
+    _steady(unheld, 60, 0.4 * 9.81, 0.0)
+    for _ in range(5):
+        unheld.step(-30.0, -30.0, 1.0, 1.0, 20.0, 0.05, 0.0, 150.0, 20.0 / 0.305, 20.0 / 0.305)
+    assert math.isfinite(unheld.state.force_ratio) and math.isnan(unheld.state.mu)
+
+
 def test_non_finite_input_gives_nan_and_restarts():
     est = GripEstimator()
     _steady(est, 20, 4.0, 0.0)

@@ -24,6 +24,11 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   is read (``|Fy| >= min_force_ratio Fz`` and ``|Fx| <= max_long_ratio Fz``: the brush trail is that of pure
   side slip), while the force changes slowly (:attr:`GripParams.max_force_rate`), with a calibrated relative
   error at most ``rel_err_max`` and a half-width at most :attr:`GripParams.halfwidth_max` (else nan: unknown);
+* the road's friction holds while the car drives on: the median of the latest ``hold_count`` given estimates
+  (robust to a stray one) is given on for ``hold_m`` metres after the latest, with its half-width grown by
+  ``hold_widen_per_m`` per metre (the road met since may differ), but only while the tyres are excited, the
+  axle force ratio at least ``hold_min_use`` times the held friction (straight driving and gentle corners stay
+  unknown); a change of road within that distance is its failure mode (see the README);
 * the limit's own evidence, whatever the road: the trail-to-lateral-utilisation curve (the brush model's
   monotone curve measured on the car's own tyres, :attr:`GripParams.util_at_trail`, see
   ``tools/grip_study.py``) where the trail is read, and the front wheels' longitudinal slip over
@@ -51,6 +56,7 @@ from __future__ import annotations
 import bisect
 import json
 import math
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from importlib.resources import as_file, files
@@ -104,6 +110,9 @@ class GripParams:
             for the warning too (the road may change after that).
         demand_weight: the warning also looks at the steering's demand ``|ay_lin| / (g mu_ref)`` times this
             (0: not).
+        hold_count, hold_m, hold_widen_per_m, hold_min_use: the held friction (see the module docstring): the
+            median of this many latest given estimates, given on for this many metres after the latest (0: not
+            held), its half-width grown this much per metre, while ``n >= hold_min_use * mu``.
         mu_road_max: the highest road friction the car is rated for; ``n / mu_road_max`` is a floor of the
             warning's evidence (0: none).
         source: where the numbers come from (free text).
@@ -140,6 +149,10 @@ class GripParams:
     demand_weight: float
     mu_hold_s: float
     mu_road_max: float
+    hold_m: float
+    hold_widen_per_m: float
+    hold_min_use: float
+    hold_count: float
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -260,6 +273,9 @@ class GripEstimator:
             #: given one's interval (1 until one is given)
             self.mu_ref = 1.0
             self._mu_age = math.inf
+            #: the latest given friction, its half-width and the distance travelled since (m)
+            self._mu_held, self._hw_held, self._held_m = math.inf, math.inf, math.inf
+            self._recent: deque[float] = deque(maxlen=max(int(self.params.hold_count), 1))
 
     def _lp(self, prev: float, x: float) -> float:
         return x if prev != prev else prev + self._a * (x - prev)  # (prev != prev: nan, the first tick)
@@ -293,26 +309,14 @@ class GripEstimator:
         lateral = abs(fx) <= p.max_long_ratio * fz  # (under drive or braking the trail reads combined slip)
         ev = 0.0  # the limit's own evidence, whatever the road: the trail's collapse, the wheels' slip
         if lateral and abs(fy) >= p.min_force_ratio * fz:
-            t = -mz / fy
-            s.trail_m = t
-            i, w = _locate(t, self._trail)
-            c = self._util
-            ev = c[i] + w * (c[i + 1] - c[i])
-            c = self._use
-            mu = n / (c[i] + w * (c[i + 1] - c[i]))
-            c = self._err
-            rel = c[i] + w * (c[i + 1] - c[i])
-            b = bisect.bisect_left(self._bands, mu)
-            c = self._abs[min(b, len(self._abs) - 1)]
-            hw = c[i] + w * (c[i + 1] - c[i])
-            if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
-                s.mu, s.halfwidth = mu, hw
-                self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
-                self._mu_age = 0.0
-            else:
-                s.mu = s.halfwidth = math.nan
+            ev = self._read_trail(n, -mz / fy, steady)
         else:
             s.trail_m = s.mu = s.halfwidth = math.nan
+        self._held_m += vx * self.dt
+        if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
+            hw = self._hw_held + p.hold_widen_per_m * self._held_m  # (the road met since may differ)
+            if hw <= p.halfwidth_max:
+                s.mu, s.halfwidth = self._mu_held, hw
         if vx > 3.0:  # the driven front wheels spinning or locking: the longitudinal limit
             kappa = 0.5 * (wheel_fl + wheel_fr) * p.rolling_radius_m / vx - 1.0
             ev = max(ev, abs(kappa) / p.kappa_limit)
@@ -329,6 +333,33 @@ class GripEstimator:
         ay_lin = vx * vx * steer_angle / (self._steer_l * (1.0 + p.understeer_s2pm2 * vx * vx))
         self._warn(ev, abs(ay_lin) / (G * self.mu_ref))
         return s
+
+    def _read_trail(self, n: float, t: float, steady: bool) -> float:
+        """The trail ``t`` (m) read: sets the state's trail and friction (given or nan), returns the evidence
+        (the lateral utilisation at that trail)."""
+        p, s = self.params, self.state
+        s.trail_m = t
+        i, w = _locate(t, self._trail)
+        c = self._util
+        ev = c[i] + w * (c[i + 1] - c[i])
+        c = self._use
+        mu = n / (c[i] + w * (c[i + 1] - c[i]))
+        c = self._err
+        rel = c[i] + w * (c[i + 1] - c[i])
+        b = bisect.bisect_left(self._bands, mu)
+        c = self._abs[min(b, len(self._abs) - 1)]
+        hw = c[i] + w * (c[i + 1] - c[i])
+        if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
+            s.mu, s.halfwidth = mu, hw
+            self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
+            self._mu_age = 0.0
+            r = self._recent
+            r.append(mu)
+            if len(r) == r.maxlen:  # hold the median of the latest given (robust to a stray one)
+                self._mu_held, self._hw_held, self._held_m = sorted(r)[len(r) // 2], hw, 0.0
+        else:
+            s.mu = s.halfwidth = math.nan
+        return ev
 
     def _warn(self, u: float, demand: float) -> None:
         p, s = self.params, self.state
