@@ -72,15 +72,16 @@ def test_force_floor_warns_in_combined_slip_where_the_trail_is_gated_off():
     p = load_params()
     assert p.mu_road_max > 0 and p.demand_weight * 0.5 < p.warn_on
 
-    def run(params: GripParams) -> tuple[bool, float]:
+    def run(params: GripParams) -> tuple[bool, float, float]:
         est = GripEstimator(params)
-        vx, ay, torque = 25.0, 0.6 * 9.81, 120.0  # 120 Nm: |Fx| ~ 0.42 Fz, beyond the trail's gate
+        vx, ay, torque = 25.0, 0.6 * 9.81, 150.0  # 150 Nm: |Fx| ~ 0.6 Fz, beyond the trail's gate
+        ax = torque * p.gear_ratio / p.rolling_radius_m / p.mass_kg
         for _ in range(40):
-            est.step(-0.02 * 2000, -0.02 * 2000, 1.5, ay, vx, ay / vx, 0.0, torque, vx / 0.305, vx / 0.305)
-        return est.state.warning, est.state.force_ratio
+            est.step(-0.02 * 2000, -0.02 * 2000, ax, ay, vx, ay / vx, 0.0, torque, vx / 0.305, vx / 0.305)
+        return est.state.warning, est.state.force_ratio, est.state.trail_m
 
-    warned, n = run(p)
-    assert math.isnan(GripEstimator(p).state.trail_m)
+    warned, n, trail = run(p)
+    assert math.isnan(trail)
     assert n >= p.warn_on * p.mu_road_max and warned
     assert not run(replace(p, mu_road_max=0.0))[0]
 
@@ -117,10 +118,11 @@ def test_friction_is_held_while_excited_and_only_so_far():
     assert math.isfinite(mu)
 
     def drive(ticks: int, torque: float, vx: float = 20.0) -> None:
+        ax = torque * p.gear_ratio / p.rolling_radius_m / p.mass_kg  # (the car accelerates as the drive says)
         for _ in range(ticks):
-            est.step(-0.03 * 1000, -0.03 * 1000, 1.0, 1.0, vx, 1.0 / vx, 0.0, torque, vx / 0.305, vx / 0.305)
+            est.step(-0.03 * 1000, -0.03 * 1000, ax, 1.0, vx, 1.0 / vx, 0.0, torque, vx / 0.305, vx / 0.305)
 
-    drive(5, 150.0)  # |Fx| ~ 0.5 Fz: the trail is not read
+    drive(5, 150.0)  # |Fx| ~ 0.6 Fz: the trail is not read
     s = est.state
     assert math.isnan(s.trail_m) and s.force_ratio >= p.hold_min_use * mu
     assert s.mu == pytest.approx(mu, rel=0.1) and hw < s.halfwidth <= p.halfwidth_max
@@ -132,7 +134,7 @@ def test_friction_is_held_while_excited_and_only_so_far():
     unheld = GripEstimator(replace(p, hold_m=0.0))
     _steady(unheld, 60, 0.4 * 9.81, 0.0)
     for _ in range(5):
-        unheld.step(-30.0, -30.0, 1.0, 1.0, 20.0, 0.05, 0.0, 150.0, 20.0 / 0.305, 20.0 / 0.305)
+        unheld.step(-30.0, -30.0, 3.0, 1.0, 20.0, 0.05, 0.0, 150.0, 20.0 / 0.305, 20.0 / 0.305)
     assert math.isfinite(unheld.state.force_ratio) and math.isnan(unheld.state.mu)
 
 

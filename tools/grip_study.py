@@ -96,11 +96,12 @@ def car_params() -> dict:
     from virtsensor.signals import ROLLING_RADIUS_M
 
     p = car_parameters()
-    v = p["vehicle"]
+    v, a = p["vehicle"], p["aero"]
     return {"mass_kg": v["mass_kg"], "wheelbase_m": v["wheelbase_m"],
             "front_load_fraction": v["front_axle_load_fraction"], "cg_height_m": v["cg_height_m"],
             "yaw_inertia_kgm2": v["yaw_inertia_kgm2"], "gear_ratio": p["powertrain"]["gear_ratio"],
             "rolling_radius_m": ROLLING_RADIUS_M, "brake_front_share": p["brakes"]["front_share"],
+            "drag_n_per_m2ps2": round(0.5 * a["air_density_kgpm3"] * a["drag_coefficient"] * a["frontal_area_m2"], 4),
             "steer_ratio": p["steering"]["ratio"]}
 
 

@@ -12,8 +12,9 @@ friction is unknown, never a guess.
 Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI units:
 
 * the front axle's lateral force from the lateral acceleration and the yaw acceleration of a rigid car,
-  ``Fy = (m b ay + Iz dr/dt) / L`` (N); its longitudinal force from the traction motor torque (driving,
-  ``T i / r``) or the deceleration (braking, the front brake share of ``m ax``); its load from the static
+  ``Fy = (m b ay + Iz dr/dt) / L`` (N); its longitudinal force from the traction motor torque (``T i / r``,
+  driving or regenerating) plus the front share of the brakes' force, ``min(m ax + D vx^2 - T i / r, 0)``
+  (what the deceleration leaves after drive and air drag ``D vx^2``); its load from the static
   front load and the longitudinal load transfer, ``Fz = m g b / L - m h ax / L``;
 * the force ratio ``n = |F| / Fz`` (the friction the axle uses) and the axle trail ``t = -Mz sgn(Fy) / |Fy|``
   (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`);
@@ -84,7 +85,9 @@ class GripParams:
     Attributes:
         mass_kg, wheelbase_m, front_load_fraction, cg_height_m, yaw_inertia_kgm2: the rigid car.
         gear_ratio, rolling_radius_m: motor torque (Nm) -> front drive force ``T * gear_ratio / r`` (N).
-        brake_front_share: the front axle's share of a braking deceleration's force.
+        brake_front_share: the front axle's share of the brakes' force.
+        drag_n_per_m2ps2: the air drag per squared speed, ``rho Cd A / 2`` (N s^2/m^2): the brakes' force is what
+            the deceleration ``m ax`` leaves after the drive force and the drag.
         filter_s: time constant of the first-order low-pass on SAT sum and axle forces (s).
         min_force_ratio: ``n`` below which the trail is not used (too little lateral force to divide by).
         trail_m: ascending trail knots (m); util_at_trail: the front utilisation at each (non-increasing).
@@ -126,6 +129,7 @@ class GripParams:
     gear_ratio: float
     rolling_radius_m: float
     brake_front_share: float
+    drag_n_per_m2ps2: float
     filter_s: float
     min_force_ratio: float
     max_force_rate: float
@@ -252,7 +256,6 @@ class GripEstimator:
         self._fz_ax = p.mass_kg * p.cg_height_m / L
         self._drive = p.gear_ratio / p.rolling_radius_m
         self._steer_l = p.steer_ratio * L
-        self._brake = p.brake_front_share * p.mass_kg
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
@@ -295,9 +298,8 @@ class GripEstimator:
         p = self.params
         rdot = 0.0 if self._r_prev != self._r_prev else (yaw_rate - self._r_prev) / self.dt
         self._r_prev = yaw_rate
-        fx = motor_torque * self._drive if motor_torque > 0.0 else 0.0
-        if ax < 0.0 and motor_torque <= 0.0:
-            fx = self._brake * ax
+        fx = motor_torque * self._drive  # the front drive (or regenerative) force; then the brakes' front share
+        fx += p.brake_front_share * min(p.mass_kg * ax + p.drag_n_per_m2ps2 * vx * vx - fx, 0.0)
         fy_prev = self._fy
         self._mz = mz = self._lp(self._mz, mz)
         self._fy = fy = self._lp(self._fy, self._fy_ay * ay + self._fy_rdot * rdot)
@@ -357,6 +359,7 @@ class GripEstimator:
             r.append(mu)
             if len(r) == r.maxlen:  # hold the median of the latest given (robust to a stray one)
                 self._mu_held, self._hw_held, self._held_m = sorted(r)[len(r) // 2], hw, 0.0
+                self.mu_ref = self._mu_held + hw
         else:
             s.mu = s.halfwidth = math.nan
         return ev
