@@ -144,8 +144,7 @@ def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripPara
         p1 = _fit_curves(runs, seed, replace(_initial(), max_long_ratio=mlr, understeer_s2pm2=k_us))
         for hw in HALFWIDTH_MAX:
             p = replace(p1, halfwidth_max=hw)
-            o = measure(runs, p)["overall"]
-            share, within = o["mu_given_share_above_0_6"] or 0.0, o["mu_within_0_1_share"] or 0.0
+            share, within = _given_within(measure(runs, p))
             print(f"  trail read below |Fx| = {mlr:.2f} Fz, half-width <= {hw:.2f}: friction given on {share:.3f} "
                   f"of samples above 0.6, {within:.3f} within +-0.1", file=sys.stderr)
             if within >= 0.95 and (best is None or share > best[0]):
@@ -155,13 +154,21 @@ def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripPara
     return best[1] if curves_only else _fit_warning(runs, _fit_hold(runs, best[1]))
 
 
+def _given_within(res: dict) -> tuple[float, float]:
+    """(share given above 0.6, share within +-0.1) pooled, the latter the worst of the pooled share and the
+    share on each road (mu) + 0.05: a calibration must hold on every road, not on average over this mix."""
+    o = res["overall"]
+    worst = min((m["mu_within_0_1_share"] for m in res["by_mu"].values() if m["mu_within_0_1_share"] is not None),
+                default=0.0)
+    return o["mu_given_share_above_0_6"] or 0.0, min(o["mu_within_0_1_share"] or 0.0, worst + 0.05)
+
+
 def _fit_hold(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
     """The hold of the given friction that gives it most often above 0.6 utilisation with >= 95 % within +-0.1."""
     best = (-1.0, p)
     for cnt, dist, use in ((a, b, c) for a in HOLD_COUNT for b in HOLD_M for c in HOLD_MIN_USE):
         q = replace(p, hold_count=float(cnt), hold_m=dist, hold_min_use=use)
-        o = measure(runs, q)["overall"]
-        share, within = o["mu_given_share_above_0_6"] or 0.0, o["mu_within_0_1_share"] or 0.0
+        share, within = _given_within(measure(runs, q))
         print(f"  hold the median of {cnt} for {dist:.0f} m while n >= {use:.1f} mu: friction given on {share:.3f} "
               f"of samples above 0.6, {within:.3f} within +-0.1", file=sys.stderr)
         if within >= 0.95 and share > best[0]:
