@@ -76,6 +76,8 @@ PARAMS_FILE = "grip_car.json"
 GRIP_INPUTS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "motor_torque_nm",
                "wheel_speed_fl_radps", "wheel_speed_fr_radps")
 G = 9.81
+#: the held friction's median is retaken after this many new given estimates (0.25 s of them at 20 Hz)
+MEDIAN_EVERY = 5
 
 
 @dataclass(frozen=True)
@@ -279,6 +281,7 @@ class GripEstimator:
             #: the latest given friction, its half-width and the distance travelled since (m)
             self._mu_held, self._hw_held, self._held_m = math.inf, math.inf, math.inf
             self._recent: deque[float] = deque(maxlen=max(int(self.params.hold_count), 1))
+            self._fresh = MEDIAN_EVERY  # (given estimates since the held median was last taken)
 
     def _lp(self, prev: float, x: float) -> float:
         return x if prev != prev else prev + self._a * (x - prev)  # (prev != prev: nan, the first tick)
@@ -357,8 +360,10 @@ class GripEstimator:
             self._mu_age = 0.0
             r = self._recent
             r.append(mu)
-            if len(r) == r.maxlen:  # hold the median of the latest given (robust to a stray one)
-                self._mu_held, self._hw_held, self._held_m = sorted(r)[len(r) // 2], hw, 0.0
+            self._fresh += 1
+            self._hw_held, self._held_m = hw, 0.0
+            if len(r) == r.maxlen and self._fresh >= MEDIAN_EVERY:  # hold the median of the latest given (robust
+                self._mu_held, self._fresh = sorted(r)[len(r) // 2], 0  # to a stray one; sorted every few ticks)
                 self.mu_ref = self._mu_held + hw
         else:
             s.mu = s.halfwidth = math.nan
