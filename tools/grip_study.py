@@ -13,10 +13,12 @@ and, with matplotlib, ``figures/grip_study.png``.
 :class:`virtsensor.grip.GripParams` from them: per trail bin the median true lateral utilisation of the front
 tyres (made non-increasing; the trail reads the lateral slip), the median axle force ratio per unit of road
 friction, the 90th percentile of the friction's relative error and, per band of the estimate, of its absolute
-error (the interval), for each longitudinal-force gate, keeping the gate that gives the friction most often
-(with 95 % within +-0.1); then the warning's threshold, chosen on that data as the longest median lead with at most
-FALSE_BUDGET false warnings per 10 minutes below 70 % utilisation. The car's own numbers come from the
-simulator's parameter file (``sim/data/car_c_segment.toml``) and the catalogue's rolling radius.
+error (the interval), for each longitudinal-force gate and largest half-width, keeping the pair that gives the
+friction most often with 95 % within +-0.1 pooled and 90 % on every road (mu); then, by the same rule, the hold
+of the friction (median count, distance, least use); then the warning (threshold, steering-demand weight),
+chosen on that data as the longest median lead with at most FALSE_BUDGET false warnings per 10 minutes below 70 %
+utilisation. The car's own numbers come from the simulator's parameter file (``sim/data/car_c_segment.toml``:
+mass, geometry, drive, brakes, air drag) and the catalogue's rolling radius.
 """
 
 from __future__ import annotations
