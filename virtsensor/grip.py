@@ -44,8 +44,8 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   ``warn_horizon_s``, or when ``demand_weight`` times the steering's demand, ``|ay_lin| / (g mu_ref)`` (the
   linear car's lateral acceleration for this steering angle and speed, against the friction assumed), reaches
   it: the steering asks for the force before the tyres deliver it; off when it stays below ``warn_off`` for
-  ``warn_hold_s``. (The shipped calibration: floor and demand, no look-ahead along the rate, no held friction;
-  those gave many false warnings, see the README.)
+  ``warn_hold_s``. (The shipped calibration: the floor; no demand, no look-ahead along the rate, no force over
+  the held friction: each gave more false warnings than the fit's budget, see the README.)
 
 The numbers of a car (mass, geometry, drive, the calibrated curves) are :class:`GripParams`, read from the JSON
 shipped with the package (:func:`load_params`, the catalogue car). The per-tick code uses the standard library
