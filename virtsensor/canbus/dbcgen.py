@@ -19,7 +19,7 @@ Intel/little-endian, bit 0 = LSB of byte 0):
   signed signals, all ones for unsigned ones. A signal is stored signed with
   offset 0 when that is as short as unsigned with ``offset = minimum``.
 * physical DBC units equal the catalogue SI units except those in
-  :data:`UNIT_CONVERSIONS` (pressure in kPa); :mod:`virtsensor.canbus.codec`
+  :data:`UNIT_CONVERSIONS` (gauge pressure in bar, as production TPMS report it); :mod:`virtsensor.canbus.codec`
   does that scaling, once.
 * every signal is packed at its catalogue resolution; a message whose signals
   do not fit in the 52 free bits is refused (split it in the catalogue, as the
@@ -38,7 +38,7 @@ from virtsensor import signals as cat
 from virtsensor.canbus.e2e import COUNTER_MAX
 
 #: catalogue SI unit -> (DBC unit, factor): DBC value = SI value * factor.
-UNIT_CONVERSIONS: dict[str, tuple[str, float]] = {"Pa": ("kPa", 1e-3)}
+UNIT_CONVERSIONS: dict[str, tuple[str, float]] = {"Pa": ("bar", 1e-5)}
 
 #: ECU nodes, in catalogue order, with their comments.
 NODES: dict[str, str] = {

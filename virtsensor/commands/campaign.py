@@ -56,7 +56,7 @@ def _sigterm_interrupts() -> Iterator[None]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim.campaign import PRESETS
+    from sim.campaign import PRESETS, draw_pressures
     from virtsensor.recordings.campaign import write_campaign
 
     if args.preset not in PRESETS:
@@ -65,8 +65,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
     params = car_from_args(args)
     requests = PRESETS[args.preset](args.seed)
+    if args.pressure_bar is None:  # each run's four tyres at their own pressures (--pressure-bar: one for all)
+        requests = draw_pressures(requests, args.seed)
     info = {"preset": args.preset, "seed": args.seed, "overrides": args.overrides,
-            "param_files": args.param_files, "pressure_bar": args.pressure_bar}
+            "param_files": args.param_files, "pressure_bar": args.pressure_bar,
+            "pressures": "forced" if args.pressure_bar is not None else "drawn per run"}
     with sim_errors(), _sigterm_interrupts():
         manifest = write_campaign(requests, params, Path(args.out), fmt=args.format, info=info, n_jobs=args.jobs,
                                   batch_size=args.batch_size, backend=args.backend, progress=not args.quiet)

@@ -29,19 +29,21 @@ whose last row has no end of line.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.canbus.codec import CanMatrix
-from virtsensor.canbus.e2e import E2EStatus, counter_sequence
+from virtsensor.canbus.e2e import USABLE, E2EStatus, counter_sequence
 from virtsensor.errors import UserError
-from virtsensor.frontend import TableBuild, collect, table_from_collected
+from virtsensor.frontend import TIME_TOLERANCE_S, TableBuild, collect, table_from_collected
 from virtsensor.recordings.files import LOG_SUFFIXES
 
 __all__ = [
@@ -515,6 +517,37 @@ def simulated_recording(
     return decode_recording(frames, Path("<simulated>"), matrix=matrix, rate_hz=rate_hz)
 
 
+_TPMS_MESSAGE = "TPMS_Pressures"
+
+
+class _TpmsTrack:
+    """The TPMS frames of a log, kept apart from the table's inputs: they are slow (1 frame/s) and optional, so
+    they neither delay the table's first row nor are required. A wheel whose sensor reports SNA ("sensor
+    missing") is NaN from that frame on, not its last value held."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.rows: list[tuple[float, ...]] = []
+
+    def add(self, d: Any) -> None:
+        if d.status not in USABLE:
+            return
+        self.t.append(float(d.timestamp))
+        self.rows.append(tuple(float(d.values.get(s, math.nan)) for s in cat.TPMS_SIGNALS))
+
+    def sample(self, ticks: np.ndarray) -> dict[str, np.ndarray]:
+        """Sample-and-hold at the table's absolute ``ticks`` (s, log clock): NaN before the first frame (pressure
+        unknown). No TPMS frame at all: no column (a car or a recording without TPMS)."""
+        if not self.t:
+            return {}
+        t = np.asarray(self.t)
+        v = np.asarray(self.rows, dtype=np.float64)
+        order = np.argsort(t, kind="stable")
+        idx = np.searchsorted(t[order], ticks + TIME_TOLERANCE_S, side="right") - 1
+        vals = np.where((idx >= 0)[:, None], v[order][np.maximum(idx, 0)], math.nan)
+        return {s: vals[:, i] for i, s in enumerate(cat.TPMS_SIGNALS)}
+
+
 def decode_recording(
     frames: Iterable,
     path: Path,
@@ -539,9 +572,12 @@ def decode_recording(
                 per = e2e[d.message] = {}
             name = d.status.name
             per[name] = per.get(name, 0) + 1
+            if tpms is not None and d.message == _TPMS_MESSAGE:
+                tpms.add(d)
             yield d
 
     wanted = tuple(signals) if signals is not None else tuple(cat.TABLE_COLUMNS[1:])
+    tpms = _TpmsTrack() if signals is None else None
     for s in wanted:
         if s not in cat.SIGNALS:
             raise UserError(f"{path}: unknown signal {s!r} requested")
@@ -560,6 +596,8 @@ def decode_recording(
         )
     build: TableBuild = table_from_collected(col, used, rate_hz, col.t_first + t0)
     table = dict(build.table)
+    if tpms is not None:
+        table.update(tpms.sample(np.asarray(build.table["time_s"], dtype=np.float64)))
     k = np.arange(build.dropped_ticks, build.ticks)
     table["time_s"] = t0 + k / rate_hz
     by_status: dict[str, int] = {}
