@@ -84,7 +84,8 @@ def with_pressures(params: Mapping[str, Any], pressures_bar: Sequence[float] | N
     if len(pressures_bar) != 4 or not all(0.5 <= float(p) <= 5.0 for p in pressures_bar):
         raise ValueError(f"tyre pressures {list(pressures_bar)} bar: need four values within 0.5-5 bar")
     fl, fr, rl, rr = (float(p) * 1e5 for p in pressures_bar)
-    return apply_overrides(params, {"tyres.pressure_front_pa": 0.5 * (fl + fr), "tyres.pressure_rear_pa": 0.5 * (rl + rr),
+    return apply_overrides(params, {"tyres.pressure_front_pa": 0.5 * (fl + fr),
+                                    "tyres.pressure_rear_pa": 0.5 * (rl + rr),
                                     "tyres.pressure_left_right_front_pa": fl - fr,
                                     "tyres.pressure_left_right_rear_pa": rl - rr})
 

@@ -162,13 +162,13 @@ _ALL: tuple[Signal, ...] = (
        "aux", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_RL"),
     _s("susp_defl_rr_m", "m", "Rear-right suspension compression from design height.",
        "aux", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_RR"),
-    _s("tyre_pressure_fl_pa", "Pa", "Front-left tyre inflation pressure (TPMS, gauge; on CAN in bar, SNA = sensor missing).",
+    _s("tyre_pressure_fl_pa", "Pa", "Front-left tyre inflation pressure (TPMS, gauge; SNA: sensor missing).",
        "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_FL"),
-    _s("tyre_pressure_fr_pa", "Pa", "Front-right tyre inflation pressure (TPMS, gauge; on CAN in bar, SNA = sensor missing).",
+    _s("tyre_pressure_fr_pa", "Pa", "Front-right tyre inflation pressure (TPMS, gauge; SNA: sensor missing).",
        "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_FR"),
-    _s("tyre_pressure_rl_pa", "Pa", "Rear-left tyre inflation pressure (TPMS, gauge; on CAN in bar, SNA = sensor missing).",
+    _s("tyre_pressure_rl_pa", "Pa", "Rear-left tyre inflation pressure (TPMS, gauge; SNA: sensor missing).",
        "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_RL"),
-    _s("tyre_pressure_rr_pa", "Pa", "Rear-right tyre inflation pressure (TPMS, gauge; on CAN in bar, SNA = sensor missing).",
+    _s("tyre_pressure_rr_pa", "Pa", "Rear-right tyre inflation pressure (TPMS, gauge; SNA: sensor missing).",
        "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_RR"),
     # ---- simulator truth: the tyre states that explain the SAT --------------------
     *(
