@@ -45,6 +45,7 @@ from virtsensor.daemon.buslink import BusLink
 from virtsensor.daemon.config import RuntimeConfig, load_config
 from virtsensor.daemon.jsonlog import event, log
 from virtsensor.daemon.layout import InputLayout
+from virtsensor.daemon.pressure import PressureFallback
 from virtsensor.daemon.publish import Publisher
 from virtsensor.daemon.receive import ReceivePath, StageHook
 from virtsensor.daemon.runner import TICK_NS, Runner
@@ -140,6 +141,9 @@ class VirtualSensor:
         self._link = BusLink(bus, bus_factory, self.counters, self._stop, reconnect_backoff_s, reconnect_max_s)
         self._push = hook("feature_vector", FeatureBuilder(lay.spec).push)
         self._predict = hook("inference", model.predict_one)
+        #: the pressure-free fallback of a TPMS model (None: the card names none)
+        self.fallback = PressureFallback.for_model(model, lay.signals)
+        self._predict_fb = None if self.fallback is None else hook("inference", self.fallback.predict_one)
         self._send_sat = hook("send", self._link.send)
         self._rules = lay.rules()
         self._state = ValidityState(len(lay.signals))
@@ -279,7 +283,8 @@ class VirtualSensor:
             if n_future:
                 self.counters["future_stamped"] += n_future
             if not self._complete:
-                self._complete = min(rx.times) > -math.inf
+                fb = self.fallback
+                self._complete = min(rx.times) > -math.inf if fb is None else fb.complete(rx.times)
             plaus = self._plaus
             if plaus.update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
                 _log_implausible(self, t)
@@ -319,8 +324,13 @@ class VirtualSensor:
                 sv[est] = math.nan
                 sv[st] = INIT
             return False
-        x_ok = x.dot(self._xzero) == 0.0  # every feature finite (one call instead of isfinite + all)
-        y = self._predict(x) if x_ok else None
+        fb = self.fallback
+        if fb is not None and fb.active(self._state.bad):  # pressures unknown: the pressure-free estimate
+            x_ok = fb.features_ok(x)
+            y = self._predict_fb(x[:fb.n]) if x_ok else None  # type: ignore[misc]
+        else:
+            x_ok = x.dot(self._xzero) == 0.0  # every feature finite (one call instead of isfinite + all)
+            y = self._predict(x) if x_ok else None
         rules = self._env_rules
         outside = x_ok and rules is not None and outside_envelope(self.inputs.values, rules)
         for k, est, st, lo, hi in self._wheels:
