@@ -31,7 +31,7 @@ class PressureFallback:
         predict_one: the fallback model's one-vector inference (its result is overwritten by the next call).
     """
 
-    __slots__ = ("model", "n", "slots", "required", "predict_one", "_zero")
+    __slots__ = ("model", "n", "slots", "required", "predict_one", "zero")
 
     def __init__(self, model: Any, n: int, slots: Sequence[int], n_signals: int) -> None:
         self.model = model
@@ -39,7 +39,8 @@ class PressureFallback:
         self.slots = tuple(slots)
         self.required = tuple(i for i in range(n_signals) if i not in self.slots)
         self.predict_one = model.predict_one
-        self._zero = np.zeros(self.n)
+        #: zeros of the fallback's features (``x[:n] . zero`` is 0 iff they are all finite)
+        self.zero = np.zeros(self.n)
 
     @classmethod
     def for_model(cls, model: Any, signals: Sequence[str]) -> PressureFallback | None:
@@ -74,7 +75,3 @@ class PressureFallback:
             if times[i] == -np.inf:
                 return False
         return True
-
-    def features_ok(self, x: np.ndarray) -> bool:
-        """Every feature the fallback reads is finite (``x . 0 == 0``: nan or inf give nan)."""
-        return bool(x[: self.n].dot(self._zero) == 0.0)
