@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 from runtime_support import train_model, with_sync
-from test_runtime import MATRIX, _decode_outputs, drive_sync
+from test_runtime import MATRIX, _decode_health, _decode_outputs, drive_sync
 
 from virtsensor import cli
 from virtsensor import signals as cat
@@ -85,10 +85,12 @@ def test_simulated_tpms_reports_each_wheel(runs):
 
 
 # ------------------------------------------------------------------------------------------ daemon
-def _outputs(tpms, frames):
+def _outputs(tpms, frames, bitmaps=None):
     merged, ticks = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
-    sat, _, _ = drive_sync(tpms, merged, len(ticks))
+    sat, health, _ = drive_sync(tpms, merged, len(ticks))
     est, sts, _ = _decode_outputs(sat)
+    if bitmaps is not None:
+        bitmaps.extend(int(h["VS_InputStatus"]) for h in _decode_health(health))
     return est, sts, ticks
 
 
@@ -109,7 +111,8 @@ def test_tpms_cut_mid_replay_falls_back_degraded_then_valid(runs, models):
     t0 = frames[0].timestamp
     cut = (t0 + 6.5, t0 + 11.5)
     kept = [f for f in frames if not (f.arbitration_id == TPMS_ID and cut[0] <= f.timestamp < cut[1])]
-    est, sts, ticks = _outputs(tpms, kept)
+    bitmap: list[int] = []
+    est, sts, ticks = _outputs(tpms, kept, bitmap)
     P_free, P_tpms = _offline(free, tpms, rec)
     off = rec.dropped_ticks
     res = 0.02  # SAT_FRONT resolution (Nm)
@@ -125,6 +128,8 @@ def test_tpms_cut_mid_replay_falls_back_degraded_then_valid(runs, models):
     assert (sts[first:stale] == VALID).all()
     assert (sts[stale:ret] == DEGRADED).all(), "stale TPMS: DEGRADED within one timeout, never INVALID"
     assert (sts[ret:] == VALID).all(), "back to VALID once a TPMS frame is usable again"
+    bits = np.array(bitmap)  # VS_InputStatus: bit 6 is the TPMS (the culprit of a DEGRADED shows at 0)
+    assert (bits[first:stale] == 0x7F).all() and (bits[stale:ret] == 0x3F).all() and (bits[ret:] == 0x7F).all()
     # the published numbers: the TPMS model while the pressures are fresh, the pressure-free one while stale
     c = int(np.searchsorted(ticks, cut[0]))  # (after it, up to the timeout, the daemon holds the last pressure)
     assert np.abs(est[first:c] - P_tpms[first - off:c - off]).max() <= res

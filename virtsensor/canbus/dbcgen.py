@@ -220,9 +220,16 @@ def _integer(
 
 
 def _input_messages() -> tuple[str, ...]:
-    """Messages carrying at least one estimator input, in frame-id order (VS_Health bitmap order)."""
+    """Messages carrying at least one estimator input, in frame-id order, then the optional input messages
+    (:data:`OPTIONAL_INPUT_MESSAGES`): the VS_Health bitmap order."""
     names = {cat.SIGNALS[n].message for n in cat.INPUTS}
-    return tuple(m.name for m in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id) if m.name in names)
+    ordered = tuple(m.name for m in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id) if m.name in names)
+    return ordered + OPTIONAL_INPUT_MESSAGES
+
+
+#: Messages some models read (the TPMS model, issue 17), after the inputs' messages in the VS_Health bitmap; a
+#: daemon whose model does not read one leaves its bit at 0.
+OPTIONAL_INPUT_MESSAGES = ("TPMS_Pressures",)
 
 
 def _payload_sat_front(rx: tuple[str, ...]) -> list[SignalLayout]:
@@ -296,7 +303,7 @@ def _payload_vs_health(rx: tuple[str, ...]) -> list[SignalLayout]:
             "",
             rx,
             "Input status bitmap, one bit per input message, 1 = received intact "
-            f"(E2E OK) within its timeout: {bitmap}; unused bits 0.",
+            f"(E2E OK) within its timeout: {bitmap} (only when the model reads it); unused bits 0.",
         )
     )
     bit += 8
