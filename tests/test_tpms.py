@@ -211,3 +211,27 @@ def test_pressure_protocol_groups_by_tpms_and_scores_side_by_side(runs, models):
     assert md.count("| 1.8 bar |") == 3 and "trail correction" in md
     with pytest.raises(Exception, match="nominal"):
         pressure_protocol(free, tpms, [held[0]], None)
+
+
+def test_train_tpms_on_runs_with_and_without_tpms(runs, models, tmp_path, capsys):
+    import shutil
+
+    free, _ = models
+    d = tmp_path / "data"
+    d.mkdir()
+    for i, r in enumerate(runs[:3]):
+        table = r[2].table if i else {k: v for k, v in r[2].table.items() if k not in cat.TPMS_SIGNALS}
+        write_csv(d / f"r{i}.csv", table)
+    shutil.copy(free.path, tmp_path / "free.onnx")
+    shutil.copy(free.card_path, tmp_path / "free.card.json")
+    out = tmp_path / "t.onnx"
+    assert cli.main(["train", "--data", str(d), "--recipe", "tpms", "--out", str(out)]) == 2  # no --fallback
+    assert "--fallback" in capsys.readouterr().err and not out.exists()
+    assert cli.main(["train", "--data", str(d), "--recipe", "tpms", "--fallback", str(tmp_path / "free.onnx"),
+                     "--out", str(out)]) == 0
+    assert "1 run(s) without TPMS pressures: pressure unknown (not nominal)" in capsys.readouterr().err
+    card = json.loads((tmp_path / "t.card.json").read_text())
+    n_known = sum(len(r[2].table["time_s"]) - TPMS.history for r in runs[1:3])
+    assert card["training_data"]["rows"] <= n_known  # the run without TPMS trained on no row
+    assert card["fallback"]["file"] == "free.onnx" and card["fallback"]["optional"] == list(cat.TPMS_FRONT)
+    assert load_fallback(OnnxModel.load(out)) is not None
