@@ -150,7 +150,6 @@ class VirtualSensor:
         self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
         #: the latest tick's inputs were outside the model card's validity envelope
         self.outside_envelope = False
-        self._vals = np.full(len(lay.signals), np.nan)
         self._xzero = np.zeros(len(lay.spec.features))  # x . 0 is nan iff some feature is not finite (0 * inf)
         self._msg_err = [False] * len(lay.input_messages)  # the tick's E2E errors (for the logs)
         self._complete = False
@@ -314,8 +313,7 @@ class VirtualSensor:
         """Features, model and per-wheel status into the SAT_FRONT values; returns whether the inputs are
         outside the model's validity envelope (False without features or without an envelope)."""
         sv = self._out.sat_values
-        self._vals[:] = self.inputs.values
-        x = self._push(self._vals) if self._complete else None
+        x = self._push(self.inputs.values) if self._complete else None
         if x is None:
             for _, est, st, _, _ in self._wheels:
                 sv[est] = math.nan
@@ -435,7 +433,7 @@ def _log_envelope(self: VirtualSensor, t: float, outside: bool) -> None:
     if not outside:
         event(logging.INFO, "envelope_return", t=round(t, 6), envelope_ticks=self.counters["envelope_ticks"])
         return
-    vals = dict(zip(self.layout.signals, (float(v) for v in self._vals), strict=True))
+    vals = dict(zip(self.layout.signals, (float(v) for v in self.inputs.values), strict=True))
     event(logging.WARNING, "envelope_exit", t=round(t, 6), outside=self.envelope.reasons(vals),
           envelope_exits=self.counters["envelope_exits"])
 
