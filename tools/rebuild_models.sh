@@ -11,7 +11,8 @@
 #   4. TPMS (issue 17): the same presets with each run's four tyre pressures drawn around nominal (three
 #      Table I seeds and the random circuits), the TPMS recipe trained on them with the improved model as
 #      its pressure-free fallback (models/tpms.onnx), and the pressure protocol in the evaluation: whole
-#      held-out runs (the unseen seed) at 1.8, 2.2 and 2.8 bar, pressure-free and TPMS models side by side.
+#      held-out runs (the Table I campaign with the unseen seed) at 1.8, 2.2 and 2.8 bar, pressure-free and
+#      TPMS models side by side.
 # The pressure-free models train on the car's own (nominal) pressures, as before (--car-pressures).
 # Usage: tools/rebuild_models.sh [WORK_DIR]   (SEED=N for the training seed; ~45 min on 2 cores)
 set -euo pipefail
@@ -29,7 +30,7 @@ for s in 0 1 2; do
 done
 virtsensor campaign circuits --out "$work/tpms/circuits" --seed "$seed" --quiet
 for p in 1.8 2.2 2.8; do
-    virtsensor campaign smoke --out "$work/pressure/p$p" --seed "$unseen_seed" --pressure-bar "$p" --quiet
+    virtsensor campaign paper --out "$work/pressure/p$p" --seed "$unseen_seed" --pressure-bar "$p" --quiet
 done
 virtsensor simulate magny-cours --speed 180 --mu 1.0 --seed "$unseen_seed" --out "$work/magny-cours.csv"
 for track in hungaroring zandvoort red-bull-ring; do
