@@ -19,7 +19,7 @@ from virtsensor.features import HISTORY, TPMS
 from virtsensor.learning.dataset import Run
 from virtsensor.model import OnnxModel
 from virtsensor.model.fallback import fallback_entry, load_fallback
-from virtsensor.recordings.canlog import iter_frames, simulated_recording, write_csv
+from virtsensor.recordings.canlog import iter_frames, simulated_recording, write_csv, write_log
 
 TPMS_ID = MATRIX.messages["TPMS_Pressures"].frame_id
 #: training runs (random steer, 20 s) at pressures across the campaign's range, left and right apart
@@ -69,6 +69,7 @@ def test_campaign_draws_four_pressures_per_run_and_forced_pressure_wins(tmp_path
     assert (lr > 0.15).mean() > 0.05 and (lr < 0.1).mean() > 0.5  # left and right: usually close, not always
     out = tmp_path / "c"
     assert cli.main(["campaign", "tiny", "--out", str(out), "--quiet", "--jobs", "1", "--pressure-bar", "2.6"]) == 0
+    assert cli.main(["campaign", "tiny", "--out", str(tmp_path / "x"), "--car-pressures", "--pressure-bar", "2"]) == 2
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["pressures"] == "forced" and all("pressures_bar" not in r for r in manifest["runs"])
     from virtsensor.recordings.files import read_table
@@ -172,6 +173,13 @@ def test_score_without_tpms_uses_the_fallback_and_says_so(runs, models, tmp_path
     ref = json.loads(json.dumps(_score_free(free, table)))
     assert old["mae_nm"] == pytest.approx(ref, rel=1e-9)  # exactly the pressure-free model's score
     assert new["mae_nm"] != pytest.approx(ref, rel=1e-6)
+    # a CAN log carries the TPMS frames: scored with the pressures, like its table
+    time_s, sig, _ = runs[-1]
+    write_log(tmp_path / "run.blf", time_s, sig)
+    assert cli.main(["score", "--model", str(tpms.path), "--data", str(tmp_path / "run.blf"),
+                     "--json", str(tmp_path / "log.json")]) == 0
+    log = json.loads((tmp_path / "log.json").read_text())["overall"]
+    assert log["pressure_unknown_rows"] == 0 and log["mae_nm"] == pytest.approx(new["mae_nm"], rel=1e-6)
 
 
 def _score_free(free, table):
