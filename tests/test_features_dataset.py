@@ -157,6 +157,7 @@ def test_train_and_evaluate_from_the_command_line(tmp_path, capsys):
         assert set(res[key]) == {"train", "test", "grouped", "track_dry", "track_wet"}
     assert set(res["baselines"]) == {"linear", "eq1_observer"}
     assert {"track_dry", "track_wet"} <= set(res["shipped_model"])
+    assert res["grip"] is None  # (synthetic tables carry no grip truth: no grip figures)
     assert "Magny-Cours dry asphalt" in capsys.readouterr().out
     # a recording without a needed signal is refused, naming it (one line, exit 2)
     bad = _write_runs(tmp_path / "bad", n_runs=1)

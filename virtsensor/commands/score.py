@@ -32,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.learning.dataset import load_runs
+    from virtsensor.learning.gripscore import grip_markdown
     from virtsensor.learning.scoring import markdown, needed_signals, score_runs
     from virtsensor.model.onnx import OnnxModel
 
@@ -51,4 +52,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"{o['pressure_unknown_rows']} sample(s) without a known front tyre pressure (no TPMS or a sensor "
               f"missing; not taken as nominal): scored with the pressure-free fallback {o['fallback']['file']}",
               file=sys.stderr)
+    if o.get("grip") is not None:
+        print(grip_markdown({"overall": o["grip"]}).strip(), file=sys.stderr)
     return 0

@@ -70,6 +70,8 @@ __all__ = ["VirtualSensor", "STAGES"]
 #: ``feature_vector``, ``inference``, ``encode`` (SAT_FRONT) and ``send`` (SAT_FRONT).
 STAGES = ("decode", "feature_vector", "inference", "encode", "send")
 
+#: the daemon's own frames (a sync id may not be one of them)
+_OWN_MESSAGES = ("SAT_FRONT", "VS_Health", "VS_Grip")
 _COUNTERS = ("frames", "input_frames", "other_frames", "unknown_ids", "error_frames", "remote_frames", "sync_frames",
              "crc_errors", "dlc_errors", "sna_values", "implausible_values",
              *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
@@ -123,7 +125,7 @@ class VirtualSensor:
         self.layout = lay = InputLayout.from_model(model, self.matrix, self.timeout_cycles, model_id)
         self.spec, self.signals, self.critical = lay.spec, lay.signals, lay.critical
         self.input_messages, self.bitmap_bits, self.model_id = lay.input_messages, lay.bitmap_bits, lay.model_id
-        own_ids = {self.matrix.messages["SAT_FRONT"].frame_id, self.matrix.messages["VS_Health"].frame_id}
+        own_ids = {m.frame_id for n, m in self.matrix.messages.items() if n in _OWN_MESSAGES}
         if sync_id is not None and sync_id in own_ids:
             raise UserError(f"sync id 0x{sync_id:X} is one of the daemon's own frames (SAT_FRONT/VS_Health)")
         self.sync_id = sync_id
@@ -334,8 +336,10 @@ class VirtualSensor:
     def _publish(self, start_ns: int, bitmap: int) -> None:
         out = self._out
         m = out.fill_sat()
+        out.grip.fill_tick(out.sat_values, self.inputs.values)  # (VS_Grip, in the tick's compute)
         compute_us = (time.monotonic_ns() - start_ns) // 1000
         self._send_sat(m)
+        out.grip.send(self._link.send)
         lat_us = (time.monotonic_ns() - start_ns) // 1000
         c = self.counters
         self._link.send(out.fill_health(c["overruns"], lat_us, bitmap, self.outside_envelope, c["envelope_exits"]))
