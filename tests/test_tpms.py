@@ -34,10 +34,10 @@ def runs():
 
     reqs = [Request("random-steer", v, 1.0, s, pressures_bar=p) for v, s, p in (*TRAIN, TEST)]
     out = []
-    for i, run in enumerate(simulate_many(reqs)):
+    for run in simulate_many(reqs):
         time_s = run.streams["time_s"]
         sig = {k: v for k, v in run.streams.items() if k != "time_s"}
-        out.append((time_s, sig, simulated_recording(time_s, sig, seed=i)))
+        out.append((time_s, sig, simulated_recording(time_s, sig)))
     return out
 
 
@@ -108,7 +108,7 @@ def _offline(free, tpms, rec):
 def test_tpms_cut_mid_replay_falls_back_degraded_then_valid(runs, models):
     free, tpms = models
     time_s, sig, rec = runs[-1]
-    frames = list(iter_frames(time_s, sig, seed=len(runs) - 1))
+    frames = list(iter_frames(time_s, sig))
     t0 = frames[0].timestamp
     cut = (t0 + 6.5, t0 + 11.5)
     kept = [f for f in frames if not (f.arbitration_id == TPMS_ID and cut[0] <= f.timestamp < cut[1])]
@@ -144,14 +144,14 @@ def test_a_missing_wheel_sensor_or_no_tpms_at_all(runs, models):
     time_s, sig, rec = runs[-1]
     sna = dict(sig)
     sna["tyre_pressure_fr_pa"] = np.where(time_s >= 8.0, np.nan, sig["tyre_pressure_fr_pa"])  # sent as SNA
-    est, sts, ticks = _outputs(tpms, list(iter_frames(time_s, sna, seed=len(runs) - 1)))
+    est, sts, ticks = _outputs(tpms, list(iter_frames(time_s, sna)))
     P_free, _ = _offline(free, tpms, rec)
     off = rec.dropped_ticks
     k = int(np.searchsorted(ticks - ticks[0], 8.0 + 1e-3, side="right"))  # after the first SNA frame (8.00x s)
     assert (sts[k:] == DEGRADED).all() and (sts[off + TPMS.history:k - 20] == VALID).all()
     assert np.abs(est[k:] - P_free[k - off:]).max() <= 0.02
     # a car (or a log) without any TPMS frame: the daemon starts anyway, with the pressure-free estimate
-    bare = [f for f in iter_frames(time_s, sig, seed=len(runs) - 1) if f.arbitration_id != TPMS_ID]
+    bare = [f for f in iter_frames(time_s, sig) if f.arbitration_id != TPMS_ID]
     est, sts, ticks = _outputs(tpms, bare)
     begin = int(np.argmax(sts[:, 0] != INIT))
     assert 0 < begin < 10 and (sts[begin:] == DEGRADED).all() and np.isfinite(est[begin:]).all()

@@ -150,7 +150,7 @@ class Inputs:
         b = a + LOOP_S
         if time_s[-1] < b + 0.1:
             raise UserError(f"the bench manoeuvre {manoeuvre} is shorter than {b} s")
-        frames = [m for m in iter_frames(time_s, sig, seed=int(manoeuvre[3])) if a - 1e-9 < m.timestamp < b - 1e-9]
+        frames = [m for m in iter_frames(time_s, sig) if a - 1e-9 < m.timestamp < b - 1e-9]
         n_ticks = round(LOOP_S / TICK_S)
         grid = a + np.arange(n_ticks) * TICK_S
         # frame of tick k: stamped in (grid[k-1], grid[k]]; the first window tick also gets frames at grid[0]

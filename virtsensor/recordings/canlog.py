@@ -101,7 +101,6 @@ def frame_arrays(
     *,
     matrix: CanMatrix | None = None,
     start_time: float = 0.0,
-    seed: int = 0,
     phases: Mapping[str, float] | None = None,
 ):
     """All frames of a run as arrays, in time order (the vectorised core of :func:`write_log`).
@@ -111,7 +110,6 @@ def frame_arrays(
         signals: catalogue name -> array on ``time_s`` (SI). Other names are ignored.
         matrix: CAN matrix (default: bundled).
         start_time: timestamp (s) of run time ``time_s[0]``.
-        seed: no effect (it used to draw the first alive counters; they now start at 0).
         phases: message name -> transmit phase (s, ``0 <= phase < cycle``) overriding
             :func:`phase_offset`, e.g. to send right after a sensor's own update instants.
 
@@ -161,7 +159,6 @@ def iter_frames(
     *,
     matrix: CanMatrix | None = None,
     start_time: float = 0.0,
-    seed: int = 0,
     phases: Mapping[str, float] | None = None,
     channel=None,
 ) -> Iterator:
@@ -169,7 +166,7 @@ def iter_frames(
     import can
 
     ts, ids, data, _ = frame_arrays(
-        time_s, signals, matrix=matrix, start_time=start_time, seed=seed, phases=phases
+        time_s, signals, matrix=matrix, start_time=start_time, phases=phases
     )
     Message = can.Message
     for t, i, d in zip(ts.tolist(), ids.tolist(), data, strict=True):
@@ -201,14 +198,13 @@ def write_log(
     *,
     matrix: CanMatrix | None = None,
     start_time: float = 0.0,
-    seed: int = 0,
     phases: Mapping[str, float] | None = None,
 ) -> LogSummary:
     """Write a run as a CAN log; the format follows the suffix (see :data:`CAN_LOG_SUFFIXES`).
 
     Args:
         path: output file (``.blf``, ``.asc``, ``.log``, ``.csv``, ``.trc``).
-        time_s, signals, matrix, start_time, seed, phases: see :func:`frame_arrays`
+        time_s, signals, matrix, start_time, phases: see :func:`frame_arrays`
             (SI values under catalogue names on the base grid ``time_s`` in s).
 
     Note:
@@ -222,7 +218,7 @@ def write_log(
     _check_suffix(path)
     matrix = matrix or CanMatrix.load()
     ts, ids, data, counts = frame_arrays(
-        time_s, signals, matrix=matrix, start_time=start_time, seed=seed, phases=phases
+        time_s, signals, matrix=matrix, start_time=start_time, phases=phases
     )
     try:
         writer = can.Logger(path)
@@ -506,14 +502,13 @@ def simulated_recording(
     *,
     matrix: CanMatrix | None = None,
     rate_hz: float = 20.0,
-    seed: int = 0,
 ) -> Recording:
     """What a receiver on the bus makes of a simulated run: its sensor streams are
     encoded into frames exactly as :func:`write_log` writes them, decoded with the
     E2E checks and sampled by the front-end. The simulator's canonical table is
     built this way, so a table and the log of the same run agree frame for frame,
     and training sees the signals as the runtime will."""
-    frames = iter_frames(time_s, signals, matrix=matrix, seed=seed)
+    frames = iter_frames(time_s, signals, matrix=matrix)
     return decode_recording(frames, Path("<simulated>"), matrix=matrix, rate_hz=rate_hz)
 
 
