@@ -196,7 +196,7 @@ def run_frames():
     (run,) = simulate_many([Request("fishhook", 60.0, 0.5, 19)])
     ts = run.streams["time_s"]
     sig = {k: v for k, v in run.streams.items() if k != "time_s"}
-    return list(iter_frames(ts, sig, seed=19)), run, simulated_recording(ts, sig, seed=19)
+    return list(iter_frames(ts, sig)), run, simulated_recording(ts, sig)
 
 
 def _drive(model, frames: list[can.Message]):
