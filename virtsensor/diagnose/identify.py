@@ -58,7 +58,15 @@ from virtsensor.recordings.measured import MeasuredRun
 BIC_DECISIVE = 10.0
 #: sim-based candidates refined after screening, and refinement rounds
 REFINE_TOP = 3
-REFINE_ROUNDS = 4
+REFINE_ROUNDS = 2
+#: signal groups whose own evidence on a physical effect must agree (the car's motion, the steering, the
+#: tyres' moments): an out-of-catalogue effect forced onto a catalogue one fits one group, not all
+GROUPS = {
+    "motion": ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "motor_torque_nm", "susp_defl_fl_m",
+               "susp_defl_fr_m", "wheel_speed_fl_radps", "wheel_speed_fr_radps"),
+    "steering": ("steer_torque_nm", "assist_torque_nm"),
+    "tyre_moments": ("sat_fl_nm", "sat_fr_nm"),
+}
 #: the physical causes (every cause but the sensor effects), in report order
 PHYSICAL = tuple(c for c in CAUSES if not c.startswith("sensor_"))
 
@@ -120,6 +128,8 @@ class Fit:
     variance_explained: float = 0.0
     per_signal: dict[str, float] = field(default_factory=dict)
     significant: bool = False
+    groups: dict[str, Any] = field(default_factory=dict)  # per signal group: its own estimate (sim-based fits)
+    consistent: bool = True
 
     def as_dict(self) -> dict[str, Any]:
         c = self.candidate
@@ -128,6 +138,7 @@ class Fit:
             "nominal": c.nominal, "score": self.bic_gain, "bic_gain": self.bic_gain,
             "variance_explained": self.variance_explained, "significant": self.significant,
             "per_signal_variance_explained": self.per_signal, "evaluations": len(self.points),
+            "groups": self.groups, "consistent": self.consistent,
         }
 
 
@@ -282,6 +293,7 @@ class _Search:
     def __init__(self, cand: Candidate):
         self.cand = cand
         self.pts: dict[float, float] = {}  # u -> -2logL
+        self.rss: dict[float, dict[str, float]] = {}  # u -> per-signal RSS
         lo, hi = cand.bounds
         self.ulo, self.uhi = (np.log(lo), np.log(hi)) if cand.log else (lo, hi)
         self.done = False
@@ -301,8 +313,10 @@ class _Search:
                 out.append(self.value(u))
         return out
 
-    def add(self, value: float, m2ll: float) -> None:
+    def add(self, value: float, m2ll: float, rss: Mapping[str, float] | None = None) -> None:
         self.pts[self.u(value)] = m2ll
+        if rss is not None:
+            self.rss[self.u(value)] = dict(rss)
 
     def best(self) -> tuple[float, float]:
         u = min(self.pts, key=self.pts.__getitem__)
@@ -352,7 +366,7 @@ class Identification:
     """Result of :func:`identify`."""
 
     fits: list[Fit]
-    best: Fit | None                  # None: nothing explains the misfit
+    best: Fit | None                  # None: nothing explains the misfit (or the answer is unexplained)
     rss_nominal: dict[str, float]
     n: dict[str, int]
     n_eff_factor: float
@@ -361,64 +375,167 @@ class Identification:
     simulations: int
     names: tuple[str, ...]
     shifts: dict[str, float] = field(default_factory=dict)
+    causes: list[Fit] = field(default_factory=list)   # named causes, best first
+    second: list[Fit] = field(default_factory=list)   # the candidates of the second stage (given the first)
+    nuisance: list[dict[str, Any]] = field(default_factory=list)  # per run: identified conditions
+    day: list[dict[str, float]] = field(default_factory=list)     # per run: condition values used
+    unexplained: dict[str, Any] | None = None                     # the verdict's evidence when unexplained
+    rss_best: dict[str, float] = field(default_factory=dict)
 
     @property
     def cause(self) -> str:
+        if self.unexplained is not None:
+            return "unexplained"
         return self.best.candidate.cause if self.best else "none"
 
 
+@dataclass
+class Stage:
+    """One stage of the search: every candidate's fit over a background."""
+
+    fits: list[Fit]
+    background: Any
+    rss0: dict[str, float]
+    f0: float
+    sims_of: dict[tuple[str, float], Any]
+    feff: float = 1.0
+
+
 def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[str, ...], *, mu: float = 1.0,
-             n_jobs: int = 1, log=lambda msg: None) -> Identification:
-    """Identify every candidate effect on ``runs`` and name the best explanation."""
+             conditions: Sequence[Any] | None = None, n_jobs: int = 1, backend: str = "loky",
+             log=lambda msg: None) -> Identification:
+    """Identify every candidate effect on ``runs`` and name the best explanations (see the module docstring).
+
+    ``conditions``: each run's :class:`~virtsensor.diagnose.conditions.RunConditions` (None: every run on a
+    road of friction ``mu``, known)."""
+    from virtsensor.diagnose import nuisance
+    from virtsensor.diagnose.conditions import RunConditions
+
+    conds = list(conditions) if conditions is not None else [RunConditions({"mu": (mu, mu)}) for _ in runs]
     data = Data(runs, names)
-    cands = candidates()
+    sim = Sim(runs, base, names, nuisance.initial_day(conds), n_jobs=n_jobs, backend=backend)
+    nominal = _simulate_nominal(data, sim, log)
+    per_run: list[dict[str, Any]] = []
+    if any(rc.unknown() for rc in conds):
+        nominal, per_run = nuisance.fit(data, sim, conds, nominal, log)
+    # road friction is a day-wide scale of known frictions: not identifiable when every run's is unknown
+    known_mu = any(rc.exact("mu") is not None for rc in conds)
+    cands = [c for c in candidates() if known_mu or c.cause != "road_friction"]
+    first = _stage(data, sim, cands, nominal, log)
+    feff = first.feff
+    fits = first.fits
+    chosen = next((f for f in fits if f.significant), None)
+    causes = [chosen] if chosen else []
+    second: list[Fit] = []
+    best_sims = _sims_for(chosen, nominal, first.sims_of, data) if chosen else nominal
+    if chosen is not None:
+        second, best_sims = _second_stage(data, sim, first, chosen, cands, best_sims, feff, log)
+        causes += [f for f in second if f.significant][:1]
+    rss_best = data.rss(best_sims)
+    idn = Identification(fits, chosen, first.rss0, dict(data.n), feff, nominal, best_sims, sim.count, data.names,
+                         data.shifts, causes, second, per_run, sim.day, None, rss_best)
+    idn.unexplained = _unexplained(data, idn)
+    return idn
+
+
+def _feff(data: Data, stage: Stage) -> float:
+    """The effective share of independent samples at the stage's best fit (AR(1) of its residuals)."""
+    best = min(stage.fits, key=lambda f: f.m2ll)
+    rho = data.rho(_sims_for(best, stage.background, stage.sims_of, data))
+    return (1.0 - rho) / (1.0 + rho)
+
+
+def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, log,
+           feff: float | None = None) -> Stage:
+    """Fit every candidate of ``cands`` over ``background`` (the simulations of the car the stage starts
+    from: nominal, or with the effects already named); score them, best first."""
     searches = {c.key: _Search(c) for c in cands if c.needs_sim}
-    # 1. the nominal car, the messages' reading ages, then the screening in one batch
-    nominal = _simulate_nominal(data, base, mu, n_jobs, log)
-    sims_of, n_sim = _screen(data, searches, base, mu, n_jobs, log)
-    rss0 = data.rss(nominal)
+    sims_of, _ = _screen(data, searches, sim, log)
+    rss0 = data.rss(background)
     f0 = data.m2ll(rss0)
     for s in searches.values():
-        s.add(s.cand.nominal, f0)
-    # 2. exact fits of the sensor effects on non-drive signals
-    fits = [_exact_fit(data, nominal, c, rss0) for c in cands if not c.needs_sim and _excited(data, nominal, c)]
-    # 3. refine the most promising sim-based candidates, their proposals in one batch per round
+        s.add(s.cand.nominal, f0, rss0)
+    fits = [_exact_fit(data, background, c, rss0) for c in cands
+            if not c.needs_sim and _excited(data, background, c)]
     ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP]
-    n_sim += _refine(data, ranked, sims_of, base, mu, n_jobs, log)
-    # 4. a fit per sim-based candidate; the refined ones are re-simulated at their estimate
-    n_sim += _simulate_estimates(data, searches, ranked, sims_of, base, mu, n_jobs)
-    fits.extend(_search_fit(data, s, sims_of, nominal) for s in searches.values())
-    # 5. scores
-    best_fit = min(fits, key=lambda f: f.m2ll)
-    rho = data.rho(_sims_for(best_fit, nominal, sims_of, data))
-    feff = (1.0 - rho) / (1.0 + rho)
+    _refine(data, ranked, sims_of, sim, log)
+    _simulate_estimates(data, searches, ranked, sims_of, sim)
+    fits.extend(_search_fit(data, s, sims_of, background) for s in searches.values())
+    stage = Stage(fits, background, rss0, f0, sims_of)
+    if feff is None:
+        feff = _feff(data, stage) if fits else 1.0
+    stage.feff = feff
     n_tot = sum(data.n.values())
     for f in fits:
         _score(f, f0, rss0, feff, n_tot)
     fits.sort(key=lambda f: -f.bic_gain)
-    # the cause is the best-supported candidate that matters; a better-supported one
-    # below its practical floor (a 1 % gain, a few ms) is a small mismatch, not a cause
-    chosen = next((f for f in fits if f.significant), None)
-    return Identification(fits, chosen, rss0, dict(data.n), feff, nominal,
-                          _sims_for(chosen, nominal, sims_of, data) if chosen else nominal, n_sim, data.names,
-                          data.shifts)
+    return stage
 
 
-def _simulate_nominal(data: Data, base: Mapping[str, Any], mu: float, n_jobs: int, log) -> Any:
+#: candidates of the second stage: the first stage's best-supported ones (besides the named cause)
+SECOND_TOP = 4
+
+
+def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequence[Candidate], best_sims: Any,
+                  feff: float, log) -> tuple[list[Fit], Any]:
+    """A second cause on top of the first: the first stage's best-supported other candidates, fitted over the
+    car with the first cause. Returns their fits (best first) and the simulations of the best explanation."""
+    c1 = chosen.candidate
+    keys = [f.candidate.key for f in first.fits if f.candidate.key != c1.key
+            and (c1.signal is None or f.candidate.signal != c1.signal) and f.bic_gain > 0][:SECOND_TOP]
+    pool = [c for c in cands if c.key in keys]
+    if not pool:
+        return [], best_sims
+    log(f"second stage over {c1.key} = {chosen.estimate:.4g}: {', '.join(keys)}")
+    saved = sim.background
+    sim.background = saved + ((c1.cause, chosen.estimate, c1.signal),)
+    try:
+        st = _stage(data, sim, pool, best_sims, log, feff=feff)
+    finally:
+        sim.background = saved
+    pick = next((f for f in st.fits if f.significant), None)
+    return st.fits, (_sims_for(pick, best_sims, st.sims_of, data) if pick else best_sims)
+
+
+@dataclass
+class Sim:
+    """How hypotheses are re-simulated: the runs, the nominal car, each run's condition values (``day``:
+    ``mu`` and known or identified quantities), effects already named (``background``, added to every
+    hypothesis), the messages' reading ages, the workers."""
+
+    runs: Sequence[MeasuredRun]
+    base: Mapping[str, Any]
+    names: tuple[str, ...]
+    day: list[dict[str, float]]
+    n_jobs: int = 1
+    backend: str = "loky"
+    background: tuple[tuple[str, float, str | None], ...] = ()
+    shifts: dict[str, float] = field(default_factory=dict)
+    count: int = 0
+
+    def run(self, hyps: Sequence[Hypothesis], keep: Sequence[bool] | None = None) -> list[Any]:
+        """``simulate_hypotheses`` of ``hyps`` on top of the background, counted."""
+        full = [Hypothesis(h.cause, h.value, h.signal, self.background + h.also, h.runs, h.only) for h in hyps]
+        self.count += len(full)
+        return simulate_hypotheses(self.runs, full, self.base, self.day, self.names, n_jobs=self.n_jobs,
+                                   keep_streams=keep, shifts=self.shifts, backend=self.backend)
+
+
+def _simulate_nominal(data: Data, sim: Sim, log) -> Any:
     """Re-simulate ``data.runs`` with the nominal car, set ``data.shifts`` (the messages' reading ages) and
     each item's ``pred`` (the compared signals on the table's ticks); return the nominal re-simulation."""
     runs, names = data.runs, data.names
     log(f"re-simulating {len(runs)} run(s) with the nominal car")
-    nominal = simulate_hypotheses(runs, [NOMINAL], base, mu, names, n_jobs=n_jobs, keep_streams=[True])[0]
+    nominal = sim.run([NOMINAL], [True])[0]
     data.shifts = align(runs, nominal, names)
+    sim.shifts = data.shifts
     for r, per_run in enumerate(nominal):
         for g, item in enumerate(per_run):
             item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, data.shifts)
     return nominal
 
 
-def _screen(data: Data, searches: Mapping[str, _Search], base: Mapping[str, Any], mu: float, n_jobs: int,
-            log) -> tuple[dict[tuple[str, float], Any], int]:
+def _screen(data: Data, searches: Mapping[str, _Search], sim: Sim, log) -> tuple[dict[tuple[str, float], Any], int]:
     """Simulate every search's screening values in one batch and add their -2 log L to the searches.
 
     Returns the simulations by ``(candidate key, value)`` and the number of simulations run (the
@@ -430,16 +547,16 @@ def _screen(data: Data, searches: Mapping[str, _Search], base: Mapping[str, Any]
             hyps.append(search.cand.hyp(v))
             owners.append(key)
     log(f"screening {len(hyps)} hypotheses")
-    sims = simulate_hypotheses(data.runs, hyps, base, mu, data.names, n_jobs=n_jobs, shifts=data.shifts)
+    sims = sim.run(hyps) if hyps else []
     sims_of: dict[tuple[str, float], Any] = {}
-    for hyp, owner, sim in zip(hyps, owners, sims, strict=True):
-        searches[owner].add(hyp.value, data.m2ll(data.rss(sim)))
-        sims_of[(owner, hyp.value)] = sim
+    for hyp, owner, out in zip(hyps, owners, sims, strict=True):
+        rss = data.rss(out)
+        searches[owner].add(hyp.value, data.m2ll(rss), rss)
+        sims_of[(owner, hyp.value)] = out
     return sims_of, 1 + len(hyps)
 
 
-def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, float], Any],
-            base: Mapping[str, Any], mu: float, n_jobs: int, log) -> int:
+def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, float], Any], sim: Sim, log) -> int:
     """Up to :data:`REFINE_ROUNDS` rounds of the ``ranked`` searches' proposals, one batch per round; the
     simulations go into ``sims_of``. Returns the number of simulations run."""
     n_sim = 0
@@ -449,17 +566,17 @@ def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, floa
             break
         log(f"refining {', '.join(s.cand.key for s, _ in props)} (round {rnd + 1})")
         hs = [s.cand.hyp(v) for s, v in props]
-        out = simulate_hypotheses(data.runs, hs, base, mu, data.names, n_jobs=n_jobs, shifts=data.shifts)
+        out = sim.run(hs)
         n_sim += len(hs)
-        for (s, v), sim in zip(props, out, strict=True):
-            s.add(v, data.m2ll(data.rss(sim)))
-            sims_of[(s.cand.key, v)] = sim
+        for (s, v), o in zip(props, out, strict=True):
+            rss = data.rss(o)
+            s.add(v, data.m2ll(rss), rss)
+            sims_of[(s.cand.key, v)] = o
     return n_sim
 
 
 def _simulate_estimates(data: Data, searches: Mapping[str, _Search], ranked: Sequence[_Search],
-                        sims_of: dict[tuple[str, float], Any], base: Mapping[str, Any], mu: float,
-                        n_jobs: int) -> int:
+                        sims_of: dict[tuple[str, float], Any], sim: Sim) -> int:
     """Simulate, in one batch, the estimates of the ``ranked`` searches not yet simulated (and not nominal);
     the simulations go into ``sims_of``. Returns the number of simulations run."""
     final_h: list[Hypothesis] = []
@@ -471,11 +588,11 @@ def _simulate_estimates(data: Data, searches: Mapping[str, _Search], ranked: Seq
             final_s.append(s)
     if not final_h:
         return 0
-    out = simulate_hypotheses(data.runs, final_h, base, mu, data.names, n_jobs=n_jobs,
-                              keep_streams=[True] * len(final_h), shifts=data.shifts)
-    for s, h, sim in zip(final_s, final_h, out, strict=True):
-        s.add(h.value, data.m2ll(data.rss(sim)))
-        sims_of[(s.cand.key, h.value)] = sim
+    out = sim.run(final_h, [True] * len(final_h))
+    for s, h, o in zip(final_s, final_h, out, strict=True):
+        rss = data.rss(o)
+        s.add(h.value, data.m2ll(rss), rss)
+        sims_of[(s.cand.key, h.value)] = o
     return len(final_h)
 
 
@@ -490,7 +607,11 @@ def _search_fit(data: Data, s: _Search, sims_of: Mapping[tuple[str, float], Any]
     else:
         v_use, sim = s.cand.nominal, nominal
     rss = data.rss(sim)
-    return Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())])
+    fit = Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())])
+    fit.groups = {g: {"points": [(s.value(u), sum(data.n[k] * np.log(r[k] / data.n[k] + data.floor[k])
+                                                  for k in sigs if k in r)) for u, r in sorted(s.rss.items())]}
+                  for g, sigs in GROUPS.items() if any(k in data.names for k in sigs)}
+    return fit
 
 
 def _sims_for(fit: Fit, nominal, sims_of, data: Data):
@@ -511,6 +632,102 @@ def _sims_for(fit: Fit, nominal, sims_of, data: Data):
     return sims_of.get((c.key, fit.estimate), nominal)
 
 
+def model_error(c: Candidate, estimate: float) -> float:
+    """The 95 % bound of the simulator's own error on an estimate of candidate ``c``: the accuracy the
+    catalogue states for its cause (:attr:`sim.effects.Effect.tolerance`, absolute or relative to the
+    deviation from nominal, whichever is larger). It is added in quadrature to the statistical half-width."""
+    a, r = EFFECTS[c.cause].tolerance
+    return float(max(a, r * abs(estimate - c.nominal)))
+
+
+#: a signal group is informative on a candidate when its own evidence changes by more than this over the
+#: values evaluated (chi-square(1) 99 %, with the effective sample size)
+GROUP_INFORMATIVE = 6.63
+
+
+def _consistency(f: Fit, feff: float) -> None:
+    """Each signal group's own estimate of a sim-based fit and whether they agree: a group that is informative
+    (its evidence varies by more than :data:`GROUP_INFORMATIVE` over the values evaluated) must have its best
+    value within the sum of its and the fit's 95 % half-widths of the fit's estimate (each counting the
+    simulator's model error, :func:`model_error`)."""
+    if not f.groups or not np.all(np.isfinite(f.ci95)):
+        return
+    c = f.candidate
+    half = 0.5 * (f.ci95[1] - f.ci95[0])
+    ok = True
+    for info in f.groups.values():
+        pts = sorted(info.pop("points", []))
+        if len(pts) < 3:
+            continue
+        x = np.array([p[0] for p in pts])
+        y = feff * np.array([p[1] for p in pts])
+        info["informative"] = bool(y.max() - y.min() > GROUP_INFORMATIVE)
+        i = int(np.argmin(y))
+        v, stat = float(x[i]), 0.0
+        if 0 < i < len(x) - 1:
+            vx, curv = _parabola(x[i - 1:i + 2], y[i - 1:i + 2] / feff)
+            if curv > 0:
+                v = float(np.clip(vx, x[i - 1], x[i + 1]))
+                stat = 1.96 * np.sqrt(2.0 / (feff * curv))
+        h = float(np.hypot(stat, model_error(c, v)))
+        info.update(estimate=v, half_width=h)
+        if info["informative"] and abs(v - f.estimate) > h + half:
+            info["agrees"] = False
+            ok = False
+        else:
+            info["agrees"] = True
+    f.consistent = ok
+
+
+def _unexplained(data: Data, idn: Identification) -> dict[str, Any] | None:
+    """Why the day is not explained by the catalogue, or None: a named cause whose signal groups disagree
+    on its value (it fits some signals at the others' expense). The evidence: the disagreeing groups, the
+    signals whose misfit the named causes leave (share of the nominal misfit remaining) and where the
+    reference SAT's residual is largest (the operating region)."""
+    bad = [f for f in idn.causes if not f.consistent]
+    if not bad:
+        return None
+    f = bad[0]
+    remain = {k: idn.rss_best[k] / idn.rss_nominal[k] for k in idn.names if idn.rss_nominal[k] > 0}
+    signals = [k for k, v in sorted(remain.items(), key=lambda kv: -kv[1]) if v > 0.5][:5]
+    return {"forced_onto": f.candidate.key, "estimate": f.estimate,
+            "disagreeing_groups": {g: {k: v for k, v in i.items() if k != "points"} for g, i in f.groups.items()
+                                   if not i.get("agrees", True)},
+            "signals": signals or [max(remain, key=remain.__getitem__)],
+            "remaining_share": {k: round(v, 3) for k, v in remain.items()},
+            "region": _region(data, idn)}
+
+
+def _region(data: Data, idn: Identification) -> str:
+    """Where the front-left SAT residual of the best explanation is largest: |slip angle| and speed bins."""
+    n = "sat_fl_nm"
+    if n not in data.names:
+        return "no reference SAT"
+    xs, vs, es = [], [], []
+    for r, per_run in enumerate(idn.best_sims):
+        for s, item in enumerate(per_run):
+            ref = item if "truth" in item else idn.nominal_sims[r][s]
+            if "truth" not in ref:
+                continue
+            m = data.masks[n][r][s]
+            seg = data.runs[r].segments[s]
+            es.append(np.abs(data.runs[r].table[n][seg.start:seg.stop] - item["pred"][n])[m])
+            xs.append(np.degrees(np.abs(ref["truth"]["alpha_fl"]))[m])
+            vs.append(data.runs[r].table["vx_mps"][seg.start:seg.stop][m])
+    if not es:
+        return "unknown"
+    e, x, v = np.concatenate(es), np.concatenate(xs), np.concatenate(vs)
+    out = []
+    for what, arr, unit in (("|slip angle|", x, "deg"), ("speed", v, "m/s")):
+        edges = np.unique(np.quantile(arr, np.linspace(0, 1, 5)))
+        idx = np.clip(np.searchsorted(edges, arr, side="right") - 1, 0, len(edges) - 2)
+        means = [float(np.mean(e[idx == b])) if np.any(idx == b) else 0.0 for b in range(len(edges) - 1)]
+        b = int(np.argmax(means))
+        out.append(f"{what} {edges[b]:.3g}-{edges[b + 1]:.3g} {unit} (mean |SAT residual| {means[b]:.2f} Nm, "
+                   f"{means[b] / max(float(np.mean(e)), 1e-9):.1f}x the average)")
+    return "; ".join(out)
+
+
 def _score(f: Fit, f0: float, rss0: Mapping[str, float], feff: float, n_tot: int) -> None:
     c = f.candidate
     delta = max(f0 - f.m2ll, 0.0)
@@ -521,10 +738,11 @@ def _score(f: Fit, f0: float, rss0: Mapping[str, float], feff: float, n_tot: int
     f.variance_explained = float(1.0 - np.exp(-delta / n_tot))
     f.per_signal = {k: float(1.0 - f.rss[k] / rss0[k]) if rss0[k] > 0 else 0.0 for k in rss0}
     if f.curvature > 0:
-        half = 1.96 * np.sqrt(2.0 / (feff * f.curvature))
+        half = float(np.hypot(1.96 * np.sqrt(2.0 / (feff * f.curvature)), model_error(c, f.estimate)))
         f.ci95 = (float(f.estimate - half), float(f.estimate + half))
     else:
         f.ci95 = (float("-inf"), float("inf"))
+    _consistency(f, feff)
     dev = abs(f.estimate - c.nominal)
     excludes = not (f.ci95[0] <= c.nominal <= f.ci95[1])
     f.significant = bool(f.bic_gain > BIC_DECISIVE and dev > c.floor and excludes)
