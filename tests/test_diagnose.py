@@ -123,7 +123,7 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     assert OnnxModel.load(tmp_path / "e.onnx").predict(X[:3]).shape == (3, 2)
 
 
-def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shifts=None):
+def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shifts=None, backend="loky"):
     """Stands in for :func:`virtsensor.diagnose.resim.simulate_hypotheses`: a car whose every signal
     reads 0 whatever the hypothesis (same return layout: ``out[h][r][s]``)."""
     keep = list(keep_streams) if keep_streams is not None else [False] * len(hyps)
@@ -147,8 +147,9 @@ def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shif
 def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch, rho, n):
     """An offset of 0.3 m/s^2 on ay_mps2 and AR(1) noise of standard deviation sigma on every signal, on a
     car that reads 0: the offset's estimate is the mean of ay, whose standard error is
-    ``sigma sqrt((1 + rho) / ((1 - rho) m))`` (m samples compared). The 95 % interval must be 1.96 of
-    those (not the raw-n one, 3x narrower at rho 0.8) and cover the true offset 95 % of the time."""
+    ``sigma sqrt((1 + rho) / ((1 - rho) m))`` (m samples compared). The interval's statistical half-width
+    must be 1.96 of those (not the raw-n one, 3x narrower at rho 0.8); the whole interval adds the model
+    error in quadrature and covers the true offset at least 95 % of the time."""
     from pathlib import Path
 
     from scipy.signal import lfilter
@@ -177,9 +178,11 @@ def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch,
         assert res.n_eff_factor == pytest.approx((1 - rho) / (1 + rho), abs=0.1)
         lo, hi = res.best.ci95
         covered += lo <= true <= hi
-        ratios.append((hi - lo) / 2 / (1.96 * se))
+        ratios.append(res.best.half_stat / (1.96 * se))
+        assert (hi - lo) / 2 == pytest.approx(np.hypot(res.best.half_stat, idn.model_error(
+            res.best.candidate, res.best.estimate)))
     assert np.median(ratios) == pytest.approx(1.0, abs=0.15), np.median(ratios)
-    assert 0.88 <= covered / seeds <= 1.0, covered
+    assert covered / seeds >= 0.93, covered
 
 
 # ---------------------------------------------------------------------------------------- end to end
@@ -214,21 +217,26 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     assert np.isfinite([lo, hi]).all() and hi > lo, res["ci95"]
     assert not lo <= e.nominal <= hi, (res["ci95"], e.nominal)
     assert (hi - lo) / 2 < max(e.tolerance[0], e.tolerance[1] * abs(h.value - e.nominal)), res["ci95"]
-    assert res["mae_after_nm"] < res["mae_before_nm"], res
-    assert res["r2_after"] > res["r2_before"]
+    # the calibrated estimator is kept only when its held-out gain is more than noise
+    g = res["gain"]
+    assert g["better"] == (g["ci95_nm"][0] > 0)
+    assert res["estimator_kept"] == ("calibrated" if g["better"] else "nominal")
+    assert res["mae_after_nm"] <= res["mae_before_nm"], res
     # the result: its keys, and the values each one must have
-    assert set(res) == {
-        "cause", "signal", "estimate", "ci95", "unit", "nominal", "variance_explained", "signature", "candidates",
+    assert set(res) - {"gain_note"} == {
+        "cause", "causes", "unexplained", "run_conditions", "signal", "estimate", "ci95", "unit", "nominal",
+        "variance_explained", "signature", "second_stage", "candidates",
         "n_eff_factor", "message_shifts_s", "runs", "holdout_runs", "simulations", "seconds_identify",
         "comparison", "estimator", "estimator_on_diagnosis_runs", "mae_before_nm", "mae_after_nm", "r2_before",
-        "r2_after", "holdout_before", "holdout_after", "seconds_total"}
+        "r2_after", "holdout_before", "holdout_after", "gain", "estimator_kept", "seconds_total"}
+    assert res["causes"][0]["cause"] == res["cause"] and res["unexplained"] is None
     assert res["unit"] == (cat.SIGNALS[h.signal].unit if h.cause == "sensor_offset" else e.unit)
     assert res["nominal"] == e.nominal
     assert 0.0 < res["variance_explained"] <= 1.0 and 0.0 < res["n_eff_factor"] <= 1.0
     cands = res["candidates"]
     assert len(cands) > 20 and all(c["score"] == c["bic_gain"] for c in cands)
     assert [c["score"] for c in cands] == sorted((c["score"] for c in cands), reverse=True)
-    named = next(c for c in cands if c["significant"])  # the best-supported candidate that matters
+    named = next(c for c in cands if c["significant"] and c["consistent"])  # the best-supported that matters
     assert (named["cause"], named["signal"], named["estimate"], named["ci95"]) == (
         res["cause"], res["signal"], res["estimate"], res["ci95"])
     assert {r["name"] for r in res["runs"]} <= {p.stem for p in hidden_case.diagnosis} and res["runs"]
@@ -243,6 +251,7 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     assert (f"**{h.cause}**{on}: estimate {res['estimate']:.4g} {res['unit']} "
             f"(95 % interval {lo:.4g} to {hi:.4g}; nominal {e.nominal:.4g})") in md
     assert f"MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f} Nm" in md
+    assert f"estimator kept: {res['estimator_kept']}" in md
     assert f"({res['n_eff_factor']:.3f} x n" in md
 
 

@@ -107,8 +107,8 @@ def run(args: argparse.Namespace) -> int:
     if holdout and not args.holdout and not args.quiet:
         log(f"holding out {', '.join(r.name for r in holdout)} for the gain (give --holdout to choose)")
     res, art = diagnose(runs, holdout, base, mu=args.mu, conditions=conds, backend=args.backend,
-                        preset=args.campaign, recipe=args.recipe, seed=args.seed, max_iter=args.max_iter, ensemble=args.ensemble, n_jobs=args.n_jobs,
-                        retrain=not args.no_retrain, log=log)
+                        preset=args.campaign, recipe=args.recipe, seed=args.seed, max_iter=args.max_iter,
+                        ensemble=args.ensemble, n_jobs=args.n_jobs, retrain=not args.no_retrain, log=log)
     res["skipped_runs"] = [{"file": p, "reason": why} for p, why in skipped]
     if args.export_model:
         res["exported_model"] = _export(art["after"], res, args)

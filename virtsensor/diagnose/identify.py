@@ -128,6 +128,8 @@ class Fit:
     variance_explained: float = 0.0
     per_signal: dict[str, float] = field(default_factory=dict)
     significant: bool = False
+    sim_value: float | None = None    # the simulated value whose re-simulation stands for the fit
+    half_stat: float = float("nan")   # the interval's statistical half-width (before the model error)
     groups: dict[str, Any] = field(default_factory=dict)  # per signal group: its own estimate (sim-based fits)
     consistent: bool = True
 
@@ -138,7 +140,7 @@ class Fit:
             "nominal": c.nominal, "score": self.bic_gain, "bic_gain": self.bic_gain,
             "variance_explained": self.variance_explained, "significant": self.significant,
             "per_signal_variance_explained": self.per_signal, "evaluations": len(self.points),
-            "groups": self.groups, "consistent": self.consistent,
+            "half_width_statistical": self.half_stat, "groups": self.groups, "consistent": self.consistent,
         }
 
 
@@ -339,8 +341,13 @@ class _Search:
             # keep the new point inside the bracket and away from the ones we have
             u_new = float(np.clip(u_v, x[0] + 0.05 * (x[1] - x[0]), x[2] - 0.05 * (x[2] - x[1])))
             if np.min(np.abs(us - u_new)) < tol:
-                self.done = True
-                return None
+                # the vertex sits on a point we have: done if the bracket is narrow, else halve its wider side
+                # (a parabola through widely spread points misplaces the minimum)
+                wide = max(x[1] - x[0], x[2] - x[1])
+                if wide < 4 * tol:
+                    self.done = True
+                    return None
+                u_new = float(0.5 * (x[1] + (x[0] if x[1] - x[0] >= x[2] - x[1] else x[2])))
         return self.value(u_new)
 
     def estimate(self) -> tuple[float, float]:
@@ -448,9 +455,12 @@ def _feff(data: Data, stage: Stage) -> float:
 def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, log,
            feff: float | None = None) -> Stage:
     """Fit every candidate of ``cands`` over ``background`` (the simulations of the car the stage starts
-    from: nominal, or with the effects already named); score them, best first."""
+    from: nominal, or with the effects already named; None: simulated with the screening); score them,
+    best first."""
     searches = {c.key: _Search(c) for c in cands if c.needs_sim}
-    sims_of, _ = _screen(data, searches, sim, log)
+    sims_of, _ = _screen(data, searches, sim, log, with_background=background is None)
+    if background is None:
+        background = sims_of.pop(("", 0.0))
     rss0 = data.rss(background)
     f0 = data.m2ll(rss0)
     for s in searches.values():
@@ -459,7 +469,6 @@ def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, lo
             if not c.needs_sim and _excited(data, background, c)]
     ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP]
     _refine(data, ranked, sims_of, sim, log)
-    _simulate_estimates(data, searches, ranked, sims_of, sim)
     fits.extend(_search_fit(data, s, sims_of, background) for s in searches.values())
     stage = Stage(fits, background, rss0, f0, sims_of)
     if feff is None:
@@ -481,8 +490,10 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
     """A second cause on top of the first: the first stage's best-supported other candidates, fitted over the
     car with the first cause. Returns their fits (best first) and the simulations of the best explanation."""
     c1 = chosen.candidate
+    # re-simulated candidates only if they stood on their own in the first stage (each costs batches)
     keys = [f.candidate.key for f in first.fits if f.candidate.key != c1.key
-            and (c1.signal is None or f.candidate.signal != c1.signal) and f.bic_gain > 0][:SECOND_TOP]
+            and (c1.signal is None or f.candidate.signal != c1.signal) and f.bic_gain > 0
+            and (f.significant or not f.candidate.needs_sim)][:SECOND_TOP]
     pool = [c for c in cands if c.key in keys]
     if not pool:
         return [], best_sims
@@ -490,11 +501,11 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
     saved = sim.background
     sim.background = saved + ((c1.cause, chosen.estimate, c1.signal),)
     try:
-        st = _stage(data, sim, pool, best_sims, log, feff=feff)
+        st = _stage(data, sim, pool, None, log, feff=feff)
     finally:
         sim.background = saved
     pick = next((f for f in st.fits if f.significant), None)
-    return st.fits, (_sims_for(pick, best_sims, st.sims_of, data) if pick else best_sims)
+    return st.fits, _sims_for(pick, st.background, st.sims_of, data) if pick else st.background
 
 
 @dataclass
@@ -535,25 +546,27 @@ def _simulate_nominal(data: Data, sim: Sim, log) -> Any:
     return nominal
 
 
-def _screen(data: Data, searches: Mapping[str, _Search], sim: Sim, log) -> tuple[dict[tuple[str, float], Any], int]:
-    """Simulate every search's screening values in one batch and add their -2 log L to the searches.
+def _screen(data: Data, searches: Mapping[str, _Search], sim: Sim, log, with_background: bool = False
+            ) -> tuple[dict[tuple[str, float], Any], int]:
+    """Simulate every search's screening values in one batch and add their -2 log L to the searches;
+    ``with_background``: the background car itself too, in the same batch (``sims_of[("", 0.0)]``).
 
-    Returns the simulations by ``(candidate key, value)`` and the number of simulations run (the
-    nominal car counted)."""
-    hyps: list[Hypothesis] = []
-    owners: list[str] = []
+    Returns the simulations by ``(candidate key, value)`` and the number of simulations run."""
+    hyps: list[Hypothesis] = [NOMINAL] if with_background else []
+    owners: list[str] = [""] if with_background else []
     for key, search in searches.items():
         for v in search.screening():
             hyps.append(search.cand.hyp(v))
             owners.append(key)
     log(f"screening {len(hyps)} hypotheses")
-    sims = sim.run(hyps) if hyps else []
+    sims = sim.run(hyps, [True] * len(hyps)) if hyps else []
     sims_of: dict[tuple[str, float], Any] = {}
     for hyp, owner, out in zip(hyps, owners, sims, strict=True):
-        rss = data.rss(out)
-        searches[owner].add(hyp.value, data.m2ll(rss), rss)
         sims_of[(owner, hyp.value)] = out
-    return sims_of, 1 + len(hyps)
+        if owner:
+            rss = data.rss(out)
+            searches[owner].add(hyp.value, data.m2ll(rss), rss)
+    return sims_of, len(hyps)
 
 
 def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, float], Any], sim: Sim, log) -> int:
@@ -566,7 +579,7 @@ def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, floa
             break
         log(f"refining {', '.join(s.cand.key for s, _ in props)} (round {rnd + 1})")
         hs = [s.cand.hyp(v) for s, v in props]
-        out = sim.run(hs)
+        out = sim.run(hs, [True] * len(hs))
         n_sim += len(hs)
         for (s, v), o in zip(props, out, strict=True):
             rss = data.rss(o)
@@ -575,39 +588,24 @@ def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, floa
     return n_sim
 
 
-def _simulate_estimates(data: Data, searches: Mapping[str, _Search], ranked: Sequence[_Search],
-                        sims_of: dict[tuple[str, float], Any], sim: Sim) -> int:
-    """Simulate, in one batch, the estimates of the ``ranked`` searches not yet simulated (and not nominal);
-    the simulations go into ``sims_of``. Returns the number of simulations run."""
-    final_h: list[Hypothesis] = []
-    final_s: list[_Search] = []
-    for s in searches.values():
-        v, _ = s.estimate()
-        if s in ranked and (s.cand.key, v) not in sims_of and abs(v - s.cand.nominal) > 1e-12:
-            final_h.append(s.cand.hyp(v))
-            final_s.append(s)
-    if not final_h:
-        return 0
-    out = sim.run(final_h, [True] * len(final_h))
-    for s, h, o in zip(final_s, final_h, out, strict=True):
-        rss = data.rss(o)
-        s.add(h.value, data.m2ll(rss), rss)
-        sims_of[(s.cand.key, h.value)] = o
-    return len(final_h)
-
-
 def _search_fit(data: Data, s: _Search, sims_of: Mapping[tuple[str, float], Any], nominal: Any) -> Fit:
-    """A sim-based candidate's fit: at its estimate if that was simulated, else at the best point
-    evaluated, else at the nominal car."""
+    """A sim-based candidate's fit: the estimate is the vertex of the parabola through the best point
+    evaluated and its neighbours; its misfit (and simulations) those of the best point evaluated (the
+    search stops once a new point would fall within a tenth of a step of one it has). At the nominal car
+    when no value beats it."""
     v, c = s.estimate()
-    for v_use in (v, s.value(s.best()[0])):
-        if (s.cand.key, v_use) in sims_of:
-            sim = sims_of[(s.cand.key, v_use)]
-            break
+    vb = s.value(s.best()[0])
+    sv: float | None = None
+    if (s.cand.key, v) in sims_of:
+        v_use, sv = v, v
+    elif (s.cand.key, vb) in sims_of:
+        v_use, sv = v, vb
     else:
-        v_use, sim = s.cand.nominal, nominal
+        v_use = s.cand.nominal
+    sim = sims_of[(s.cand.key, sv)] if sv is not None else nominal
     rss = data.rss(sim)
-    fit = Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())])
+    fit = Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())],
+              sim_value=sv)
     fit.groups = {g: {"points": [(s.value(u), sum(data.n[k] * np.log(r[k] / data.n[k] + data.floor[k])
                                                   for k in sigs if k in r)) for u, r in sorted(s.rss.items())]}
                   for g, sigs in GROUPS.items() if any(k in data.names for k in sigs)}
@@ -629,7 +627,7 @@ def _sims_for(fit: Fit, nominal, sims_of, data: Data):
                 row.append(new)
             out.append(row)
         return out
-    return sims_of.get((c.key, fit.estimate), nominal)
+    return sims_of.get((c.key, fit.sim_value), nominal) if fit.sim_value is not None else nominal
 
 
 def model_error(c: Candidate, estimate: float) -> float:
@@ -738,7 +736,8 @@ def _score(f: Fit, f0: float, rss0: Mapping[str, float], feff: float, n_tot: int
     f.variance_explained = float(1.0 - np.exp(-delta / n_tot))
     f.per_signal = {k: float(1.0 - f.rss[k] / rss0[k]) if rss0[k] > 0 else 0.0 for k in rss0}
     if f.curvature > 0:
-        half = float(np.hypot(1.96 * np.sqrt(2.0 / (feff * f.curvature)), model_error(c, f.estimate)))
+        f.half_stat = float(1.96 * np.sqrt(2.0 / (feff * f.curvature)))
+        half = float(np.hypot(f.half_stat, model_error(c, f.estimate)))
         f.ci95 = (float(f.estimate - half), float(f.estimate + half))
     else:
         f.ci95 = (float("-inf"), float("inf"))
