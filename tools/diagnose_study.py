@@ -96,8 +96,10 @@ def run_case(spec: dict[str, Any], seed: int, base, before, args) -> dict[str, A
                          programme=DAY_PROGRAMME, surfaces=MIXED if mixed else None)
         t_gen = time.perf_counter() - t1
         try:
-            runs, hold = load_measured(case.diagnosis, skipped=[]), load_measured(case.holdout, skipped=[])
-            conds = load_conditions([r.path for r in runs], case.conditions, default_mu=None if mixed else 1.0)
+            skipped: list[tuple[str, str]] = []
+            runs, hold = load_measured(case.diagnosis, skipped=skipped), load_measured(case.holdout, skipped=[])
+            conds = load_conditions([r.path for r in runs], case.conditions, default_mu=None if mixed else 1.0,
+                                    also=[p for p, _ in skipped])
             t2 = time.perf_counter()
             res, _ = diagnose(runs, hold, base, conditions=conds, preset=args.preset, seed=args.seed,
                               max_iter=args.max_iter, ensemble=args.ensemble, n_jobs=args.n_jobs,

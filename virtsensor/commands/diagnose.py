@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
 
     # held-out runs may be listed in the conditions file too (their conditions are not used)
     conds = load_conditions([r.path for r in (*runs, *holdout)], Path(args.conditions) if args.conditions else None,
-                            default_mu=args.mu)[:len(runs)]
+                            default_mu=args.mu, also=[p for p, _ in skipped])[:len(runs)]
     for path, why in skipped:
         log(f"left out {path}: {why}")
     if holdout and not args.holdout and not args.quiet:

@@ -150,10 +150,11 @@ def read_csv(path: Path) -> dict[str, dict[str, tuple[float, float]]]:
 
 
 def load_conditions(paths: Sequence[Path], csv_path: Path | None = None, *,
-                    default_mu: float | None = None) -> list[RunConditions]:
-    """The conditions of each run (``paths``: the runs' files, in order)."""
+                    default_mu: float | None = None, also: Sequence[Path | str] = ()) -> list[RunConditions]:
+    """The conditions of each run (``paths``: the runs' files, in order); ``also``: files given but left out
+    (a CSV may list them)."""
     table = read_csv(csv_path) if csv_path is not None else {}
-    used: set[str] = set()
+    used: set[str] = {k for p in map(Path, also) for k in (str(p), p.name, p.stem)}
     out = []
     for p in paths:
         rc = RunConditions()
@@ -173,7 +174,7 @@ def load_conditions(paths: Sequence[Path], csv_path: Path | None = None, *,
             else:
                 rc.values["mu"], rc.source["mu"] = QUANTITIES["mu"].bounds, "not known"
         out.append(rc)
-    extra = sorted(set(table) - used)
+    extra = sorted(set(table) - used)  # a row naming none of the files given
     if extra and csv_path is not None:
         raise UserError(f"{csv_path}: {extra[0]} is not one of the measured runs")
     return out

@@ -8,7 +8,7 @@ residual variance over the whole day at the runs' best grid points) is profiled,
 and the estimate is the parabolic vertex around the grid's best point. The 95 %
 interval is where ``f_eff (J_r(v) - min J_r) <= 3.84`` (``f_eff``: the effective
 share of independent samples from the residuals' autocorrelation), read off the
-grid linearly. A run whose interval spans its whole range does not excite the
+grid by linear interpolation of the profile's square root. A run whose interval spans its whole range does not excite the
 quantity, and is said to; a run below its grip limit bounds the friction from
 below only (its interval reaches the top of the range).
 
@@ -66,7 +66,9 @@ def _interval(grid: np.ndarray, j: np.ndarray, feff: float) -> tuple[float, floa
         a, b, _ = np.polyfit(x, f, 2)
         if a > 0:
             est = float(np.clip(-b / (2 * a), x[0], x[2]))
-    d = feff * (j - j[i]) - CHI2_95
+    # the crossing of the 95 % level, interpolated on the square root of the profile (linear in the distance
+    # from the vertex for a parabola: no narrowing by the grid)
+    d = np.sqrt(np.maximum(feff * (j - j[i]), 0.0)) - np.sqrt(CHI2_95)
     lo, hi = float(grid[0]), float(grid[-1])
     for k in range(i, 0, -1):
         if d[k - 1] > 0 >= d[k]:
