@@ -434,7 +434,8 @@ def test_backend_ray_without_ray_is_one_line(monkeypatch, capsys, tmp_path):
     monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
     assert main(["diagnose", "--measured", str(tmp_path / "run01.csv"), "--backend", "ray", "--no-retrain"]) == 2
     err = capsys.readouterr().err
-    assert "--backend ray needs Ray: pip install 'virtsensor[distributed]'" in err and len(err.strip().splitlines()) == 1
+    assert "--backend ray needs Ray: pip install 'virtsensor[distributed]'" in err
+    assert len(err.strip().splitlines()) == 1
 
 
 # ------------------------------------------------------------------ a real test day: hidden, found by the pipeline
