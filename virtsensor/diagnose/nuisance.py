@@ -8,8 +8,9 @@ residual variance over the whole day at the runs' best grid points) is profiled,
 and the estimate is the parabolic vertex around the grid's best point. The 95 %
 interval is where ``f_eff (J_r(v) - min J_r) <= 3.84`` (``f_eff``: the effective
 share of independent samples from the residuals' autocorrelation), read off
-the grid by linear interpolation of the profile's square root. A run whose interval spans its whole range does not excite the
-quantity, and is said to; a run below its grip limit bounds the friction from
+the grid by linear interpolation of the profile's square root. A run whose
+interval spans its whole range does not excite the quantity, and is said to; a
+run below its grip limit bounds the friction from
 below only (its interval reaches the top of the range).
 
 The interval is then widened (in quadrature) by the simulator's own error on the
