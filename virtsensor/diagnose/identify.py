@@ -421,14 +421,20 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     conds = list(conditions) if conditions is not None else [RunConditions({"mu": (mu, mu)}) for _ in runs]
     data = Data(runs, names)
     sim = Sim(runs, base, names, nuisance.initial_day(conds), n_jobs=n_jobs, backend=backend)
-    nominal = _simulate_nominal(data, sim, log)
-    per_run: list[dict[str, Any]] = []
-    if any(rc.unknown() for rc in conds):
-        nominal, per_run = nuisance.fit(data, sim, conds, nominal, log)
     # road friction is a day-wide scale of known frictions: not identifiable when every run's is unknown
     known_mu = any(rc.exact("mu") is not None for rc in conds)
     cands = [c for c in candidates() if known_mu or c.cause != "road_friction"]
-    first = _stage(data, sim, cands, nominal, log)
+    per_run: list[dict[str, Any]] = []
+    if any(rc.unknown() for rc in conds):
+        # the nominal car and the per-run grids in one batch; then the day's cause at the identified values
+        grid = nuisance.grid(conds)
+        nominal, outs = _simulate_nominal(data, sim, log, [h for hs in grid.values() for h in hs])
+        nominal, per_run = nuisance.fit(data, sim, conds, nominal, log, grid, outs)
+        first = _stage(data, sim, cands, nominal, log)
+    else:  # the nominal car and the screening in one batch
+        searches = {c.key: _Search(c) for c in cands if c.needs_sim}
+        nominal, outs = _simulate_nominal(data, sim, log, _screening(searches)[0])
+        first = _stage(data, sim, cands, nominal, log, searches=searches, screened=outs)
     feff = first.feff
     fits = first.fits
     chosen = next((f for f in fits if f.significant), None)
@@ -453,12 +459,14 @@ def _feff(data: Data, stage: Stage) -> float:
 
 
 def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, log,
-           feff: float | None = None) -> Stage:
+           feff: float | None = None, searches: dict[str, _Search] | None = None,
+           screened: Sequence[Any] | None = None) -> Stage:
     """Fit every candidate of ``cands`` over ``background`` (the simulations of the car the stage starts
     from: nominal, or with the effects already named; None: simulated with the screening); score them,
-    best first."""
-    searches = {c.key: _Search(c) for c in cands if c.needs_sim}
-    sims_of, _ = _screen(data, searches, sim, log, with_background=background is None)
+    best first. ``searches`` and ``screened``: the searches whose screening was simulated already."""
+    if searches is None:
+        searches = {c.key: _Search(c) for c in cands if c.needs_sim}
+    sims_of = _screen(data, searches, sim, log, with_background=background is None, done=screened)
     if background is None:
         background = sims_of.pop(("", 0.0))
     rss0 = data.rss(background)
@@ -468,7 +476,7 @@ def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, lo
     fits = [_exact_fit(data, background, c, rss0) for c in cands
             if not c.needs_sim and _excited(data, background, c)]
     ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP]
-    _refine(data, ranked, sims_of, sim, log)
+    _refine(data, ranked, sims_of, sim, log, REFINE_ROUNDS if feff is None else SECOND_ROUNDS)
     fits.extend(_search_fit(data, s, sims_of, background) for s in searches.values())
     stage = Stage(fits, background, rss0, f0, sims_of)
     if feff is None:
@@ -481,8 +489,14 @@ def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, lo
     return stage
 
 
-#: candidates of the second stage: the first stage's best-supported ones (besides the named cause)
+#: candidates of the second stage: the first stage's best-supported ones (besides the named cause); its
+#: refinement rounds
 SECOND_TOP = 4
+SECOND_ROUNDS = 1
+#: a second cause must differ from nominal by at least this share of the smallest realistic size of its
+#: effect (the lower end of the catalogue's hidden range): the first cause's own error (within its stated
+#: accuracy) leaves residuals that a small second effect would otherwise soak up
+SECOND_SIZE = 0.5
 
 
 def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequence[Candidate], best_sims: Any,
@@ -499,13 +513,28 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
         return [], best_sims
     log(f"second stage over {c1.key} = {chosen.estimate:.4g}: {', '.join(keys)}")
     saved = sim.background
-    sim.background = saved + ((c1.cause, chosen.estimate, c1.signal),)
+    # over the first cause at the value whose re-simulation stands for it (its estimate for exact fits);
+    # re-simulated with the screening when there is one, else its simulations as they are
+    val = chosen.sim_value if chosen.sim_value is not None else chosen.estimate
+    sim.background = saved + ((c1.cause, val, c1.signal),)
     try:
-        st = _stage(data, sim, pool, None, log, feff=feff)
+        st = _stage(data, sim, pool, None if any(c.needs_sim for c in pool) else best_sims, log, feff=feff)
     finally:
         sim.background = saved
+    for f in st.fits:
+        f.significant = f.significant and abs(f.estimate - f.candidate.nominal) >= SECOND_SIZE * _smallest(f.candidate)
     pick = next((f for f in st.fits if f.significant), None)
     return st.fits, _sims_for(pick, st.background, st.sims_of, data) if pick else st.background
+
+
+def _smallest(c: Candidate) -> float:
+    """The smallest realistic deviation from nominal of a candidate's effect (sim.effects' hidden ranges)."""
+    if c.cause == "sensor_offset":
+        return OFFSET_RANGE[str(c.signal)][0]
+    lo = EFFECTS[c.cause].hidden[0]
+    if c.cause == "relaxation_length":  # drawn as a factor either way: the smaller step is 1 - 1/(1 + lo)
+        return 1.0 - 1.0 / (1.0 + lo)
+    return lo
 
 
 @dataclass
@@ -532,48 +561,61 @@ class Sim:
                                    keep_streams=keep, shifts=self.shifts, backend=self.backend)
 
 
-def _simulate_nominal(data: Data, sim: Sim, log) -> Any:
-    """Re-simulate ``data.runs`` with the nominal car, set ``data.shifts`` (the messages' reading ages) and
-    each item's ``pred`` (the compared signals on the table's ticks); return the nominal re-simulation."""
+def _simulate_nominal(data: Data, sim: Sim, log, extra: Sequence[Hypothesis] = ()) -> tuple[Any, list[Any]]:
+    """Re-simulate ``data.runs`` with the nominal car (and ``extra`` hypotheses in the same batch), set
+    ``data.shifts`` (the messages' reading ages, from the nominal car) and each item's ``pred`` (the compared
+    signals on the table's ticks); return the nominal re-simulation and the extra ones."""
     runs, names = data.runs, data.names
-    log(f"re-simulating {len(runs)} run(s) with the nominal car")
-    nominal = sim.run([NOMINAL], [True])[0]
+    log(f"re-simulating {len(runs)} run(s) with the nominal car" + (f" and {len(extra)} hypotheses" if extra else ""))
+    outs = sim.run([NOMINAL, *extra], [True] * (1 + len(extra)))
+    nominal = outs[0]
     data.shifts = align(runs, nominal, names)
     sim.shifts = data.shifts
-    for r, per_run in enumerate(nominal):
-        for g, item in enumerate(per_run):
-            item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, data.shifts)
-    return nominal
+    for out in outs:
+        for r, per_run in enumerate(out):
+            for g, item in enumerate(per_run):
+                if item:
+                    item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, data.shifts)
+    return nominal, outs[1:]
 
 
-def _screen(data: Data, searches: Mapping[str, _Search], sim: Sim, log, with_background: bool = False
-            ) -> tuple[dict[tuple[str, float], Any], int]:
-    """Simulate every search's screening values in one batch and add their -2 log L to the searches;
-    ``with_background``: the background car itself too, in the same batch (``sims_of[("", 0.0)]``).
-
-    Returns the simulations by ``(candidate key, value)`` and the number of simulations run."""
-    hyps: list[Hypothesis] = [NOMINAL] if with_background else []
-    owners: list[str] = [""] if with_background else []
+def _screening(searches: Mapping[str, _Search]) -> tuple[list[Hypothesis], list[str]]:
+    """Every search's screening hypotheses and the key of the search each belongs to."""
+    hyps: list[Hypothesis] = []
+    owners: list[str] = []
     for key, search in searches.items():
         for v in search.screening():
             hyps.append(search.cand.hyp(v))
             owners.append(key)
-    log(f"screening {len(hyps)} hypotheses")
-    sims = sim.run(hyps, [True] * len(hyps)) if hyps else []
+    return hyps, owners
+
+
+def _screen(data: Data, searches: Mapping[str, _Search], sim: Sim, log, with_background: bool = False,
+            done: Sequence[Any] | None = None) -> dict[tuple[str, float], Any]:
+    """Simulate every search's screening values in one batch (``done``: already simulated, in the order of
+    :func:`_screening`) and add their -2 log L to the searches; ``with_background``: the background car itself
+    too, in the same batch (``sims_of[("", 0.0)]``). Returns the simulations by ``(candidate key, value)``."""
+    hyps, owners = _screening(searches)
+    if with_background:
+        hyps, owners = [NOMINAL, *hyps], ["", *owners]
+    if done is None:
+        log(f"screening {len(hyps)} hypotheses")
+    sims = list(done) if done is not None else (sim.run(hyps, [True] * len(hyps)) if hyps else [])
     sims_of: dict[tuple[str, float], Any] = {}
     for hyp, owner, out in zip(hyps, owners, sims, strict=True):
         sims_of[(owner, hyp.value)] = out
         if owner:
             rss = data.rss(out)
             searches[owner].add(hyp.value, data.m2ll(rss), rss)
-    return sims_of, len(hyps)
+    return sims_of
 
 
-def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, float], Any], sim: Sim, log) -> int:
-    """Up to :data:`REFINE_ROUNDS` rounds of the ``ranked`` searches' proposals, one batch per round; the
+def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, float], Any], sim: Sim, log,
+            rounds: int = REFINE_ROUNDS) -> int:
+    """Up to ``rounds`` rounds of the ``ranked`` searches' proposals, one batch per round; the
     simulations go into ``sims_of``. Returns the number of simulations run."""
     n_sim = 0
-    for rnd in range(REFINE_ROUNDS):
+    for rnd in range(rounds):
         props = [(s, v) for s in ranked if not s.done for v in [s.propose()] if v is not None]
         if not props:
             break

@@ -82,23 +82,36 @@ def _interval(grid: np.ndarray, j: np.ndarray, feff: float) -> tuple[float, floa
     return est, min(lo, est), max(hi, est)
 
 
-def fit(data, sim, conds: Sequence[Any], nominal: Any, log) -> tuple[Any, list[dict[str, Any]]]:
-    """Identify every run's ranged quantities (see the module docstring); ``sim.day`` is updated.
+def grid(conds: Sequence[Any]) -> dict[str, list[Any]]:
+    """Per ranged quantity, the :data:`GRID` hypotheses that re-simulate every run with it unknown at its
+    own grid points (the others keep their values)."""
+    from virtsensor.diagnose.resim import Hypothesis
+
+    out = {}
+    for q in sorted({q for rc in conds for q in rc.unknown()}):
+        who = [r for r, rc in enumerate(conds) if q in rc.unknown()]
+        grids = {r: np.linspace(*conds[r].unknown()[q], GRID) for r in who}
+        out[q] = [Hypothesis(runs=tuple((r, q, float(grids[r][k])) for r in who), only=tuple(who))
+                  for k in range(GRID)]
+    return out
+
+
+def fit(data, sim, conds: Sequence[Any], nominal: Any, log, hyps_of: dict[str, list[Any]],
+        outs_all: Sequence[Any]) -> tuple[Any, list[dict[str, Any]]]:
+    """Identify every run's ranged quantities (see the module docstring) from the re-simulations ``outs_all``
+    of the hypotheses :func:`grid` gave (``hyps_of``, in order); ``sim.day`` is updated.
 
     Returns the re-simulation at the identified values (runs with nothing unknown keep their
     ``nominal`` items) and, per run, ``{quantity: {"estimate", "ci95", "range", "excited"}}``."""
-    from virtsensor.diagnose.resim import Hypothesis
-
     per_run: list[dict[str, Any]] = [{} for _ in conds]
     current = [list(r) for r in nominal]
-    quantities = sorted({q for rc in conds for q in rc.unknown()})
-    for q in quantities:
+    at = 0
+    for q, hyps in hyps_of.items():
         who = [r for r, rc in enumerate(conds) if q in rc.unknown()]
         grids = {r: np.linspace(*conds[r].unknown()[q], GRID) for r in who}
         log(f"identifying {q} of {len(who)} run(s) on a {GRID}-point grid each")
-        hyps = [Hypothesis(runs=tuple((r, q, float(grids[r][k])) for r in who), only=tuple(who))
-                for k in range(GRID)]
-        outs = sim.run(hyps, [True] * GRID)
+        outs = list(outs_all[at:at + len(hyps)])
+        at += len(hyps)
         rss = {r: [_per_run_rss(data, outs[k], r) for k in range(GRID)] for r in who}
         # each signal's variance over the day, at each run's best grid point (others: current items)
         best_k = {r: int(np.argmin([sum(v.values()) / max(sum(data.n.values()), 1) for v in rss[r]])) for r in who}
