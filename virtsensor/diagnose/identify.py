@@ -441,14 +441,61 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     causes = [chosen] if chosen else []
     second: list[Fit] = []
     best_sims = _sims_for(chosen, nominal, first.sims_of, data) if chosen else nominal
+    if chosen is not None and per_run:
+        chosen, per_run = _joint_pass(data, sim, conds, first, chosen, best_sims, log)
+        nominal = first.background
+        best_sims = _sims_for(chosen, nominal, first.sims_of, data)
+        causes = [chosen] if chosen.significant else []
+        chosen = chosen if chosen.significant else None
     if chosen is not None:
         second, best_sims = _second_stage(data, sim, first, chosen, cands, best_sims, feff, log)
         causes += [f for f in second if f.significant][:1]
     rss_best = data.rss(best_sims)
-    idn = Identification(fits, chosen, first.rss0, dict(data.n), feff, nominal, best_sims, sim.count, data.names,
+    idn = Identification(first.fits, chosen, first.rss0, dict(data.n), feff, nominal, best_sims, sim.count, data.names,
                          data.shifts, causes, second, per_run, sim.day, None, rss_best)
     idn.unexplained = _unexplained(data, idn)
     return idn
+
+
+def _joint_pass(data: Data, sim: Sim, conds: Sequence[Any], first: Stage, chosen: Fit, chosen_sims: Any,
+                log) -> tuple[Fit, list[dict[str, Any]]]:
+    """One more pass of the joint fit of the day's cause and the per-run nuisance values: the runs' values
+    identified again over the car with the cause, then the cause refitted at them (its estimate and a third of
+    its screening step either side, with the nominal car, in one batch). ``first`` is updated in place (its
+    background, the nominal car at the new values; the refitted fit replaces ``chosen``)."""
+    from virtsensor.diagnose import nuisance
+
+    c = chosen.candidate
+    val = chosen.sim_value if chosen.sim_value is not None else chosen.estimate
+    saved = sim.background
+    sim.background = saved + ((c.cause, val, c.signal),)
+    try:
+        grid = nuisance.grid(conds)
+        log(f"re-identifying the per-run conditions over {c.key} = {val:.4g}")
+        outs = sim.run([h for hs in grid.values() for h in hs], [True] * sum(map(len, grid.values())))
+        _, per_run = nuisance.fit(data, sim, conds, chosen_sims, log, grid, outs)
+    finally:
+        sim.background = saved
+    search = _Search(c)
+    u0, h = search.u(chosen.estimate), abs(c.step) / 3.0
+    vals = [search.value(u) for u in (u0 - h, u0, u0 + h) if search.ulo <= u <= search.uhi] if c.needs_sim else []
+    log(f"refitting {c.key} at the new per-run conditions")
+    out = sim.run([NOMINAL, *[c.hyp(v) for v in vals]], [True] * (1 + len(vals)))
+    first.background = out[0]
+    first.rss0 = data.rss(out[0])
+    first.f0 = data.m2ll(first.rss0)
+    if c.needs_sim:
+        search.add(c.nominal, first.f0, first.rss0)
+        for v, o in zip(vals, out[1:], strict=True):
+            rss = data.rss(o)
+            search.add(v, data.m2ll(rss), rss)
+            first.sims_of[(c.key, v)] = o
+        fit = _search_fit(data, search, first.sims_of, first.background)
+    else:
+        fit = _exact_fit(data, first.background, c, first.rss0)
+    _score(fit, first.f0, first.rss0, first.feff, sum(data.n.values()))
+    first.fits = sorted((fit if f is chosen else f for f in first.fits), key=lambda f: -f.bic_gain)
+    return fit, per_run
 
 
 def _feff(data: Data, stage: Stage) -> float:
@@ -505,13 +552,15 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
     car with the first cause. Returns their fits (best first) and the simulations of the best explanation."""
     c1 = chosen.candidate
     # re-simulated candidates only if they stood on their own in the first stage (each costs batches)
-    keys = [f.candidate.key for f in first.fits if f.candidate.key != c1.key
-            and (c1.signal is None or f.candidate.signal != c1.signal) and f.bic_gain > 0
-            and (f.significant or not f.candidate.needs_sim)][:SECOND_TOP]
+    # every sensor effect fitted exactly (cheap), and the best re-simulated candidates that stood on their own
+    others = [f for f in first.fits if f.candidate.key != c1.key and (c1.signal is None or f.candidate.signal !=
+                                                                       c1.signal)]
+    keys = [f.candidate.key for f in others if not f.candidate.needs_sim] + \
+        [f.candidate.key for f in others if f.candidate.needs_sim and f.significant][:SECOND_TOP]
     pool = [c for c in cands if c.key in keys]
     if not pool:
         return [], best_sims
-    log(f"second stage over {c1.key} = {chosen.estimate:.4g}: {', '.join(keys)}")
+    log(f"second stage over {c1.key} = {chosen.estimate:.4g}: {len(keys)} candidates")
     saved = sim.background
     # over the first cause at the value whose re-simulation stands for it (its estimate for exact fits);
     # re-simulated with the screening when there is one, else its simulations as they are
