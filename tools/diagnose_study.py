@@ -24,6 +24,7 @@ Usage::
 
     python tools/diagnose_study.py --out study            # all 40 cases; resumable
     python tools/diagnose_study.py --out study --only 3 7  # some cases again
+    python tools/diagnose_study.py --out study --no-retrain # the diagnosis only (no gain measured)
     # -> study/cases/NN.json (one per case, written as it ends), study/study.json, study/study.md
 
 A case already in ``study/cases`` is not run again (delete its file to re-run it).
@@ -103,7 +104,7 @@ def run_case(spec: dict[str, Any], seed: int, base, before, args) -> dict[str, A
             t2 = time.perf_counter()
             res, _ = diagnose(runs, hold, base, conditions=conds, preset=args.preset, seed=args.seed,
                               max_iter=args.max_iter, ensemble=args.ensemble, n_jobs=args.n_jobs,
-                              backend=args.backend, before=before)
+                              backend=args.backend, before=before, retrain=not args.no_retrain)
             t_diag = time.perf_counter() - t2
         except Exception as exc:  # a failed case is a result of the study, not its end
             print(f"case {spec['case']}: {type(exc).__name__}: {exc}", file=sys.stderr)
@@ -161,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ensemble", type=int, default=3, help="networks averaged per estimator")
     ap.add_argument("--n-jobs", type=int, default=2)
     ap.add_argument("--backend", default="loky", choices=("loky", "ray"))
+    ap.add_argument("--no-retrain", action="store_true",
+                    help="diagnosis only: no calibration, retraining or held-out gain (a quarter of the time)")
     args = ap.parse_args(argv)
 
     from sim.params import car_parameters
@@ -172,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     todo = [s for s in specs if not (cases_dir / f"{s['case']:02d}.json").exists()]
     base = car_parameters()
     before = None
-    if todo:
+    if todo and not args.no_retrain:
         t0 = time.perf_counter()
         before = calibrate.train(base, preset=args.preset, seed=0, n_jobs=args.n_jobs, max_iter=args.max_iter,
                                  ensemble=args.ensemble)
@@ -202,8 +205,9 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, Any]:
     singles = by["single"] + by["mixed"]
     named = [f for r in rows if r["kind"] in ("single", "mixed", "two") for f in r["found"] if f["named"]]
     gains = [(r["mae_before_nm"] - r["mae_after_nm"]) / r["mae_before_nm"] for r in rows
-             if r["kind"] in ("single", "mixed", "two") and r.get("mae_before_nm")]
-    worse = [r for r in rows if r.get("mae_before_nm") and r["mae_after_nm"] > r["mae_before_nm"]]
+             if r["kind"] in ("single", "mixed", "two") and r.get("mae_before_nm") and r.get("mae_after_nm")]
+    worse = [r for r in rows if r.get("mae_before_nm") and r.get("mae_after_nm") and
+             r["mae_after_nm"] > r["mae_before_nm"]]
     mus = [m for r in rows for m in r.get("mu", []) if m["excited"]]
     secs = [r["seconds_diagnose"] for r in rows if r.get("seconds_diagnose") == r.get("seconds_diagnose")]
     return {

@@ -10,6 +10,9 @@ Measured runs are CAN logs (decoded through the DBC), MDF4 files or canonical
 20 Hz CSV tables with the 12 inputs and the reference SATs. ``--holdout`` runs
 are used only to measure the estimator before and after the calibration; without
 it, the last third of the ``--measured`` runs is held out (when there are 3 or more).
+``--conditions`` (or a JSON beside each run) states what is known of each run (see
+:mod:`virtsensor.diagnose.conditions`); ``--backend ray`` runs the re-simulations on
+a Ray cluster.
 """
 
 from __future__ import annotations

@@ -2,14 +2,17 @@
 
 :func:`diagnose` is the whole procedure behind ``virtsensor diagnose``:
 
-1. load and check the measured runs (:mod:`virtsensor.recordings.measured`);
-2. re-simulate them from their driver inputs and compare signal by signal
+1. load and check the measured runs (:mod:`virtsensor.recordings.measured`) and their
+   conditions (:mod:`virtsensor.diagnose.conditions`);
+2. re-simulate them from their driver inputs, identify each run's unknown conditions
+   (:mod:`virtsensor.diagnose.nuisance`) and compare signal by signal
    (:mod:`virtsensor.diagnose.compare`);
-3. identify every candidate effect of :mod:`sim.effects` and name the best
-   explanation, or ``none`` (:mod:`virtsensor.diagnose.identify`);
-4. calibrate the simulator with it, regenerate the training campaign, retrain
+3. identify every candidate effect of :mod:`sim.effects` and name the explanations,
+   best first, or ``none``, or ``unexplained`` (:mod:`virtsensor.diagnose.identify`);
+4. calibrate the simulator with them, regenerate the training campaign, retrain
    (:mod:`virtsensor.diagnose.calibrate`);
-5. score the estimator before and after on held-out measured runs.
+5. score the estimator before and after on held-out measured runs, and keep the
+   calibrated one only if its gain is more than noise.
 """
 
 from __future__ import annotations
