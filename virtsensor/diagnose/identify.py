@@ -145,6 +145,7 @@ class Fit:
     significant: bool = False
     sim_value: float | None = None    # the simulated value whose re-simulation stands for the fit
     half_stat: float = float("nan")   # the interval's statistical half-width (before the model error)
+    group_spread: float = 0.0         # largest distance of a signal group's own estimate from the estimate
     groups: dict[str, Any] = field(default_factory=dict)  # per signal group: its own estimate (sim-based fits)
     consistent: bool = True
 
@@ -155,7 +156,8 @@ class Fit:
             "nominal": c.nominal, "score": self.bic_gain, "bic_gain": self.bic_gain,
             "variance_explained": self.variance_explained, "significant": self.significant,
             "per_signal_variance_explained": self.per_signal, "evaluations": len(self.points),
-            "half_width_statistical": self.half_stat, "groups": self.groups, "consistent": self.consistent,
+            "half_width_statistical": self.half_stat, "group_spread": self.group_spread, "groups": self.groups,
+            "consistent": self.consistent,
         }
 
 
@@ -750,21 +752,27 @@ GROUP_INFORMATIVE = 6.63
 
 
 def _consistency(f: Fit, feff: float) -> None:
-    """Each signal group's own estimate of a sim-based fit and whether they agree: a group that is informative
-    (its evidence varies by more than :data:`GROUP_INFORMATIVE` over the values evaluated) must have its best
-    value within the sum of its and the fit's 95 % half-widths of the fit's estimate (each counting the
-    simulator's model error, :func:`model_error`)."""
+    """Each signal group's own estimate of a sim-based fit and whether they agree. A group disagrees when it is
+    informative (its evidence varies by more than :data:`GROUP_INFORMATIVE` over the values evaluated), its
+    best value is further from the fit's estimate than
+    the sum of their 95 % half-widths (each counting the simulator's model error, :func:`model_error`), and it
+    contradicts the fit (:func:`_contradicts`). The largest distance of an informative group's estimate from
+    the fit's (the model error of this day, seen by the signals) widens the fit's interval, in quadrature."""
     if not f.groups or not np.all(np.isfinite(f.ci95)):
         return
     c = f.candidate
     half = 0.5 * (f.ci95[1] - f.ci95[0])
     ok = True
-    for info in f.groups.values():
+    ranges = {g: np.ptp([p[1] for p in i.get("points", [])]) * feff if len(i.get("points", [])) else 0.0
+              for g, i in f.groups.items()}
+    total = sum(ranges.values())
+    for g, info in f.groups.items():
         pts = sorted(info.pop("points", []))
         if len(pts) < 3:
             continue
         x = np.array([p[0] for p in pts])
         y = feff * np.array([p[1] for p in pts])
+        info["evidence_share"] = float(ranges[g] / total) if total > 0 else 0.0
         info["informative"] = bool(y.max() - y.min() > GROUP_INFORMATIVE)
         i = int(np.argmin(y))
         v, stat = float(x[i]), 0.0
@@ -775,12 +783,26 @@ def _consistency(f: Fit, feff: float) -> None:
                 stat = 1.96 * np.sqrt(2.0 / (feff * curv))
         h = float(np.hypot(stat, model_error(c, v)))
         info.update(estimate=v, half_width=h)
-        if info["informative"] and abs(v - f.estimate) > h + half:
-            info["agrees"] = False
-            ok = False
-        else:
-            info["agrees"] = True
+        info["agrees"] = not (info["informative"] and abs(v - f.estimate) > h + half and _contradicts(c, f, v, h))
+        ok = ok and info["agrees"]
     f.consistent = ok
+    # the groups' own estimates differ by the re-simulation's model error on this day: the interval counts it
+    spread = max((abs(i["estimate"] - f.estimate) for i in f.groups.values() if i.get("informative")), default=0.0)
+    f.group_spread = float(spread)
+    if spread > 0:
+        w = float(np.hypot(half, spread))
+        f.ci95 = (float(f.estimate - w), float(f.estimate + w))
+
+
+def _contradicts(c: Candidate, f: Fit, v: float, h: float) -> bool:
+    """Whether a group's own estimate ``v`` (half-width ``h``) contradicts the fit, not merely sizes it
+    differently (which the re-simulation's model error does): it sees no effect (nominal within its interval),
+    an effect the other way, or one beyond the catalogue's bounds for it."""
+    lo, hi = c.bounds
+    span = (hi - lo) if np.isfinite(hi - lo) else 8 * abs(c.step)
+    at_bound = min(abs(v - lo), abs(v - hi)) < 1e-3 * span
+    other_way = (v - c.nominal) * (f.estimate - c.nominal) < 0
+    return bool(abs(v - c.nominal) <= h or other_way or at_bound)
 
 
 def _unexplained(data: Data, idn: Identification) -> dict[str, Any] | None:
