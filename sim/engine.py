@@ -35,7 +35,10 @@ TRUTH_SCALARS = (
     "ax_true_mps2", "ay_true_mps2", "steer_angle_true_rad", "steer_torque_true_nm",
     "assist_torque_true_nm", "motor_torque_true_nm", "road_mu", "steer_angle_cmd_rad",
 )
-TRUTH_WHEELS = ("alpha", "kappa", "fz", "fy", "fx", "delta", "sat", "comp", "omega", "re", "pressure")
+TRUTH_WHEELS = ("alpha", "kappa", "fz", "fy", "fx", "delta", "sat", "comp", "omega", "re", "pressure", "util")
+#: a tyre's friction utilisation sqrt(Fx^2 + Fy^2) / (mu Fz) (road mu) is recorded up to this (a wheel lifting
+#: off, Fz -> 0, would make it unbounded)
+UTIL_MAX = 2.0
 
 
 @dataclass
@@ -212,3 +215,9 @@ def _record(rec: dict[str, np.ndarray], j: int, x: np.ndarray, aux: Mapping[str,
     for i, name in enumerate(WHEELS):
         rec[f"omega_{name}"][:, j] = om[:, i]
         rec[f"pressure_{name}"][:, j] = veh.pressure[:, i]
+    # friction utilisation of each tyre against the road's mu (the issue-19 truth); 0/0 (unloaded) -> UTIL_MAX
+    demand = np.hypot(aux["fx"], aux["fy"])
+    cap = np.asarray(u.mu, dtype=float)[:, None] * aux["fz"]
+    util = np.where(cap > 1e-9, demand / np.maximum(cap, 1e-9), UTIL_MAX)
+    for i, name in enumerate(WHEELS):
+        rec[f"util_{name}"][:, j] = np.minimum(util[:, i], UTIL_MAX)

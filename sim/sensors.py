@@ -57,6 +57,8 @@ TRUTH_COLUMNS: dict[str, str] = {
     "vy_mps": "vy_mps",
     "roll_rad": "roll_rad",
     "road_mu": "road_mu",
+    "util_fl_1": "util_fl",
+    "util_fr_1": "util_fr",
     "steer_angle_cmd_rad": "steer_angle_cmd_rad",
     "x_m": "x_m",
     "y_m": "y_m",

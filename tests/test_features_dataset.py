@@ -34,16 +34,20 @@ def synthetic_table(n: int, seed: int, mu: float = 1.0) -> dict[str, np.ndarray]
 def test_offline_and_online_feature_vectors_are_identical():
     table = synthetic_table(200, 1)
     X = HISTORY.transform(table)
-    builder = FeatureBuilder(HISTORY)
-    rows = []
-    for i in range(200):
-        v = builder.push(np.array([table[s][i] for s in HISTORY.signals]))
-        rows.append(np.full(len(HISTORY.features), np.nan) if v is None else v.copy())
-    online = np.array(rows)
-    assert np.isnan(X[: HISTORY.history]).any(axis=1).all()
     ok = np.isfinite(X).all(axis=1)
+    assert np.isnan(X[: HISTORY.history]).any(axis=1).all()
     assert ok.sum() == 200 - HISTORY.history
-    np.testing.assert_array_equal(online[ok], X[ok])
+    for as_list in (False, True):  # the daemon pushes its list of held values; tests and tools push arrays
+        builder = FeatureBuilder(HISTORY)
+        rows = []
+        for i in range(200):
+            vals = [float(table[s][i]) for s in HISTORY.signals]
+            v = builder.push(vals if as_list else np.array(vals))
+            rows.append(np.full(len(HISTORY.features), np.nan) if v is None else v.copy())
+        online = np.array(rows)
+        np.testing.assert_array_equal(online[ok], X[ok])
+        builder.reset()
+        assert builder.push(vals) is None and not builder.ready
 
 
 def test_rate_and_accel_features_are_derivatives():
@@ -153,6 +157,7 @@ def test_train_and_evaluate_from_the_command_line(tmp_path, capsys):
         assert set(res[key]) == {"train", "test", "grouped", "track_dry", "track_wet"}
     assert set(res["baselines"]) == {"linear", "eq1_observer"}
     assert {"track_dry", "track_wet"} <= set(res["shipped_model"])
+    assert res["grip"] is None  # (synthetic tables carry no grip truth: no grip figures)
     assert "Magny-Cours dry asphalt" in capsys.readouterr().out
     # a recording without a needed signal is refused, naming it (one line, exit 2)
     bad = _write_runs(tmp_path / "bad", n_runs=1)

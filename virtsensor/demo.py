@@ -42,6 +42,7 @@ import numpy as np
 
 from virtsensor import plotting
 from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
+from virtsensor.demogrip import GRIP_SIGNALS, grip_line, grip_summary, plot_grip
 from virtsensor.errors import UserError
 from virtsensor.fileio import check_writable, write_json
 from virtsensor.metrics import mae, r2
@@ -104,6 +105,14 @@ def _shown(path: Path) -> str:
         return str(path)
 
 
+def _road_mu(recording: Path) -> float | None:
+    """The road friction the recording's ``.json`` sidecar states (a simulated run), or None."""
+    try:
+        return float(json.loads(recording.with_suffix(".json").read_text())["mu"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def _describe(recording: Path) -> str:
     """One line about a recording, from its ``.json`` sidecar when there is one."""
     try:
@@ -137,6 +146,7 @@ class _Ticks:
     true: list[tuple[float, float]] = field(default_factory=list)
     status: list[tuple[int, int]] = field(default_factory=list)
     latency_ms: list[float] = field(default_factory=list)
+    grip: list[tuple[float, float, float, float]] = field(default_factory=list)  # VS_Grip per tick, in order
 
 
 class _StampingBus:
@@ -157,7 +167,7 @@ def _load_frames(recording: Path, matrix: Any) -> tuple[list[Any], int]:
     """The recording's frames in time order, without the daemon's own outputs (returned: how many dropped)."""
     from virtsensor.recordings.canlog import iter_log
 
-    own = {matrix.messages[m].frame_id for m in ("SAT_FRONT", "VS_Health")}
+    own = {matrix.messages[m].frame_id for m in ("SAT_FRONT", "VS_Health", "VS_Grip") if m in matrix.messages}
     frames, dropped = [], 0
     for m in iter_log(recording):
         if m.is_error_frame or m.is_remote_frame:
@@ -249,6 +259,7 @@ class _Plan:
     duration: float  # s, first to last frame of the recording
     merged: list[Any]  # frames and sync frames, time order
     n_sync: int
+    grip_id: int | None = None  # VS_Grip (None: the matrix has none)
 
 
 def _options(model: str | os.PathLike | None, recording: str | os.PathLike | None, rate: float | str | None,
@@ -289,7 +300,8 @@ def _plan(rec_path: Path) -> _Plan:
     has_truth = any(m.arbitration_id == te and not m.is_extended_id for m in frames)
     duration = frames[-1].timestamp - frames[0].timestamp
     merged, n_sync = _with_sync(frames, sync_id)
-    return _Plan(matrix, frames, dropped, sync_id, te, sat_id, has_truth, duration, merged, n_sync)
+    grip_id = matrix.messages["VS_Grip"].frame_id if "VS_Grip" in matrix.messages else None
+    return _Plan(matrix, frames, dropped, sync_id, te, sat_id, has_truth, duration, merged, n_sync, grip_id)
 
 
 def run_demo(
@@ -379,6 +391,7 @@ def _add_figures(result: dict[str, Any], ticks: _Ticks, stats: dict[str, Any], o
     status = np.array(ticks.status, dtype=int).reshape(-1, 2)
     metrics = _metrics(est, true, status) if plan.has_truth else None
     lat = np.array(ticks.latency_ms, dtype=float)
+    result["grip"] = grip_summary(ticks.t, ticks.grip, _road_mu(opts.rec_path)) if ticks.grip else None
     result.update(
         recording=str(opts.rec_path), recording_description=_describe(opts.rec_path), model=str(opts.model_path),
         model_sha256=model_sha256, rate="max" if opts.rate_f is None else opts.rate_f,
@@ -471,6 +484,11 @@ class _Listener:
             if d is not None:
                 self.truth[0] = d.values.get("sat_fl_nm", self.truth[0])
                 self.truth[1] = d.values.get("sat_fr_nm", self.truth[1])
+            return
+        if fid == self.plan.grip_id:
+            d = self.dec.decode(fid, msg.data, msg.timestamp)
+            if d is not None:
+                self.ticks.grip.append(tuple(d.other.get(k, math.nan) for k in GRIP_SIGNALS))  # type: ignore[arg-type]
             return
         if fid == self.plan.sync_id:
             self.snaps.append((msg.timestamp - self.sync_offset_s - self.t_first, self.truth[0], self.truth[1]))
@@ -611,6 +629,8 @@ def _print_summary(r: dict[str, Any], out: TextIO) -> None:
           f"SAT_FRONT sent, {lat['n']} ticks){own}"
           + ("" if r["rate"] != "max" and r["rate"] <= 1.0 else
              "\n  (the player runs faster than real time in this process: latency is representative at --rate 1)"))
+    if r.get("grip"):
+        p(grip_line(r["grip"]))
     if r["plot"]:
         p(f"plot: {_shown(Path(r['plot']))}")
     elif r["plot_skipped"] != "no plot asked for":
@@ -624,8 +644,10 @@ def _plot(path: Path, ticks: _Ticks, metrics: dict[str, Any] | None, r: dict[str
     t = np.array(ticks.t)
     est = np.array(ticks.est, dtype=float).reshape(-1, 2)
     true = np.array(ticks.true, dtype=float).reshape(-1, 2)
-    fig = plotting.figure(11, 8, what="the demo plot")
-    axes = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 3, 2]})
+    grip = np.array(ticks.grip, dtype=float).reshape(-1, 4)[: len(t)]
+    fig = plotting.figure(11, 10.5 if len(grip) else 8, what="the demo plot")
+    axes = fig.subplots(4 if len(grip) else 3, 1, sharex=True,
+                        gridspec_kw={"height_ratios": [3, 3, 2, 3] if len(grip) else [3, 3, 2]})
     colors = {"fl": "tab:blue", "fr": "tab:orange"}
     for k, (w, label) in enumerate((("fl", "front left"), ("fr", "front right"))):
         ax = axes[k]
@@ -641,9 +663,12 @@ def _plot(path: Path, ticks: _Ticks, metrics: dict[str, Any] | None, r: dict[str
         ax.plot(t, est[:, k] - true[:, k], color=colors[w], lw=1.0, label=w.upper())
     ax.axhline(0.0, color="k", lw=0.6)
     ax.set_ylabel("error [Nm]")
-    ax.set_xlabel("time [s]")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=8)
+    if len(grip):  # VS_Grip: utilisation, warning, friction against the road's
+        g = r.get("grip") or {}
+        plot_grip(axes[3], t[: len(grip)], grip[:, 0], grip[:, 1], grip[:, 2], grip[:, 3] > 0.5, g.get("road_mu"))
+    axes[-1].set_xlabel("time [s]")
     head = f"virtsensor demo: {r['recording_description']}"
     if metrics:
         head += f" | mean MAE {metrics['mean']['mae_nm']:.2f} Nm, mean R2 {metrics['mean']['r2']:.3f}"

@@ -19,6 +19,7 @@ JSON, so the runtime knows its inputs from the card, not from code.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
@@ -134,51 +135,67 @@ class FeatureSpec:
 
 
 class FeatureBuilder:
-    """The online path of a :class:`FeatureSpec`: one vector per tick, no allocation.
+    """The online path of a :class:`FeatureSpec`: one vector per tick, no array allocation.
 
-    ``push(values)`` takes the latest values of :attr:`FeatureSpec.signals` (in
-    that order) at a tick and returns the feature vector (a view of an internal
+    ``push(values)`` takes the latest values of :attr:`FeatureSpec.signals` (in that order; a list of
+    floats or a 1-D array) at a tick and returns the feature vector (float64, a view of an internal
     buffer, valid until the next push), or None until enough history exists.
+
+    The history is ``depth`` Python lists, newest first, rotated per push; the vector is built by a
+    function generated once from the spec (one list display, one copy into the buffer), with the
+    arithmetic of :meth:`FeatureSpec.transform` in the same order, so the two agree to the bit.
     """
 
     def __init__(self, spec: FeatureSpec):
         self.spec = spec
         self.depth = spec.history + 1
-        self._ring = np.full((self.depth, len(spec.signals)), np.nan)
-        self._pos = -1
+        n = len(spec.signals)
+        self._rows: list[list[float]] = [[math.nan] * n for _ in range(self.depth)]
         self._count = 0
         self._out = np.empty(len(spec.features))
-        col = {s: i for i, s in enumerate(spec.signals)}
-        self._col = np.array([col[f.signal] for f in spec.features], dtype=np.intp)
-        self._ops = [(j, f.op, f.lag, col[f.signal]) for j, f in enumerate(spec.features)]
+        self._build = _compile_builder(spec, self.depth)
 
     def reset(self) -> None:
         """Forget the history (after a gap in the inputs)."""
-        self._ring.fill(np.nan)
-        self._pos = -1
+        for row in self._rows:
+            row[:] = [math.nan] * len(row)
         self._count = 0
 
     @property
     def ready(self) -> bool:
         return self._count >= self.depth
 
-    def push(self, values: np.ndarray) -> np.ndarray | None:
-        self._pos = (self._pos + 1) % self.depth
-        self._ring[self._pos] = values
+    def push(self, values: Sequence[float] | np.ndarray) -> np.ndarray | None:
+        rows = self._rows
+        row = rows.pop()  # the oldest row becomes the newest
+        row[:] = values
+        rows.insert(0, row)
         self._count += 1
         if self._count < self.depth:
             return None
-        ring, p, d, out = self._ring, self._pos, self.depth, self._out
-        for j, op, lag, c in self._ops:
-            if op == "value":
-                out[j] = ring[p, c]
-            elif op == "lag":
-                out[j] = ring[(p - lag) % d, c]
-            elif op == "rate":
-                out[j] = (ring[p, c] - ring[(p - 1) % d, c]) / TICK_S
-            else:
-                out[j] = (ring[p, c] - 2.0 * ring[(p - 1) % d, c] + ring[(p - 2) % d, c]) / (TICK_S * TICK_S)
-        return out
+        self._out[:] = self._build(rows)
+        return self._out
+
+
+def _compile_builder(spec: FeatureSpec, depth: int) -> Any:
+    """``build(rows) -> list`` of the feature values, ``rows[k]`` the signal values ``k`` ticks back."""
+    col = {s: i for i, s in enumerate(spec.signals)}
+    terms = []
+    for f in spec.features:
+        c = col[f.signal]
+        if f.op == "value":
+            terms.append(f"r0[{c}]")
+        elif f.op == "lag":
+            terms.append(f"rows[{f.lag}][{c}]")
+        elif f.op == "rate":
+            terms.append(f"(r0[{c}] - r1[{c}]) / TICK_S")
+        else:
+            terms.append(f"(r0[{c}] - 2.0 * r1[{c}] + r2[{c}]) / TICK_S2")
+    heads = "".join(f"    r{k} = rows[{k}]\n" for k in range(min(depth, 3)))
+    src = f"def build(rows):\n{heads}    return [{', '.join(terms)}]\n"
+    env: dict[str, Any] = {"TICK_S": TICK_S, "TICK_S2": TICK_S * TICK_S}
+    exec(compile(src, f"<features {spec.name}>", "exec"), env)  # noqa: S102 - generated from the spec only
+    return env["build"]
 
 
 def _values(names: Sequence[str]) -> tuple[Feature, ...]:

@@ -35,7 +35,9 @@ Roles
 ``input``  the 12 estimator inputs of the paper's Table II (in that order);
 ``output`` the two estimated quantities (front SATs);
 ``aux``    other signals a car carries on CAN (rear wheel speeds, TPMS, ...);
-``truth``  simulator-only ground truth that explains the outputs.
+``truth``  simulator-only ground truth that explains the outputs;
+``grip``   what the virtual sensor derives from its SAT estimate and publishes in ``VS_Grip``
+           (friction utilisation, road friction; :mod:`virtsensor.grip`).
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Literal
 
-Role = Literal["input", "output", "aux", "truth", "time"]
+Role = Literal["input", "output", "aux", "truth", "time", "grip"]
 
 
 @dataclass(frozen=True)
@@ -111,6 +113,7 @@ MESSAGES: Mapping[str, Message] = MappingProxyType(
             Message("TPMS_Pressures", 0x3A0, "TPMS", 0.100, 0x3A01),
             Message("SAT_FRONT", 0x200, "VSENS", 0.050, 0x2001),
             Message("VS_Health", 0x201, "VSENS", 0.050, 0x2011),
+            Message("VS_Grip", 0x202, "VSENS", 0.050, 0x2021),
             Message("TE_WheelForceTransducer", 0x600, "TESTEQ", 0.010, 0x6001),
         )
     }
@@ -193,6 +196,17 @@ _ALL: tuple[Signal, ...] = (
     _s("roll_rad", "rad", "Body roll angle about x; + right side down (truth).", "truth", -0.3, 0.3, 1e-6),
     _s("pitch_rad", "rad", "Body pitch angle about y; + nose down (truth).", "truth", -0.3, 0.3, 1e-6),
     _s("road_mu", "1", "Road friction coefficient under the car (truth).", "truth", 0.0, 1.5, 1e-3),
+    *(_s(f"util_{w}_1", "1", f"Friction utilisation sqrt(Fx^2 + Fy^2) / (road_mu Fz) of the {wname} tyre "
+         "(truth; 1 = at the road's friction, saturated at 2 when the wheel unloads).", "truth", 0.0, 2.0, 1e-4)
+      for w, wname in (("fl", "front-left"), ("fr", "front-right"))),
+    # ---- the grip estimate (VS_Grip; laid out by dbcgen like SAT_FRONT, so no message here) ---------------
+    _s("grip_util_front_1", "1", "Front-axle friction utilisation: the share of the road's friction the "
+       "front tyres use, sqrt(Fx^2 + Fy^2) / (mu Fz) of the more used tyre; 1 = at the limit.",
+       "grip", 0.0, 1.0, 0.005),
+    _s("grip_mu_1", "1", "Estimated road friction coefficient under the front tyres; unknown (SNA) while "
+       "the tyres are not excited enough to tell.", "grip", 0.0, 1.5, 0.005),
+    _s("grip_mu_halfwidth_1", "1", "Half-width of the interval around grip_mu_1 that holds the true road "
+       "friction in 9 of 10 samples.", "grip", 0.0, 1.0, 0.005),
     _s("steer_angle_cmd_rad", "rad", "Steering-wheel angle the driver/robot commands (truth).",
        "truth", -13.0, 13.0, 1e-4),
 )
@@ -205,6 +219,8 @@ INPUTS: tuple[str, ...] = tuple(s.name for s in _ALL if s.role == "input")
 OUTPUTS: tuple[str, ...] = tuple(s.name for s in _ALL if s.role == "output")
 #: Columns of the canonical 20 Hz table: time, inputs, outputs.
 TABLE_COLUMNS: tuple[str, ...] = ("time_s", *INPUTS, *OUTPUTS)
+#: The grip estimate's physical signals (utilisation, friction, its interval half-width), VS_Grip order.
+GRIP: tuple[str, ...] = tuple(s.name for s in _ALL if s.role == "grip")
 #: Signals that travel on CAN (inputs, reference outputs, aux).
 CAN_SIGNALS: tuple[str, ...] = tuple(s.name for s in _ALL if s.message is not None)
 #: The canonical table rate of the paper (Hz).

@@ -48,7 +48,7 @@ NODES: dict[str, str] = {
     "PCU": "Powertrain control unit: traction-motor torque.",
     "CHS": "Chassis control: suspension deflections.",
     "TPMS": "Tyre-pressure monitoring system: four tyre pressures.",
-    "VSENS": "The virtual sensor (virtsensor runtime): estimated front SATs and its health.",
+    "VSENS": "The virtual sensor (virtsensor runtime): estimated front SATs, its health and the grip margin.",
     "TESTEQ": "Test equipment: wheel-force transducers giving the reference front SATs.",
 }
 
@@ -339,11 +339,48 @@ def _payload_vs_health(rx: tuple[str, ...]) -> list[SignalLayout]:
     return sigs
 
 
+#: VS_Grip: DBC signal name -> (catalogue signal, comment head) of its physical signals, in payload order.
+GRIP_SIGNALS: dict[str, tuple[str, str]] = {
+    "VS_GripUtil": ("grip_util_front_1", "Estimated front-axle friction utilisation (0..1: the share of the "
+                    "road's friction the more used front tyre uses). Always given while VALID or DEGRADED; SNA "
+                    "while INIT or INVALID."),
+    "VS_GripMu": ("grip_mu_1", "Estimated road friction coefficient. SNA (unknown) while the front tyres are not "
+                  "excited enough to tell (straight driving, gentle corners), whatever its status, and while "
+                  "INIT or INVALID."),
+    "VS_GripMuHalfWidth": ("grip_mu_halfwidth_1", "Half-width of the interval VS_GripMu +- this that holds the "
+                           "true road friction in 9 of 10 samples; SNA when VS_GripMu is."),
+}
+#: VS_Grip: status signal per field, in payload order (after the warning flag).
+GRIP_STATUS = ("VS_GripUtil_Status", "VS_GripMu_Status", "VS_GripMuHalfWidth_Status", "VS_GripWarning_Status")
+
+
+def _payload_vs_grip(rx: tuple[str, ...]) -> list[SignalLayout]:
+    sigs: list[SignalLayout] = []
+    bit = FREE_BIT
+    for name, (cname, text) in GRIP_SIGNALS.items():
+        s = _physical(name, None, cat.SIGNALS[cname], bit, rx, f"{text} Estimate of {cname}.")
+        sigs.append(s)
+        bit += s.length
+    sigs.append(_integer("VS_GripWarning", bit, 1, "", rx,
+                         "1 = grip-limit warning: the front axle is at or nearing the road's friction limit "
+                         "(estimated utilisation high, or rising fast towards it); 0 = no warning.",
+                         {0: "NO_WARNING", 1: "WARNING"}))
+    bit += 1
+    for name in GRIP_STATUS:
+        sigs.append(_integer(name, bit, 2, "", rx,
+                             f"Validity of {name[:-7]}, as SAT_FL/FR_Status: 0 VALID, 1 DEGRADED, 2 INVALID, "
+                             f"3 INIT (the worse of the two SAT statuses it derives from).", STATUS_CHOICES))
+        bit += 2
+    return sigs
+
+
 def _payload_vsens(msg: cat.Message, rx: tuple[str, ...]) -> list[SignalLayout]:
     if msg.name == "SAT_FRONT":
         return _payload_sat_front(rx)
     if msg.name == "VS_Health":
         return _payload_vs_health(rx)
+    if msg.name == "VS_Grip":
+        return _payload_vs_grip(rx)
     # pragma: no cover - catalogue grew a VSENS message this generator does not know
     raise ValueError(f"dbcgen does not know the layout of VSENS message {msg.name}")
 

@@ -47,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.learning.dataset import build_dataset, load_runs, split_track_laps
     from virtsensor.learning.evaluation import evaluate, held_out_runs, markdown_table
+    from virtsensor.learning.gripscore import score_grip
     from virtsensor.learning.scoring import envelope_split
     from virtsensor.learning.training import RECIPES
     from virtsensor.metrics import metrics
@@ -86,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
             shipped[key]["envelope"] = envelope_split(
                 ds.Y, P, None if env is None else env.outside_rows(ds.X, ds.feature_names))
         result["shipped_model"] = {"file": str(args.model), "sha256": card["sha256"], **shipped}
+    result["grip"] = score_grip(model, [*runs, *([track] if track is not None else []), *circuits])
     write_json(args.json, result)
     table = markdown_table(result)
     if args.markdown:

@@ -32,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.learning.dataset import load_runs
+    from virtsensor.learning.gripscore import grip_markdown
     from virtsensor.learning.scoring import markdown, needed_signals, score_runs
     from virtsensor.model.onnx import OnnxModel
 
@@ -47,4 +48,6 @@ def run(args: argparse.Namespace) -> int:
     o = result["overall"]
     print(f"{len(runs)} run(s), {o['n']} samples: R2 {o['r2']:.3f}, MAE {o['mae_nm']:.2f} Nm "
           f"(mean of both front wheels) -> {args.json}", file=sys.stderr)
+    if o.get("grip") is not None:
+        print(grip_markdown({"overall": o["grip"]}).strip(), file=sys.stderr)
     return 0

@@ -6,7 +6,7 @@ where that is not permitted). Input: a simulated manoeuvre (``sim.api.simulate``
 simulator, the runtime never does) encoded as :func:`virtsensor.recordings.canlog.iter_frames` writes it, a sync
 frame (:func:`~virtsensor.daemon.layout.sync_frames`) after each 20 Hz instant, and a window of ``LOOP_S``
 seconds replayed in a loop (timestamps shifted by ``LOOP_S`` per loop; the window holds a whole multiple of
-16 frames of every message, so the E2E alive counters stay continuous).
+15 frames of every 10/20/100 ms message, so the Profile 11 alive counters, 0..14, stay continuous).
 
 Figures (keys of :func:`run_bench`'s result; times in us unless the key says otherwise):
 
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import gc
 import hashlib
+import logging
 import math
 import os
 import platform
@@ -50,8 +51,8 @@ from virtsensor.signals import TABLE_TICK_S as TICK_S
 
 __all__ = ["run_bench", "write_markdown", "write_histogram", "percentiles", "await_frame", "Inputs"]
 
-#: replayed window (s): 3.2 s holds a multiple of 16 frames of every 10/20/100 ms message
-LOOP_S = 3.2
+#: replayed window (s): 3.0 s holds a multiple of 15 frames (one alive-counter period) of every 10/20/100 ms message
+LOOP_S = 3.0
 WINDOW_START_S = 1.0
 BUDGET_US = 50_000.0
 MANOEUVRE = ("steering-pulse", 60.0, 1.0, 7)
@@ -322,14 +323,27 @@ def _thread_cpu_s(threads: Any) -> list[float]:
 
 
 def _feeder(tx: Any, inputs: Inputs, stop: threading.Event) -> threading.Thread:
-    """A thread sending each tick's input frames at the real 20 Hz pace (interface timestamps: the send time)."""
+    """A thread sending the input frames in real time, each at its own simulated instant (frames due
+    within 1 ms of each other go together), so every message keeps its cycle on the wire: a 10 ms message
+    arrives every 10 ms, not in one burst per tick (which an E2E receiver rightly judges a timeout)."""
     def feed() -> None:
         k = 0
         t0 = time.monotonic()
         while not stop.is_set():
             batch, _ = inputs.tick(k)
-            for m in batch:
-                tx.send(m)
+            if batch:
+                loop, j = divmod(k, inputs.n_ticks)
+                opens = float(inputs.grid[j]) + loop * LOOP_S - TICK_S  # the tick's window opens (stamps)
+                due_base = t0 + k * TICK_S - opens  # stamp -> send time
+                i, n = 0, len(batch)
+                while i < n:
+                    due = due_base + batch[i].timestamp
+                    rem = due - time.monotonic()
+                    if rem > 0 and stop.wait(rem):
+                        return
+                    while i < n and due_base + batch[i].timestamp <= due + 1e-3:
+                        tx.send(batch[i])
+                        i += 1
             k += 1
             rem = t0 + k * TICK_S - time.monotonic()
             if rem > 0 and stop.wait(rem):
@@ -546,9 +560,41 @@ def run_soak(model: Any, matrix: Any, inputs: Inputs, n_ticks: int,
 # ---------------------------------------------------------------------------------------------------------------
 # the whole bench
 # ---------------------------------------------------------------------------------------------------------------
+class _EventCounter(logging.Handler):
+    """Counts the daemon's log events by message (``envelope_exit``, ``status_change``...) instead of printing."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.counts: dict[str, int] = {}
+
+    def emit(self, record: logging.LogRecord) -> None:
+        key = str(record.msg)
+        self.counts[key] = self.counts.get(key, 0) + 1
+
+
 def run_bench(model_path: str | os.PathLike | None = None, *, quick: bool = False, soak_ticks: int | None = None,
               cross_process: bool = True, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Run every measurement; returns the JSON-able result (plus ``_samples`` for the histogram)."""
+    """Run every measurement; returns the JSON-able result (plus ``_samples`` for the histogram).
+
+    The daemons' log events (WARNING and above; INFO when the logger is set to it) are counted into
+    ``daemon_log_events`` instead of reaching stderr."""
+    logger = logging.getLogger("virtsensor.daemon")
+    counter = _EventCounter()
+    old_propagate = logger.propagate
+    logger.addHandler(counter)
+    logger.propagate = False
+    try:
+        result = _run_bench(model_path, quick=quick, soak_ticks=soak_ticks, cross_process=cross_process,
+                            progress=progress)
+    finally:
+        logger.removeHandler(counter)
+        logger.propagate = old_propagate
+    result["daemon_log_events"] = dict(sorted(counter.counts.items()))
+    return result
+
+
+def _run_bench(model_path: str | os.PathLike | None, *, quick: bool, soak_ticks: int | None, cross_process: bool,
+               progress: Callable[[str], None] | None) -> dict[str, Any]:
     from virtsensor.canbus.codec import CanMatrix
     from virtsensor.model.onnx import OnnxModel
 

@@ -13,6 +13,7 @@ from typing import Any
 
 from virtsensor.canbus.codec import CanMatrix, compile_encoder
 from virtsensor.canbus.e2e import next_counter
+from virtsensor.daemon.gripout import grip_output
 from virtsensor.daemon.layout import InputLayout
 from virtsensor.daemon.receive import StageHook
 from virtsensor.daemon.validity import INIT
@@ -62,6 +63,8 @@ class Publisher:
                                                 "VS_EnvelopeExits": 0}  # (a DBC without a signal ignores it)
         self._sat_ctr = 0
         self._health_ctr = 0
+        #: the VS_Grip frame and the grip estimate (a stand-in that sends nothing when the DBC has no VS_Grip)
+        self.grip = grip_output(matrix, layout.signals, layout.wheels)
 
     def fill_sat(self) -> Any:
         """Encode :attr:`sat_values` into :attr:`sat_msg` with the next alive counter; returns the message."""

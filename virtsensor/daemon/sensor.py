@@ -69,6 +69,8 @@ __all__ = ["VirtualSensor", "STAGES"]
 #: ``feature_vector``, ``inference``, ``encode`` (SAT_FRONT) and ``send`` (SAT_FRONT).
 STAGES = ("decode", "feature_vector", "inference", "encode", "send")
 
+#: the daemon's own frames (a sync id may not be one of them)
+_OWN_MESSAGES = ("SAT_FRONT", "VS_Health", "VS_Grip")
 _COUNTERS = ("frames", "input_frames", "other_frames", "unknown_ids", "error_frames", "remote_frames", "sync_frames",
              "crc_errors", "dlc_errors", "sna_values", "implausible_values",
              *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
@@ -122,7 +124,7 @@ class VirtualSensor:
         self.layout = lay = InputLayout.from_model(model, self.matrix, self.timeout_cycles, model_id)
         self.spec, self.signals, self.critical = lay.spec, lay.signals, lay.critical
         self.input_messages, self.bitmap_bits, self.model_id = lay.input_messages, lay.bitmap_bits, lay.model_id
-        own_ids = {self.matrix.messages["SAT_FRONT"].frame_id, self.matrix.messages["VS_Health"].frame_id}
+        own_ids = {m.frame_id for n, m in self.matrix.messages.items() if n in _OWN_MESSAGES}
         if sync_id is not None and sync_id in own_ids:
             raise UserError(f"sync id 0x{sync_id:X} is one of the daemon's own frames (SAT_FRONT/VS_Health)")
         self.sync_id = sync_id
@@ -148,7 +150,6 @@ class VirtualSensor:
         self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
         #: the latest tick's inputs were outside the model card's validity envelope
         self.outside_envelope = False
-        self._vals = np.full(len(lay.signals), np.nan)
         self._xzero = np.zeros(len(lay.spec.features))  # x . 0 is nan iff some feature is not finite (0 * inf)
         self._msg_err = [False] * len(lay.input_messages)  # the tick's E2E errors (for the logs)
         self._complete = False
@@ -312,8 +313,7 @@ class VirtualSensor:
         """Features, model and per-wheel status into the SAT_FRONT values; returns whether the inputs are
         outside the model's validity envelope (False without features or without an envelope)."""
         sv = self._out.sat_values
-        self._vals[:] = self.inputs.values
-        x = self._push(self._vals) if self._complete else None
+        x = self._push(self.inputs.values) if self._complete else None
         if x is None:
             for _, est, st, _, _ in self._wheels:
                 sv[est] = math.nan
@@ -333,8 +333,10 @@ class VirtualSensor:
     def _publish(self, start_ns: int, bitmap: int) -> None:
         out = self._out
         m = out.fill_sat()
+        out.grip.fill_tick(out.sat_values, self.inputs.values)  # (VS_Grip, in the tick's compute)
         compute_us = (time.monotonic_ns() - start_ns) // 1000
         self._send_sat(m)
+        out.grip.send(self._link.send)
         lat_us = (time.monotonic_ns() - start_ns) // 1000
         c = self.counters
         self._link.send(out.fill_health(c["overruns"], lat_us, bitmap, self.outside_envelope, c["envelope_exits"]))
@@ -413,7 +415,7 @@ def _log_envelope(self: VirtualSensor, t: float, outside: bool) -> None:
     if not outside:
         event(logging.INFO, "envelope_return", t=round(t, 6), envelope_ticks=self.counters["envelope_ticks"])
         return
-    vals = dict(zip(self.layout.signals, (float(v) for v in self._vals), strict=True))
+    vals = dict(zip(self.layout.signals, (float(v) for v in self.inputs.values), strict=True))
     event(logging.WARNING, "envelope_exit", t=round(t, 6), outside=self.envelope.reasons(vals),
           envelope_exits=self.counters["envelope_exits"])
 

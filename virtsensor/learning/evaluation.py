@@ -26,6 +26,7 @@ import numpy as np
 
 from virtsensor.features import PAPER, SPECS
 from virtsensor.learning.dataset import Dataset, Run, build_dataset, split_track_laps
+from virtsensor.learning.gripscore import grip_markdown
 from virtsensor.learning.training import SteeringObserver, linear_pipeline, make_pipeline
 from virtsensor.metrics import metrics
 
@@ -189,7 +190,8 @@ ROWS = (("train", "Training phase"), ("test", "Test phase (random 30 % of rows)"
 
 def markdown_table(result: Mapping[str, Any]) -> str:
     """A Table IV with the paper's figures beside ours (R2 / MAE Nm, mean of both wheels), one row per circuit
-    never trained on; then, when the shipped model has an envelope split (:func:`envelope_table`), that."""
+    never trained on; then, when the shipped model has an envelope split (:func:`envelope_table`), that; then the
+    shipped model's grip margin (``result["grip"]``, :func:`virtsensor.learning.gripscore.grip_markdown`)."""
     cols = [("paper", result.get("paper")), ("improved", result.get("improved"))]
     base = result.get("baselines", {})
     cols += [("linear", base.get("linear")), ("eq. (1) observer", base.get("eq1_observer"))]
@@ -207,7 +209,8 @@ def markdown_table(result: Mapping[str, Any]) -> str:
             cells.append(f"{m['r2']:.3f} / {m['mae_nm']:.2f}" if m else "—")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     env = envelope_table(result)
-    return "\n".join(lines) + "\n" + ("\n" + env if env else "")
+    grip = grip_markdown(result.get("grip"))  # (the shipped model's grip margin, where runs carry its truth)
+    return "\n".join(lines) + "\n" + ("\n" + env if env else "") + ("\n" + grip if grip else "")
 
 
 def envelope_table(result: Mapping[str, Any]) -> str:

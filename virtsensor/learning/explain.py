@@ -63,6 +63,7 @@ import numpy as np
 
 from virtsensor import plotting
 from virtsensor import signals as cat
+from virtsensor.demogrip import grip_figure
 from virtsensor.errors import UserError
 from virtsensor.fileio import write_json
 
@@ -525,10 +526,22 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
         doc["track"] = _track_figures(out_dir, model, spec, outputs, track_run, track, figures, say)
     if circuits:
         doc["circuits"] = _circuit_figures(out_dir, model, spec, outputs, circuits, figures, say)
+    doc["grip"] = _grip_doc(out_dir, runs, model, figures, say)  # (the grip margin, where runs carry its truth)
     doc["figures"] = figures
     doc = _round(doc)
     write_json(out_dir / "explain.json", doc)
     say(f"wrote {len(figures)} figures and explain.json to {out_dir}")
+    return doc
+
+
+def _grip_doc(out_dir: Path, runs: Sequence[Any], model: Any, figures: list[str],
+              say: Callable[[str], None]) -> dict[str, Any] | None:
+    """``grip.png``: the grip margin against its truth over the run that gets nearest the limit (None without
+    a run carrying the grip truth)."""
+    doc = grip_figure(out_dir / "grip.png", runs, model)
+    if doc is not None:
+        figures.append("grip.png")
+        say(f"grip margin on {doc['run']}")
     return doc
 
 

@@ -24,6 +24,7 @@ from virtsensor import signals as cat
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 from virtsensor.learning.dataset import Run, build_dataset
+from virtsensor.learning.gripscore import grip_markdown, score_grip
 from virtsensor.metrics import metrics
 from virtsensor.model.envelope import Envelope
 
@@ -47,9 +48,11 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
     """Score ``model`` (an :class:`~virtsensor.model.onnx.OnnxModel`) on each run and on all together.
 
     Returns:
-        ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite", "envelope"},
-        "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle", "dropped_nonfinite", "envelope"}, ...]}``
-        in the order of ``runs``; ``envelope`` is :func:`envelope_split` (None when the card states none).
+        ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite", "envelope", "grip"},
+        "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle", "dropped_nonfinite", "envelope", "grip"}, ...]}``
+        in the order of ``runs``; ``envelope`` is :func:`envelope_split` (None when the card states none);
+        ``grip`` the grip margin's figures (:mod:`virtsensor.learning.gripscore`; None for a run without the
+        simulator's grip truth, and overall when no run has it).
 
     Raises:
         UserError: a run lacking a needed signal, or with no row where every feature and
@@ -86,6 +89,10 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
     overall = metrics(Y, P)
     overall["dropped_nonfinite"] = dropped
     overall["envelope"] = envelope_split(Y, P, None if env is None else np.concatenate(outs))
+    grip = score_grip(model, runs)  # (the grip margin from these SATs, where a run carries its truth)
+    overall["grip"] = None if grip is None else grip["overall"]
+    for r in per_run:
+        r["grip"] = None if grip is None else grip["runs"][r["file"]]
     return {"model": {"file": str(getattr(model, "path", "")), "sha256": model.card.get("sha256")},
             "overall": overall, "runs": per_run}
 
@@ -130,4 +137,6 @@ def markdown(result: dict[str, Any]) -> str:
 
     lines += [row(r["file"], r) for r in result["runs"]]
     lines.append(row("**all runs**", result["overall"]))
-    return "\n".join(lines) + "\n"
+    grip = result["overall"].get("grip")
+    tail = "" if grip is None else "\n" + grip_markdown({"overall": grip})
+    return "\n".join(lines) + "\n" + tail

@@ -1,0 +1,277 @@
+"""The grip margin (issue 19): the estimate's contract, VS_Grip on the matrix, and VS_Grip published by the daemon
+on the virtual bus with SAT_FRONT's statuses under timeouts and E2E faults."""
+
+from __future__ import annotations
+
+import math
+import time
+import uuid
+from dataclasses import replace
+
+import can
+import cantools
+import numpy as np
+import pytest
+from runtime_support import SYNC_ID, with_sync
+
+from virtsensor import signals as cat
+from virtsensor.assets import dbc_path, model_path
+from virtsensor.canbus.codec import CanMatrix
+from virtsensor.canbus.e2e import USABLE
+from virtsensor.daemon import DEGRADED, INIT, INVALID, VALID, VirtualSensor
+from virtsensor.daemon.gripout import worse_status
+from virtsensor.errors import UserError
+from virtsensor.grip import GripEstimator, GripParams, estimate_run, load_params
+from virtsensor.learning import gripscore as gs
+from virtsensor.model import OnnxModel
+from virtsensor.recordings.canlog import iter_frames, simulated_recording
+
+MATRIX = CanMatrix.load()
+SAT_ID = MATRIX.messages["SAT_FRONT"].frame_id
+GRIP_ID = MATRIX.messages["VS_Grip"].frame_id
+
+
+# ------------------------------------------------------------------------------------------------ the estimate
+def _steady(est: GripEstimator, n: int, ay: float, trail_m: float, vx: float = 20.0) -> None:
+    """Feed a steady left turn: lateral acceleration ``ay``, axle SAT = -trail * front lateral force."""
+    p = est.params
+    fy = p.mass_kg * p.front_load_fraction * ay
+    for _ in range(n):
+        r = ay / vx
+        est.step(-0.5 * trail_m * fy, -0.5 * trail_m * fy, 0.0, ay, vx, r, 0.05, 20.0, vx / 0.305, vx / 0.305)
+
+
+def test_straight_driving_gives_utilisation_but_no_friction():
+    est = GripEstimator()
+    _steady(est, 40, 0.0, 0.03)
+    s = est.state
+    assert math.isfinite(s.util) and s.util < 0.2
+    assert math.isnan(s.mu) and math.isnan(s.halfwidth) and not s.warning
+
+
+def test_collapsed_trail_gives_friction_and_warning():
+    """A turn at 0.4 g with the trail collapsed (the tyres at their limit): the friction follows from the force
+    used and the calibrated force ratio at that trail, the utilisation is high and the warning is on."""
+    p = load_params()
+    est = GripEstimator(p)
+    _steady(est, 40, 0.4 * 9.81, 0.0)
+    s = est.state
+    k = np.interp(0.0, p.trail_m, p.use_at_trail)
+    assert s.mu == pytest.approx(0.4 / k, rel=0.05)
+    assert 0 < s.halfwidth <= p.halfwidth_max
+    assert s.util >= p.warn_on and s.warning
+    # a gentle corner of the same road: the trail is long, the friction is unknown, the warning ends
+    _steady(est, 60, 0.1 * 9.81, 0.03)
+    assert math.isnan(est.state.mu) and not est.state.warning and est.state.util < 0.5
+
+
+def test_non_finite_input_gives_nan_and_restarts():
+    est = GripEstimator()
+    _steady(est, 20, 4.0, 0.0)
+    s = est.step(math.nan, 1.0, 0.0, 4.0, 20.0, 0.2, 0.05, 20.0, 65.0, 65.0)
+    assert math.isnan(s.util) and math.isnan(s.mu) and not s.warning
+
+
+def test_params_are_checked():
+    doc = load_params().to_json()
+    with pytest.raises(UserError, match="grip params"):
+        GripParams.from_json({**doc, "util_at_trail": doc["util_at_trail"][::-1] + [0.0]})
+    with pytest.raises(UserError):
+        GripParams.from_json({k: v for k, v in doc.items() if k != "mass_kg"})
+    assert GripParams.from_json(doc) == load_params()
+
+
+def test_metrics_lead_and_false_warnings():
+    t = np.arange(200) * 0.05
+    u = np.where(t < 5.0, 0.3, 0.97)
+    warn = (t >= 4.5) | ((t >= 1.0) & (t < 1.3))
+    m = gs.grip_metrics(t, u, np.full(200, 0.5), np.where(t > 5, 0.52, np.nan), warn)
+    assert m["warning_lead_s"] == pytest.approx(0.5)
+    assert m["false_warnings"] == 1 and m["calm_s"] == pytest.approx(5.0)
+    assert m["mu_within_0_1_share"] == 1.0 and m["mu_given_share_above_0_6"] == pytest.approx(99 / 100)
+    late = gs.grip_metrics(t, u, np.full(200, 0.5), np.full(200, np.nan), t >= 6.0)
+    assert late["warning_lead_s"] == pytest.approx(-1.0) and late["mu_within_0_1_share"] is None
+    none = gs.grip_metrics(t, np.full(200, 0.3), np.full(200, 0.5), np.full(200, np.nan), np.zeros(200, bool))
+    assert none["warning_lead_s"] is None and gs.pool([none])["warning_lead_s_median"] is None
+
+
+# ------------------------------------------------------------------------------------------------ the matrix
+def test_vs_grip_decodes_with_cantools():
+    db = cantools.database.load_file(str(dbc_path()))
+    m = db.get_message_by_name("VS_Grip")
+    assert m.frame_id == 0x202 and m.senders == ["VSENS"] and m.cycle_time == 50
+    assert cat.MESSAGES["VS_Grip"].data_id == 0x2021
+    data = MATRIX.encode("VS_Grip", {"VS_GripUtil": 0.8, "VS_GripMu": 0.45, "VS_GripMuHalfWidth": 0.05,
+                                     "VS_GripWarning": 1, "VS_GripUtil_Status": VALID, "VS_GripMu_Status": VALID,
+                                     "VS_GripMuHalfWidth_Status": VALID, "VS_GripWarning_Status": VALID}, 0)
+    d = db.decode_message(0x202, data, decode_choices=False)
+    assert d["VS_GripUtil"] == pytest.approx(0.8) and d["VS_GripMu"] == pytest.approx(0.45)
+    assert d["VS_GripMuHalfWidth"] == pytest.approx(0.05) and d["VS_GripWarning"] == 1
+    assert MATRIX.fresh().decode(0x202, data, 0.0).status in USABLE
+
+
+# ------------------------------------------------------------------------------------------------ the daemon
+@pytest.fixture(scope="module")
+def model() -> OnnxModel:
+    return OnnxModel.load(str(model_path()))
+
+
+@pytest.fixture(scope="module")
+def run_frames():
+    """A wet fishhook (reaches the limit), its frames as a CAN receiver sees them and its truth."""
+    from sim.api import Request, simulate_many
+
+    (run,) = simulate_many([Request("fishhook", 60.0, 0.5, 19)])
+    ts = run.streams["time_s"]
+    sig = {k: v for k, v in run.streams.items() if k != "time_s"}
+    return list(iter_frames(ts, sig, seed=19)), run, simulated_recording(ts, sig, seed=19)
+
+
+def _drive(model, frames: list[can.Message]):
+    """A sync-mode daemon on a virtual bus: (SAT_FRONT frames, VS_Grip frames, ticks, stats)."""
+    ch = f"grip-{uuid.uuid4().hex[:10]}"
+    dbus, col = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
+    tx = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True)
+    merged, ticks = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    vs = VirtualSensor(dbus, model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
+    assert vs._out.grip.enabled
+    vs.start()
+    sat: list[can.Message] = []
+    grip: list[can.Message] = []
+    try:
+        for f in merged:
+            tx.send(f)
+        end = time.monotonic() + 30
+        while (len(sat) < len(ticks) or len(grip) < len(ticks)) and time.monotonic() < end:
+            m = col.recv(0.5)
+            if m is None or m.timestamp < 1e6:
+                continue
+            if m.arbitration_id == SAT_ID:
+                sat.append(m)
+            elif m.arbitration_id == GRIP_ID:
+                grip.append(m)
+    finally:
+        stats = vs.stop()
+        tx.shutdown()
+        col.shutdown()
+    assert stats["tick_errors"] == 0 and len(sat) == len(grip) == len(ticks)
+    return sat, grip, ticks
+
+
+def _decode(sat: list[can.Message], grip: list[can.Message]):
+    ms, mg = MATRIX.fresh(), MATRIX.fresh()
+    sat_st, vals, gst = [], [], []
+    for i, (a, b) in enumerate(zip(sat, grip, strict=True)):
+        da, db = ms.decode(a.arbitration_id, a.data, 0.05 * i), mg.decode(b.arbitration_id, b.data, 0.05 * i)
+        assert db.status in USABLE  # VS_Grip's own E2E: CRC and counter right, one frame per tick
+        o = db.other
+        sat_st.append((int(da.other["SAT_FL_Status"]), int(da.other["SAT_FR_Status"])))
+        gst.append([int(o[f"{n}_Status"]) for n in ("VS_GripUtil", "VS_GripMu", "VS_GripMuHalfWidth",
+                                                    "VS_GripWarning")])
+        vals.append((o["VS_GripUtil"], o["VS_GripMu"], o["VS_GripMuHalfWidth"], int(o["VS_GripWarning"])))
+    return np.array(sat_st), np.array(vals, dtype=float), np.array(gst)
+
+
+def _statuses_follow_sat(sat_st: np.ndarray, vals: np.ndarray, gst: np.ndarray) -> None:
+    want = np.array([worse_status(a, b) for a, b in sat_st])
+    assert (gst == want[:, None]).all()
+    bad = (want == INVALID) | (want == INIT)
+    assert np.isnan(vals[bad, :3]).all() and (vals[bad, 3] == 0).all()  # SNA, never a number, no warning
+    assert np.isfinite(vals[~bad, 0]).all()  # the utilisation is always given while VALID/DEGRADED
+    assert (np.isnan(vals[:, 1]) == np.isnan(vals[:, 2])).all()
+
+
+def test_daemon_publishes_vs_grip_tracking_truth(model, run_frames):
+    frames, run, _ = run_frames
+    sat, grip, ticks = _drive(model, frames)
+    sat_st, vals, gst = _decode(sat, grip)
+    _statuses_follow_sat(sat_st, vals, gst)
+    assert np.isin(gst[5:], (VALID, DEGRADED)).all()  # (DEGRADED: outside the model's envelope at the limit)
+    from sim.sensors import truth_at
+
+    truth = truth_at(run.truth, np.asarray(ticks) - frames[0].timestamp)
+    u_true = np.maximum(truth["util_fl_1"], truth["util_fr_1"])
+    assert vals[:, 3].any() and u_true.max() > 0.8  # the limit is reached and warned of
+    given = np.isfinite(vals[:, 1])
+    assert given.any() and np.all(np.abs(vals[given, 1] - 0.5) <= 0.15)
+
+
+@pytest.mark.parametrize(("message", "expected"), [("ESC_VehicleSpeed", INVALID), ("PT_Torque", DEGRADED)])
+def test_vs_grip_statuses_under_timeout(model, run_frames, message, expected):
+    frames = run_frames[0]
+    fid, t0 = MATRIX.messages[message].frame_id, frames[0].timestamp
+    kept = [f for f in frames if not (f.arbitration_id == fid and t0 + 2.0 <= f.timestamp < t0 + 3.0)]
+    sat, grip, _ = _drive(model, kept)
+    sat_st, vals, gst = _decode(sat, grip)
+    _statuses_follow_sat(sat_st, vals, gst)
+    assert (gst[:, 0] == expected).sum() >= 10  # the timeout reaches VS_Grip as it reaches SAT_FRONT
+    assert np.isin(gst[-10:], (VALID, DEGRADED)).all()  # and it recovers with it
+
+
+def test_vs_grip_statuses_under_e2e_fault(model, run_frames):
+    frames = run_frames[0]
+    fid, t0 = MATRIX.messages["EPAS_Steering"].frame_id, frames[0].timestamp
+    out, done = [], False
+    for f in frames:
+        if not done and f.arbitration_id == fid and f.timestamp >= t0 + 2.001:  # a wrong CRC on a critical input
+            done = True
+            f = can.Message(timestamp=f.timestamp, arbitration_id=fid, is_extended_id=False,
+                            data=bytes([f.data[0] ^ 0x5A]) + bytes(f.data[1:]))
+        out.append(f)
+    sat, grip, _ = _drive(model, out)
+    sat_st, vals, gst = _decode(sat, grip)
+    _statuses_follow_sat(sat_st, vals, gst)
+    assert (gst[:, 0] == INVALID).sum() >= 1 and np.isin(gst[-10:], (VALID, DEGRADED)).all()
+
+
+def test_offline_estimate_is_the_daemons(model, run_frames):
+    """``estimate_run`` (scoring) and the daemon's VS_Grip agree tick for tick on the same run."""
+    frames, _, rec = run_frames
+    sat, grip, ticks = _drive(model, frames)
+    _, vals, _ = _decode(sat, grip)
+    fl, fr = gs.model_sats(model, rec.table)
+    est = estimate_run(rec.table, fl, fr)
+    off = rec.dropped_ticks  # online tick k <-> offline table row k - off
+    assert len(ticks) == off + len(fl)
+    on = vals[off:]
+    ok = np.isfinite(est["util"])
+    assert ok.sum() > 0.8 * len(fl) and (np.isfinite(on[:, 0]) == ok).all()
+    assert np.abs(on[ok, 0] - est["util"][ok]).max() <= 0.0025 + 1e-9  # (VS_GripUtil resolution 0.005)
+    assert (on[:, 3] == est["warning"]).all()
+    assert (np.isfinite(on[:, 1]) == np.isfinite(est["mu"])).all()
+
+
+def test_replace_keeps_params_valid():
+    p = replace(load_params(), warn_on=0.9, warn_off=0.6)
+    assert p.warn_on == 0.9
+
+
+def test_no_vs_grip_in_the_dbc_publishes_none():
+    from types import SimpleNamespace
+
+    from virtsensor.daemon.gripout import NoGrip, grip_output
+
+    older = SimpleNamespace(messages={k: v for k, v in MATRIX.messages.items() if k != "VS_Grip"})
+    wheels = (SimpleNamespace(estimate="SAT_FL", status="SAT_FL_Status"),
+              SimpleNamespace(estimate="SAT_FR", status="SAT_FR_Status"))
+    assert isinstance(grip_output(older, cat.INPUTS, wheels), NoGrip)
+    assert isinstance(grip_output(MATRIX, cat.INPUTS[:5], wheels), NoGrip)  # an input the estimate reads missing
+    assert grip_output(MATRIX, cat.INPUTS, wheels).enabled
+
+
+def test_score_reports_grip_per_run_and_overall(model, run_frames, tmp_path):
+    from virtsensor.learning.dataset import load_runs
+    from virtsensor.learning.scoring import markdown, score_runs
+    from virtsensor.recordings.simulated import write_run_file
+
+    _, run, _ = run_frames
+    write_run_file(run, tmp_path / "fh.csv")
+    write_run_file(run, tmp_path / "fh.blf")  # a CAN log carries no grip truth
+    res = score_runs(model, load_runs([tmp_path / "fh.csv", tmp_path / "fh.blf"]))
+    keys = {"mu_within_0_1_share", "mu_abs_err_p90", "mu_given_share_above_0_6", "warning_lead_s_median",
+            "false_warnings_per_10min"}
+    g = res["overall"]["grip"]
+    assert keys <= set(g) and g["runs"] == 1 and g["mu_given"] > 0
+    assert keys <= set(res["runs"][0]["grip"]) and res["runs"][1]["grip"] is None
+    assert 0.9 <= g["mu_within_0_1_share"] <= 1.0
+    assert "Grip (1 runs with the truth)" in markdown(res)

@@ -1,0 +1,124 @@
+"""The daemon's ``VS_Grip`` frame: the grip margin (:mod:`virtsensor.grip`) from the tick's SAT estimate.
+
+Each tick, after ``SAT_FRONT`` is filled, :meth:`GripOutput.fill` runs one step of the grip estimate on the
+published SATs and the tick's input values and encodes ``VS_Grip`` with its own E2E alive counter (Profile 11,
+data ID from the catalogue). Every field's status is the worse of the two SAT statuses it derives from (INVALID
+before INIT before DEGRADED before VALID), so VS_Grip times out, degrades and recovers exactly as SAT_FRONT:
+while INVALID or INIT its values are SNA, the warning 0 and the estimate's filters restart. The friction is SNA
+whenever it is unknown (the tyres not excited enough), whatever its status.
+
+A CAN matrix without ``VS_Grip`` (an older DBC) or a model whose inputs lack a signal the estimate needs gives
+a :class:`NoGrip` stand-in (:func:`grip_output`): the daemon then publishes SAT_FRONT and VS_Health only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from virtsensor.canbus.codec import CanMatrix, compile_encoder
+from virtsensor.canbus.dbcgen import GRIP_SIGNALS, GRIP_STATUS
+from virtsensor.canbus.e2e import next_counter
+from virtsensor.daemon.validity import DEGRADED, INIT, INVALID, VALID
+from virtsensor.grip import GRIP_INPUTS, GripEstimator, GripParams
+
+__all__ = ["GRIP_INPUTS", "GripOutput", "NoGrip", "grip_output", "worse_status"]
+
+_RANK = {VALID: 0, DEGRADED: 1, INIT: 2, INVALID: 3}
+
+
+def worse_status(a: float, b: float) -> int:
+    """The worse of two status codes: INVALID, then INIT, then DEGRADED, then VALID."""
+    return int(a) if _RANK[int(a)] >= _RANK[int(b)] else int(b)
+
+
+class GripOutput:
+    """The preallocated VS_Grip frame, its values, counter and the grip estimator.
+
+    Args:
+        matrix: the daemon's CAN matrix (with ``VS_Grip``).
+        signals: the daemon's input signals (the order of the values :meth:`fill` gets).
+        wheels: the daemon's two published wheels (front left, front right; their ``estimate``/``status``
+            SAT_FRONT signal names), read by :meth:`fill_tick`.
+        params: the car's grip parameters (default: the catalogue car's, shipped with the package).
+    """
+
+    def __init__(self, matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any] = (),
+                 params: GripParams | None = None) -> None:
+        import can
+
+        from virtsensor.daemon.publish import _Payload
+
+        m = matrix.messages["VS_Grip"]
+        self._encode = compile_encoder(m)
+        self.msg = can.Message(arbitration_id=m.frame_id, is_extended_id=False, dlc=m.length, data=_Payload(m.length))
+        self._idx = tuple(list(signals).index(s) for s in GRIP_INPUTS)
+        self.estimator = GripEstimator(params)
+        self._names = tuple(GRIP_SIGNALS)  # util, mu, half-width
+        #: VS_Grip signal -> value (nan -> SNA), status codes
+        self.values: dict[str, float] = {n: math.nan for n in self._names}
+        self.values["VS_GripWarning"] = 0
+        for s in GRIP_STATUS:
+            self.values[s] = INIT
+        self._ctr = 0
+        self._sat = tuple((w.estimate, w.status) for w in wheels)
+
+    #: this output publishes VS_Grip (the :class:`NoGrip` stand-in does not)
+    enabled = True
+
+    def fill_tick(self, sat_values: Any, inputs: Sequence[float]) -> Any:
+        """:meth:`fill` from the tick's SAT_FRONT values (signal -> value) and input values; returns the message."""
+        (e_fl, s_fl), (e_fr, s_fr) = self._sat
+        return self.fill(sat_values[e_fl], sat_values[e_fr], sat_values[s_fl], sat_values[s_fr], inputs)
+
+    def send(self, send: Any) -> None:
+        """Hand the latest filled frame to ``send`` (the bus link's)."""
+        send(self.msg)
+
+    @property
+    def frame_id(self) -> int:
+        return int(self.msg.arbitration_id)
+
+    def fill(self, sat_fl: float, sat_fr: float, st_fl: float, st_fr: float, inputs: Sequence[float]) -> Any:
+        """One estimate step and the encoded frame (next alive counter); returns the message."""
+        v = self.values
+        status = worse_status(st_fl, st_fr)
+        util, mu, hw = self._names
+        if status == INVALID or status == INIT:
+            self.estimator.reset()
+            v[util] = v[mu] = v[hw] = math.nan
+            v["VS_GripWarning"] = 0
+        else:
+            i = self._idx
+            s = self.estimator.step(sat_fl, sat_fr, inputs[i[0]], inputs[i[1]], inputs[i[2]], inputs[i[3]],
+                                    inputs[i[4]], inputs[i[5]], inputs[i[6]], inputs[i[7]])
+            v[util], v[mu], v[hw] = s.util, s.mu, s.halfwidth
+            v["VS_GripWarning"] = 1 if s.warning else 0
+        for name in GRIP_STATUS:
+            v[name] = status
+        m = self.msg
+        m.data[:] = self._encode(v, self._ctr)
+        self._ctr = next_counter(self._ctr)
+        return m
+
+
+class NoGrip:
+    """The stand-in of a daemon that publishes no VS_Grip: :meth:`fill_tick` and :meth:`send` do nothing."""
+
+    enabled = False
+
+    def fill_tick(self, sat_values: Any, inputs: Sequence[float]) -> None:
+        return None
+
+    def send(self, send: Any) -> None:
+        return None
+
+
+def grip_output(matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any],
+                params: GripParams | None = None) -> GripOutput | NoGrip:
+    """A :class:`GripOutput`, or a :class:`NoGrip` when the matrix lacks VS_Grip, the inputs lack a signal it
+    needs or the model does not give both front SATs."""
+    if "VS_Grip" not in matrix.messages or any(s not in signals for s in GRIP_INPUTS) or len(wheels) != 2:
+        return NoGrip()
+    return GripOutput(matrix, signals, wheels, params)

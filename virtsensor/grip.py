@@ -1,0 +1,366 @@
+"""The grip margin from the SAT: front-axle friction utilisation, road friction and a grip-limit warning.
+
+The paper's Section V.B motivates SAT estimation by the early detection of the friction limit: the pneumatic
+trail (SAT over lateral force) collapses while the lateral force still rises. This module turns the two
+estimated front SATs and the estimator's inputs into what a chassis controller needs, after Hsu, Laws and
+Gerdes (IEEE TCST 2010, "Estimation of tire slip angle and friction limits using steering torque"): in a brush
+tyre the normalised trail is a function of the friction utilisation alone, so the trail gives the
+utilisation without knowing the road, and the force used divided by the utilisation gives the road friction,
+but only once the trail has fallen far enough to tell (the tyres are excited enough); before that the
+friction is unknown, never a guess.
+
+Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI units:
+
+* the front axle's lateral force from the lateral acceleration and the yaw acceleration of a rigid car,
+  ``Fy = (m b ay + Iz dr/dt) / L`` (N); its longitudinal force from the traction motor torque (driving,
+  ``T i / r``) or the deceleration (braking, the front brake share of ``m ax``); its load from the static
+  front load and the longitudinal load transfer, ``Fz = m g b / L - m h ax / L``;
+* the force ratio ``n = |F| / Fz`` (the friction the axle uses) and the axle trail ``t = -Mz sgn(Fy) / |Fy|``
+  (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`);
+* the road friction ``mu = n / k(t)``, with ``k`` the calibrated force ratio per unit of friction at that
+  trail (:attr:`GripParams.use_at_trail`; the axle's ``n / mu`` is below the utilisation of its more used
+  tyre), and the half-width of its 90 % interval, the calibrated 90th percentile of the absolute error at that
+  trail for estimates in that band (:attr:`GripParams.abs_err90_at_trail`); it is given only where the trail
+  is read (``|Fy| >= min_force_ratio Fz`` and ``|Fx| <= max_long_ratio Fz``: the brush trail is that of pure
+  side slip), while the force changes slowly (:attr:`GripParams.max_force_rate`), with a calibrated relative
+  error at most ``rel_err_max`` and a half-width at most :attr:`GripParams.halfwidth_max` (else nan: unknown);
+* the limit's own evidence, whatever the road: the trail-to-lateral-utilisation curve (the brush model's
+  monotone curve measured on the car's own tyres, :attr:`GripParams.util_at_trail`, see
+  ``tools/grip_study.py``) where the trail is read, and the front wheels' longitudinal slip over
+  ``kappa_limit`` (a spinning or locking driven wheel is at the limit);
+* the utilisation ``u``: ``n / mu_ref``, with ``mu_ref`` the upper end of the latest given friction's interval
+  (1 until one is given), or the evidence where that is higher; clipped to [0, 1];
+* the warning: on when the evidence (plus, for :attr:`GripParams.mu_hold_s` after a friction was given,
+  ``n / mu_ref``) reaches ``warn_on``, or, above ``warn_off``, is predicted to reach it rising at its rate for
+  ``warn_horizon_s``, or scaled by ``demand_weight`` times how much more lateral force the steering asks for
+  than the axle delivers (the linear car's response to the steering angle); off when it stays below
+  ``warn_off`` for ``warn_hold_s``. (The shipped calibration uses the evidence alone: no look-ahead, no
+  demand, no held friction; the others gave many false warnings, see the README.)
+
+The numbers of a car (mass, geometry, drive, the calibrated curves) are :class:`GripParams`, read from the JSON
+shipped with the package (:func:`load_params`, the catalogue car). The per-tick code uses the standard library
+only; numpy serves :func:`estimate_run` (the daemon imports this module: no scipy, no scikit-learn).
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+from importlib.resources import as_file, files
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from virtsensor.errors import UserError
+
+__all__ = ["GRIP_INPUTS", "GripParams", "GripEstimator", "GripState", "estimate_run", "load_params", "PARAMS_FILE"]
+
+#: the catalogue car's grip parameters, package data beside this module
+PARAMS_FILE = "grip_car.json"
+#: the estimator inputs :meth:`GripEstimator.step` reads, in its argument order (after the two SATs)
+GRIP_INPUTS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "motor_torque_nm",
+               "wheel_speed_fl_radps", "wheel_speed_fr_radps")
+G = 9.81
+
+
+@dataclass(frozen=True)
+class GripParams:
+    """A car's numbers for the grip estimate (SI units; curves as knots, linear in between, held beyond).
+
+    Attributes:
+        mass_kg, wheelbase_m, front_load_fraction, cg_height_m, yaw_inertia_kgm2: the rigid car.
+        gear_ratio, rolling_radius_m: motor torque (Nm) -> front drive force ``T * gear_ratio / r`` (N).
+        brake_front_share: the front axle's share of a braking deceleration's force.
+        filter_s: time constant of the first-order low-pass on SAT sum and axle forces (s).
+        min_force_ratio: ``n`` below which the trail is not used (too little lateral force to divide by).
+        trail_m: ascending trail knots (m); util_at_trail: the front utilisation at each (non-increasing).
+        use_at_trail: the axle force ratio per unit of road friction, ``n / mu``, at each trail knot.
+        rel_err90_at_trail: the 90th percentile of |mu error| / mu at each trail knot (calibration).
+        mu_bands: ascending upper edges of the bands of the friction estimate (the last one holds the rest).
+        abs_err90_at_trail: per band, the 90th percentile of |mu error| at each trail knot: the interval's
+            half-width (the error is partly a noise floor, partly proportional to mu: a band each).
+        max_force_rate: the friction is given only while the axle force ratio changes slower than this (1/s):
+            in a fast transient the force from the accelerations and the SAT are not in step.
+        max_long_ratio: the trail is read only while the axle's longitudinal force is at most this times its load
+            (the brush model's trail is that of pure side slip; drive or brake torque moves it).
+        steer_ratio, understeer_s2pm2: the linear car (steering ratio; understeer gradient K, s^2/m^2): the
+            lateral acceleration the steering asks for, ``vx^2 delta / (L (1 + K vx^2))``.
+        kappa_limit: front longitudinal slip (wheel speeds against ``vx``) taken as the longitudinal limit.
+        rel_err_max: largest calibrated relative friction error (at the trail) with which it is given.
+        halfwidth_max: largest interval half-width with which the friction is given.
+        mu_max: the friction estimate is clipped to [0.05, mu_max].
+        warn_on, warn_off: utilisation thresholds of the warning (hysteresis).
+        warn_horizon_s: the warning looks this far ahead along the utilisation's rate of rise.
+        warn_hold_s: the warning stays on at least this long below ``warn_off``.
+        mu_hold_s: for this long after a friction is given, the force used against it (``n / mu_ref``) counts
+            for the warning too (the road may change after that).
+        demand_weight: the warning also looks at the utilisation scaled by the ratio of the steering's demand to
+            the force delivered, times this (0: not).
+        source: where the numbers come from (free text).
+    """
+
+    mass_kg: float
+    wheelbase_m: float
+    front_load_fraction: float
+    cg_height_m: float
+    yaw_inertia_kgm2: float
+    gear_ratio: float
+    rolling_radius_m: float
+    brake_front_share: float
+    filter_s: float
+    min_force_ratio: float
+    max_force_rate: float
+    max_long_ratio: float
+    steer_ratio: float
+    understeer_s2pm2: float
+    kappa_limit: float
+    trail_m: tuple[float, ...]
+    util_at_trail: tuple[float, ...]
+    use_at_trail: tuple[float, ...]
+    rel_err90_at_trail: tuple[float, ...]
+    mu_bands: tuple[float, ...]
+    abs_err90_at_trail: tuple[tuple[float, ...], ...]
+    rel_err_max: float
+    halfwidth_max: float
+    mu_max: float
+    warn_on: float
+    warn_off: float
+    warn_horizon_s: float
+    warn_hold_s: float
+    demand_weight: float
+    mu_hold_s: float
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        k = len(self.trail_m)
+        if k < 2 or any(len(c) != k for c in (self.util_at_trail, self.use_at_trail, self.rel_err90_at_trail)):
+            raise ValueError("grip params: trail_m and its curves need >= 2 knots each, as many of each")
+        if not self.mu_bands or len(self.abs_err90_at_trail) != len(self.mu_bands) or any(
+                len(c) != k for c in self.abs_err90_at_trail):
+            raise ValueError("grip params: one abs_err90_at_trail curve per mu band, a value per trail knot")
+        if min(self.use_at_trail) <= 0:
+            raise ValueError("grip params: use_at_trail must be > 0")
+        if any(b <= a for a, b in zip(self.trail_m, self.trail_m[1:], strict=False)):
+            raise ValueError("grip params: trail_m must be strictly ascending")
+        if any(b > a for a, b in zip(self.util_at_trail, self.util_at_trail[1:], strict=False)):
+            raise ValueError("grip params: util_at_trail must not increase with the trail")
+        if not 0.0 < self.warn_off <= self.warn_on <= 1.0:
+            raise ValueError("grip params: need 0 < warn_off <= warn_on <= 1")
+        if self.filter_s < 0 or self.mass_kg <= 0 or self.wheelbase_m <= 0 or not 0 < self.front_load_fraction < 1:
+            raise ValueError("grip params: filter_s >= 0, mass and wheelbase > 0, 0 < front_load_fraction < 1")
+
+    @classmethod
+    def from_json(cls, doc: Mapping[str, Any], where: str = "grip params") -> GripParams:
+        """Parameters from a JSON object (every field, lists for the curves). Raises UserError naming ``where``."""
+        try:
+            kw: dict[str, Any] = {f.name: _tuples(doc[f.name]) for f in fields(cls)
+                                  if f.name in doc or f.name != "source"}
+            return cls(**kw)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UserError(f"{where}: not usable grip parameters ({exc})") from None
+
+    def to_json(self) -> dict[str, Any]:
+        return json.loads(json.dumps(asdict(self)))  # (tuples -> lists)
+
+
+def _tuples(v: Any) -> Any:
+    """JSON lists (nested) as tuples of floats; other values as they are."""
+    return tuple(_tuples(x) for x in v) if isinstance(v, list) else (float(v) if isinstance(v, int) and
+                                                                      not isinstance(v, bool) else v)
+
+
+def load_params(path: str | Path | None = None) -> GripParams:
+    """The grip parameters in ``path`` (JSON), or the catalogue car's shipped with the package."""
+    if path is None:
+        with as_file(files("virtsensor") / PARAMS_FILE) as p:
+            return load_params(Path(p))
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: cannot read grip parameters ({exc})") from None
+    return GripParams.from_json(doc, str(path))
+
+
+def _locate(x: float, xs: Sequence[float]) -> tuple[int, float]:
+    """``(i, w)`` with ``x`` at ``xs[i] + w (xs[i + 1] - xs[i])``, ``0 <= w <= 1``, held beyond the ends: every
+    curve on the knots ``xs`` is then ``ys[i] + w (ys[i + 1] - ys[i])`` (one search for all of them)."""
+    if x <= xs[0]:
+        return 0, 0.0
+    if x >= xs[-1]:
+        return len(xs) - 2, 1.0
+    i = bisect.bisect_right(xs, x) - 1
+    return i, (x - xs[i]) / (xs[i + 1] - xs[i])
+
+
+@dataclass
+class GripState:
+    """One tick's grip estimate.
+
+    Attributes:
+        util: front-axle friction utilisation in [0, 1] (nan before the first complete tick).
+        mu: road friction, or nan when unknown (not excited enough). halfwidth: its interval half-width (nan
+            with it). warning: the grip-limit warning. trail_m: the filtered axle trail (nan where not used).
+        force_ratio: ``|F| / Fz`` of the front axle (filtered).
+    """
+
+    util: float = math.nan
+    mu: float = math.nan
+    halfwidth: float = math.nan
+    warning: bool = False
+    trail_m: float = math.nan
+    force_ratio: float = math.nan
+
+
+class GripEstimator:
+    """The per-tick grip estimate (see the module docstring). Feed :meth:`step` once per 20 Hz tick, in order.
+
+    The returned :class:`GripState` is one object updated in place (no allocation per tick); copy what you keep.
+    """
+
+    def __init__(self, params: GripParams | None = None, dt: float = 0.05) -> None:
+        p = self.params = params if params is not None else load_params()
+        self.dt = float(dt)
+        L = p.wheelbase_m
+        b = p.front_load_fraction * L  # CG to rear axle
+        self._fy_ay = p.mass_kg * b / L
+        self._fy_rdot = p.yaw_inertia_kgm2 / L
+        self._fz0 = p.mass_kg * G * b / L
+        self._fz_ax = p.mass_kg * p.cg_height_m / L
+        self._drive = p.gear_ratio / p.rolling_radius_m
+        self._steer_l = p.steer_ratio * L
+        self._brake = p.brake_front_share * p.mass_kg
+        self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
+        self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
+        self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
+        self._bands, self._abs = tuple(p.mu_bands), tuple(tuple(c) for c in p.abs_err90_at_trail)
+        self.state = GripState()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the filters and the warning (after an invalid tick); keeps the last given friction."""
+        self._mz = self._fy = self._fx = self._fz = math.nan
+        self._r_prev = math.nan
+        self._u_prev = math.nan
+        self._rate = 0.0
+        self._below = 0.0
+        self.state.warning = False
+        if not hasattr(self, "mu_ref"):
+            #: the friction assumed for the utilisation where the trail cannot tell: the upper end of the latest
+            #: given one's interval (1 until one is given)
+            self.mu_ref = 1.0
+            self._mu_age = math.inf
+
+    def _lp(self, prev: float, x: float) -> float:
+        return x if prev != prev else prev + self._a * (x - prev)  # (prev != prev: nan, the first tick)
+
+    def step(self, sat_fl: float, sat_fr: float, ax: float, ay: float, vx: float, yaw_rate: float,
+             steer_angle: float, motor_torque: float, wheel_fl: float, wheel_fr: float) -> GripState:
+        """One tick: estimated SATs (Nm, ISO-W), ``ax``/``ay`` (m/s^2), ``vx`` (m/s), yaw rate (rad/s),
+        steering-wheel angle (rad), motor torque (Nm), front wheel speeds (rad/s).
+
+        A non-finite SAT or input gives a state of nans (no warning) and restarts the filters."""
+        s = self.state
+        mz = sat_fl + sat_fr
+        if not math.isfinite(mz + ax + ay + vx + yaw_rate + steer_angle + motor_torque + wheel_fl + wheel_fr):
+            self.reset()
+            s.util = s.mu = s.halfwidth = s.trail_m = s.force_ratio = math.nan
+            return s
+        p = self.params
+        rdot = 0.0 if self._r_prev != self._r_prev else (yaw_rate - self._r_prev) / self.dt
+        self._r_prev = yaw_rate
+        fx = motor_torque * self._drive if motor_torque > 0.0 else 0.0
+        if ax < 0.0 and motor_torque <= 0.0:
+            fx = self._brake * ax
+        fy_prev = self._fy
+        self._mz = mz = self._lp(self._mz, mz)
+        self._fy = fy = self._lp(self._fy, self._fy_ay * ay + self._fy_rdot * rdot)
+        self._fx = fx = self._lp(self._fx, fx)
+        self._fz = fz = self._lp(self._fz, max(self._fz0 - self._fz_ax * ax, 0.2 * self._fz0))
+        n = math.sqrt(fx * fx + fy * fy) / fz
+        s.force_ratio = n
+        steady = fy_prev == fy_prev and abs(fy - fy_prev) <= p.max_force_rate * fz * self.dt
+        lateral = abs(fx) <= p.max_long_ratio * fz  # (under drive or braking the trail reads combined slip)
+        ev = 0.0  # the limit's own evidence, whatever the road: the trail's collapse, the wheels' slip
+        if lateral and abs(fy) >= p.min_force_ratio * fz:
+            t = -mz / fy
+            s.trail_m = t
+            i, w = _locate(t, self._trail)
+            c = self._util
+            ev = c[i] + w * (c[i + 1] - c[i])
+            c = self._use
+            mu = n / (c[i] + w * (c[i + 1] - c[i]))
+            c = self._err
+            rel = c[i] + w * (c[i + 1] - c[i])
+            b = bisect.bisect_left(self._bands, mu)
+            c = self._abs[min(b, len(self._abs) - 1)]
+            hw = c[i] + w * (c[i + 1] - c[i])
+            if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
+                s.mu, s.halfwidth = mu, hw
+                self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
+                self._mu_age = 0.0
+            else:
+                s.mu = s.halfwidth = math.nan
+        else:
+            s.trail_m = s.mu = s.halfwidth = math.nan
+        if vx > 3.0:  # the driven front wheels spinning or locking: the longitudinal limit
+            kappa = 0.5 * (wheel_fl + wheel_fr) * p.rolling_radius_m / vx - 1.0
+            ev = max(ev, abs(kappa) / p.kappa_limit)
+        self._mu_age += self.dt
+        u_force = n / self.mu_ref
+        if self._mu_age <= p.mu_hold_s:  # a friction given lately: the force used against it is evidence too
+            ev = max(ev, u_force)
+        ev = min(ev, 1.0)
+        u = min(max(u_force, ev), 1.0)
+        s.util = u
+        # the steering's demand: the linear car's lateral acceleration for this steering at this speed
+        ay_lin = vx * vx * steer_angle / (self._steer_l * (1.0 + p.understeer_s2pm2 * vx * vx))
+        q = abs(ay_lin) / (G * n) if n >= p.min_force_ratio else 1.0
+        self._warn(ev, ev * min(max(q, 1.0), 3.0))
+        return s
+
+    def _warn(self, u: float, demand: float) -> None:
+        p, s = self.params, self.state
+        if self._u_prev == self._u_prev:
+            self._rate += self._a * ((u - self._u_prev) / self.dt - self._rate)
+        self._u_prev = u
+        rise = max(self._rate, 0.0) * p.warn_horizon_s if u >= p.warn_off else 0.0  # (look ahead near the limit)
+        ahead = max(u + rise, demand * p.demand_weight)
+        if ahead >= p.warn_on:
+            s.warning = True
+            self._below = 0.0
+        elif s.warning and u < p.warn_off:
+            self._below += self.dt
+            if self._below >= p.warn_hold_s:
+                s.warning = False
+        else:
+            self._below = 0.0
+
+
+def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np.ndarray,
+                 params: GripParams | None = None) -> dict[str, np.ndarray]:
+    """The grip estimate over one run's 20 Hz table (rows in time order), tick by tick with the daemon's code.
+
+    Args:
+        table: the run's columns of the estimator inputs :meth:`GripEstimator.step` reads (catalogue names).
+        sat_fl, sat_fr: the estimated front SATs per row (Nm; nan where the model gave none).
+
+    Returns:
+        ``util``, ``mu``, ``halfwidth`` (nan where unknown), ``warning`` (bool), ``trail_m``, ``force_ratio``.
+    """
+    est = GripEstimator(params)
+    ax, ay, vx, r, sw, tm, wl, wr = (np.asarray(table[k], dtype=float).tolist() for k in GRIP_INPUTS)
+    n = len(sat_fl)
+    out = {k: np.full(n, np.nan) for k in ("util", "mu", "halfwidth", "trail_m", "force_ratio")}
+    warn = np.zeros(n, dtype=bool)
+    fl, fr = np.asarray(sat_fl, float).tolist(), np.asarray(sat_fr, float).tolist()
+    for i in range(n):
+        s = est.step(fl[i], fr[i], ax[i], ay[i], vx[i], r[i], sw[i], tm[i], wl[i], wr[i])
+        out["util"][i], out["mu"][i], out["halfwidth"][i] = s.util, s.mu, s.halfwidth
+        out["trail_m"][i], out["force_ratio"][i] = s.trail_m, s.force_ratio
+        warn[i] = s.warning
+    out["warning"] = warn
+    return out
