@@ -36,6 +36,8 @@ class Request:
     seed: int = 0
     track: str | None = None
     laps: int | None = None
+    #: the four tyres' inflation pressures (gauge, bar; FL, FR, RL, RR) of this run; None: the car's own
+    pressures_bar: tuple[float, float, float, float] | None = None
 
     def options(self) -> dict[str, Any]:
         """The manoeuvre's own options (``track``, ``laps``) that are set."""
@@ -74,6 +76,20 @@ def with_pressure(params: Mapping[str, Any], pressure_bar: float | None) -> dict
     return apply_overrides(params, {"tyres.pressure_front_pa": pa, "tyres.pressure_rear_pa": pa})
 
 
+def with_pressures(params: Mapping[str, Any], pressures_bar: Sequence[float] | None) -> dict[str, Any]:
+    """Parameters with each tyre at its own pressure: ``pressures_bar`` = (FL, FR, RL, RR), gauge, bar (each
+    within 0.5-5 bar); None keeps them. Each axle gets its mean and its left-minus-right difference."""
+    if pressures_bar is None:
+        return dict(params)
+    if len(pressures_bar) != 4 or not all(0.5 <= float(p) <= 5.0 for p in pressures_bar):
+        raise ValueError(f"tyre pressures {list(pressures_bar)} bar: need four values within 0.5-5 bar")
+    fl, fr, rl, rr = (float(p) * 1e5 for p in pressures_bar)
+    return apply_overrides(params, {"tyres.pressure_front_pa": 0.5 * (fl + fr),
+                                    "tyres.pressure_rear_pa": 0.5 * (rl + rr),
+                                    "tyres.pressure_left_right_front_pa": fl - fr,
+                                    "tyres.pressure_left_right_rear_pa": rl - rr})
+
+
 def simulate_many(
     requests: Sequence[Request],
     params: Mapping[str, Any] | Sequence[Mapping[str, Any]] | None = None,
@@ -96,6 +112,8 @@ def simulate_many(
     trees = [params] * len(requests) if isinstance(params, Mapping) else list(params)
     if len(trees) != len(requests):
         raise ValueError("one parameter tree per request")
+    trees = [with_pressures(t, r.pressures_bar) if r.pressures_bar is not None else t
+             for t, r in zip(trees, requests, strict=True)]
     for tree in {id(t): t for t in trees}.values():
         check_specs(tree)
     for r in requests:

@@ -30,7 +30,7 @@ import signal
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -103,6 +103,35 @@ def circuits_preset(seed: int = 0) -> list[Request]:
             out.append(Request("circuit", speed, mu, int(run_seeds[i * len(CIRCUITS_MU) + j]),
                                track=f"random:{int(track_seed)}", laps=1))
     return out
+
+
+#: the placard (nominal) inflation pressure of the catalogue car (gauge, bar)
+NOMINAL_PRESSURE_BAR = 2.2
+#: the range (bar) a driver sets a car's tyres to, uniformly: well under- to well over-inflated
+SET_PRESSURE_BAR = (1.6, 3.0)
+#: one wheel's spread about the set pressure (bar, standard deviation: gauge and fill tolerance, temperature)
+WHEEL_SPREAD_BAR = 0.07
+#: share of runs with one wheel leaking, and how much it lost (bar, uniform)
+LEAK_SHARE, LEAK_BAR = 0.25, (0.2, 0.6)
+#: every drawn pressure lies in this range (bar; the tyre model's valid range PRESMIN-PRESMAX is 1.5-3.5)
+PRESSURE_LIMITS_BAR = (1.5, 3.4)
+
+
+def draw_pressures(requests: Sequence[Request], seed: int = 0) -> list[Request]:
+    """The runs with each one's four tyre pressures drawn (gauge, bar, to 0.01): a set pressure uniform in
+    :data:`SET_PRESSURE_BAR`, each wheel about it with :data:`WHEEL_SPREAD_BAR`, and in :data:`LEAK_SHARE` of the
+    runs one wheel (at random) down by :data:`LEAK_BAR`, so left and right are not always equal; clipped to
+    :data:`PRESSURE_LIMITS_BAR`. Deterministic for ``seed``, drawn apart from every other randomness of the runs
+    (their manoeuvres and sensors are those of the same campaign without the draw)."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7135]))
+    n = len(requests)
+    p = rng.uniform(*SET_PRESSURE_BAR, size=(n, 1)) + rng.normal(0.0, WHEEL_SPREAD_BAR, size=(n, 4))
+    leak = rng.random(n) < LEAK_SHARE
+    wheel = rng.integers(0, 4, size=n)
+    loss = rng.uniform(*LEAK_BAR, size=n)
+    p[np.arange(n), wheel] -= np.where(leak, loss, 0.0)
+    p = np.round(np.clip(p, *PRESSURE_LIMITS_BAR), 2)
+    return [replace(r, pressures_bar=tuple(float(x) for x in row)) for r, row in zip(requests, p, strict=True)]
 
 
 PRESETS: dict[str, Callable[[int], list[Request]]] = {
@@ -251,7 +280,8 @@ def manifest_entry(run: SimRun, path: Path, samples: int, duration_s: float) -> 
     with the time ``at_s`` (s) it ended and the plan's ``planned_s``, so a short run
     never passes for a complete one.
     """
-    request = {k: v for k, v in asdict(run.request).items() if k not in ("track", "laps") or v is not None}
+    request = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(run.request).items()
+               if k not in ("track", "laps", "pressures_bar") or v is not None}
     return {
         "file": path.name,
         **request,

@@ -273,7 +273,10 @@ class Vehicle:
 
         ty = "tyres"
         pf, pr = p(ty, "pressure_front_pa"), p(ty, "pressure_rear_pa")
-        self.pressure = np.stack([pf, pf, pr, pr], axis=1)
+        # per wheel: the axle's pressure -+ half its left-right difference (a tree without the key: equal sides)
+        df, dr = (np.array([float(t[ty].get(k, 0.0)) for t in trees]) * 0.5
+                  for k in ("pressure_left_right_front_pa", "pressure_left_right_rear_pa"))
+        self.pressure = np.stack([pf + df, pf - df, pr + dr, pr - dr], axis=1)
         cfr, crr_ = p(ty, "static_camber_front_rad"), p(ty, "static_camber_rear_rad")
         self.camber0 = np.stack([cfr, cfr, crr_, crr_], axis=1)
         tif, tir = p(ty, "toe_in_front_rad"), p(ty, "toe_in_rear_rad")

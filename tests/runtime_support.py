@@ -25,9 +25,11 @@ def card_inputs(spec: FeatureSpec) -> list[dict]:
 
 
 def train_model(tables: Sequence[Mapping[str, np.ndarray]], path: Path, spec: FeatureSpec = HISTORY,
-                hidden: tuple[int, ...] = (8,), max_iter: int = 200, seed: int = 0, envelope: bool = False) -> dict:
+                hidden: tuple[int, ...] = (8,), max_iter: int = 200, seed: int = 0, envelope: bool = False,
+                extra: Mapping | None = None) -> dict:
     """Fit RobustScaler + a small MLP on 20 Hz tables (features by ``spec.transform``) and export it (with the
-    validity envelope of its training rows in the card when ``envelope``, as ``virtsensor train`` does)."""
+    validity envelope of its training rows in the card when ``envelope``, as ``virtsensor train`` does; ``extra``:
+    more card fields, e.g. a ``fallback``)."""
     from sklearn.exceptions import ConvergenceWarning
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import Pipeline
@@ -49,7 +51,7 @@ def train_model(tables: Sequence[Mapping[str, np.ndarray]], path: Path, spec: Fe
         pipe.fit(X, Y)
     return export_pipeline(pipe, X.shape[1], path, parity_X=X[:200], card_extra=ModelCard.trainer_fields(
         model="virtsensor-test", spec=spec, weights=pipeline_weights(pipe),
-        envelope=Envelope.fit(X, spec.names) if envelope else None))
+        envelope=Envelope.fit(X, spec.names) if envelope else None) | dict(extra or {}))
 
 
 def synthetic_streams(duration_s: float, seed: int = 0, rate_hz: float = 100.0):

@@ -31,7 +31,7 @@ def tiny_model(tmp_path_factory) -> Path:
     from sklearn.preprocessing import RobustScaler
 
     spec = HISTORY
-    table = simulated_recording(*synthetic_streams(20.0, seed=1), seed=1).table
+    table = simulated_recording(*synthetic_streams(20.0, seed=1)).table
     X = spec.transform(table)
     Y = np.column_stack([table[o] for o in cat.OUTPUTS])
     ok = np.isfinite(X).all(1) & np.isfinite(Y).all(1)

@@ -208,7 +208,7 @@ def test_export_output_is_a_model_card(tmp_path):
         from runtime_support import synthetic_streams, train_model
     from virtsensor.recordings.canlog import simulated_recording
 
-    table = simulated_recording(*synthetic_streams(6.0, seed=2), seed=2).table
+    table = simulated_recording(*synthetic_streams(6.0, seed=2)).table
     card = train_model([table], tmp_path / "t.onnx", spec=PAPER, max_iter=5)
     assert isinstance(card, ModelCard) and card.path == card_path_for(tmp_path / "t.onnx")
     assert ModelCard.read(card.path) == card

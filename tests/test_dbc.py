@@ -236,10 +236,27 @@ def test_codec_matches_cantools(db, matrix):
                     assert math.isclose(ours_dec.other[s.name], decoded[s.name], abs_tol=1e-9)
 
 
-def test_pressure_is_kpa_on_can_pa_in_the_codec(matrix, db):
+def test_pressure_is_bar_on_can_pa_in_the_codec(matrix, db):
     data = matrix.encode("TPMS_Pressures", {"tyre_pressure_fl_pa": 250_000.0}, 0)
-    assert db.decode_message(0x3A0, data)["Pressure_FL"] == 250.0
-    assert matrix.decode(0x3A0, data, 0.0).values["tyre_pressure_fl_pa"] == 250_000.0
+    assert db.decode_message(0x3A0, data)["Pressure_FL"] == pytest.approx(2.5)
+    assert matrix.decode(0x3A0, data, 0.0).values["tyre_pressure_fl_pa"] == pytest.approx(250_000.0)
+
+
+def test_tpms_is_slow_and_each_wheel_can_report_its_sensor_missing(matrix, db):
+    """Production TPMS: one frame a second, gauge bar, a per-wheel 'sensor missing' code (SNA); the raw codes
+    are those of the earlier kPa layout (0.5 kPa = 0.005 bar per bit), so older logs decode to the same Pa."""
+    msg = db.get_message_by_frame_id(0x3A0)
+    assert msg.cycle_time == 1000
+    assert {s.name: s.unit for s in msg.signals if s.name.startswith("Pressure_")} == {
+        f"Pressure_{w}": "bar" for w in ("FL", "FR", "RL", "RR")}
+    raw = db.encode_message(0x3A0, {"TPMS_Pressures_CRC": 0, "TPMS_Pressures_Counter": 0, "Pressure_FL": 2.2,
+                                    "Pressure_FR": 2.2, "Pressure_RL": 2.2, "Pressure_RR": 2.2}, strict=False)
+    assert int.from_bytes(raw, "little") >> 12 & 0x3FF == 440  # 220 kPa at 0.5 kPa per bit, as before
+    data = matrix.encode("TPMS_Pressures", {"tyre_pressure_fl_pa": 230_000.0, "tyre_pressure_fr_pa": float("nan"),
+                                            "tyre_pressure_rl_pa": 210_000.0, "tyre_pressure_rr_pa": 215_000.0}, 0)
+    d = matrix.decode(0x3A0, data, 0.0)
+    assert "tyre_pressure_fr_pa" in d.unavailable and "tyre_pressure_fr_pa" not in d.values
+    assert d.values["tyre_pressure_fl_pa"] == pytest.approx(230_000.0)
 
 
 def test_clipping_missing_and_nan_are_sna(matrix):

@@ -27,7 +27,7 @@ EXCURSION_S = (5.0, 7.0)
 
 def _training_rows(seed: int = 11, duration: float = 60.0) -> tuple[dict, np.ndarray]:
     t, sig = synthetic_streams(duration, seed=seed)
-    table = simulated_recording(t, sig, seed=seed).table
+    table = simulated_recording(t, sig).table
     X = HISTORY.transform(table)
     return table, X[np.isfinite(X).all(axis=1)]
 
@@ -168,7 +168,7 @@ def _drive(model):
     sig["vx_mps"] = np.where(inside, 70.0, sig["vx_mps"])
     for w in ("fl", "fr"):  # the wheels roll at that speed: plausible, just never trained on
         sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
-    frames = list(iter_frames(t, sig, seed=11))
+    frames = list(iter_frames(t, sig))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
     vs = VirtualSensor(_Capture(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
     ticks = []
@@ -221,11 +221,11 @@ def test_score_splits_the_error_at_the_envelope(models):
     from virtsensor.learning.scoring import markdown, score_runs
 
     t, sig = synthetic_streams(12.0, seed=11)
-    plain = simulated_recording(t, sig, seed=11).table
+    plain = simulated_recording(t, sig).table
     sig["vx_mps"] = np.where((t >= EXCURSION_S[0]) & (t < EXCURSION_S[1]), 70.0, sig["vx_mps"])
     for w in ("fl", "fr"):
         sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
-    moved = simulated_recording(t, sig, seed=11).table
+    moved = simulated_recording(t, sig).table
     runs = [Run("plain", plain), Run("moved", moved)]
     res = score_runs(models[0], runs)
     inside_only, out = res["runs"][0]["envelope"], res["runs"][1]["envelope"]

@@ -274,9 +274,9 @@ def test_receiver_leaves_the_reference_state(name):
 
 
 # A DBC that changes every constant the receivers inline: VehSpeed moved to bit 20 with another scale,
-# offset and SNA code; Pressure_FL in Pa (unit factor 1 instead of 1e-3) at another scale.
+# offset and SNA code; Pressure_FL in Pa (unit factor 1 instead of 1e-5) at another scale.
 _VEHSPEED = ' SG_ VehSpeed : 12|14@1+ (0.01,-20) [-20|90] "m/s" VSENS'
-_PRESSURE = ' SG_ Pressure_FL : 12|10@1+ (0.5,0) [0|510] "kPa" VSENS'
+_PRESSURE = ' SG_ Pressure_FL : 12|10@1+ (0.005,0) [0|5.1] "bar" VSENS'
 _CHANGED = (
     (_VEHSPEED, ' SG_ VehSpeed : 20|14@1+ (0.02,-30) [-20|90] "m/s" VSENS'),
     ('VAL_ 257 VehSpeed 16383 "SNA" ;', 'VAL_ 257 VehSpeed 9000 "SNA" ;'),

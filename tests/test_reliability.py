@@ -33,14 +33,14 @@ def model(tmp_path_factory):
 
     t, sig = synthetic_streams(20.0, seed=11)
     path = tmp_path_factory.mktemp("rel") / "m.onnx"
-    train_model([simulated_recording(t, sig, seed=11).table], path, hidden=(6,), max_iter=60)
+    train_model([simulated_recording(t, sig).table], path, hidden=(6,), max_iter=60)
     return OnnxModel.load(path)
 
 
 @pytest.fixture(scope="module")
 def frames():
     t, sig = synthetic_streams(8.0, seed=5)
-    return list(iter_frames(t, sig, seed=5))
+    return list(iter_frames(t, sig))
 
 
 class _QueueBus(can.BusABC):
@@ -178,7 +178,7 @@ def test_vehicle_speed_disagreeing_with_the_wheel_speeds_is_not_valid_and_named(
     for w in ("fl", "fr"):
         sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
     sig["vx_mps"] = np.where(t >= 4.0, 89.0, sig["vx_mps"])
-    frames = list(iter_frames(t, sig, seed=5))
+    frames = list(iter_frames(t, sig))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
     with daemon_events() as handler:
         ticks, vs = _drive_sync(model, merged)
@@ -394,7 +394,7 @@ def test_daemon_trips_a_redundancy_check_in_a_steady_turn_and_names_it(model, ch
     has run, the message's health bit cleared, the check counted once and named in the logs."""
     t, sig = _steady_left_turn(10.0)
     sig[subject] = np.where(t >= 6.0, fault(sig[subject]), sig[subject])
-    frames = list(iter_frames(t, sig, seed=5))
+    frames = list(iter_frames(t, sig))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
     with daemon_events() as handler:
         ticks, vs = _drive_sync(model, merged)

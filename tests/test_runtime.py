@@ -53,7 +53,7 @@ def sim_runs():
     for i, run in enumerate(simulate_many(reqs)):
         time_s = run.streams["time_s"]
         sig = {k: v for k, v in run.streams.items() if k != "time_s"}
-        out.append((time_s, sig, simulated_recording(time_s, sig, seed=i), i))
+        out.append((time_s, sig, simulated_recording(time_s, sig), i))
     return out
 
 
@@ -72,7 +72,7 @@ def model(model_path) -> OnnxModel:
 @pytest.fixture(scope="module")
 def test_frames(sim_runs):
     time_s, sig, rec, seed = sim_runs[-1]
-    return list(iter_frames(time_s, sig, seed=seed)), rec
+    return list(iter_frames(time_s, sig)), rec
 
 
 def _channel() -> str:

@@ -38,10 +38,10 @@ SAT_ID = MATRIX.messages["SAT_FRONT"].frame_id
 def setup(tmp_path_factory):
     """A tiny model trained on synthetic streams, and a CAN log of another synthetic run."""
     d = tmp_path_factory.mktemp("xproc")
-    tables = [simulated_recording(*synthetic_streams(20.0, seed=s), seed=s).table for s in (1, 2)]
+    tables = [simulated_recording(*synthetic_streams(20.0, seed=s)).table for s in (1, 2)]
     train_model(tables, d / "sat.onnx", hidden=(16,), max_iter=300)
     time_s, sig = synthetic_streams(REPLAY_S, seed=0)
-    write_log(d / "run.asc", time_s, sig, seed=0)
+    write_log(d / "run.asc", time_s, sig)
     return d
 
 

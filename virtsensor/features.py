@@ -224,4 +224,9 @@ HISTORY = FeatureSpec(
     ),
 )
 
-SPECS: dict[str, FeatureSpec] = {s.name: s for s in (PAPER, HISTORY)}
+#: The TPMS estimator: the history features, then the two front tyres' pressures (Pa, gauge) last, so that the
+#: first features are exactly those of HISTORY and a pressure-free model on them is its fallback when the
+#: pressures are unknown (no TPMS frame, a sensor missing).
+TPMS = FeatureSpec("history+tpms", HISTORY.features + _values(cat.TPMS_FRONT))
+
+SPECS: dict[str, FeatureSpec] = {s.name: s for s in (PAPER, HISTORY, TPMS)}

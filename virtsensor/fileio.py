@@ -33,6 +33,23 @@ __all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "check_writab
 PARTIAL_PREFIX = ".partial-"
 
 
+def read_user_text(path: str | os.PathLike[str], what: str) -> str:
+    """The UTF-8 text of a file the user names (``what``: e.g. ``"config file"``, ``"model card"``).
+
+    Raises:
+        UserError: ``cannot read {what} {path}: {reason}`` (missing, a directory, no permission...) or
+            ``{what} {path} is not UTF-8 text``; the message never quotes the file's content.
+    """
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        raise UserError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise UserError(f"{what} {path} is not UTF-8 text") from None
+
+
 def json_safe(obj: Any) -> Any:
     """``obj`` made JSON-serialisable without loss of meaning (see the module contract)."""
     if isinstance(obj, float):

@@ -12,8 +12,9 @@ friction is unknown, never a guess.
 Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI units:
 
 * the front axle's lateral force from the lateral acceleration and the yaw acceleration of a rigid car,
-  ``Fy = (m b ay + Iz dr/dt) / L`` (N); its longitudinal force from the traction motor torque (driving,
-  ``T i / r``) or the deceleration (braking, the front brake share of ``m ax``); its load from the static
+  ``Fy = (m b ay + Iz dr/dt) / L`` (N); its longitudinal force from the traction motor torque (``T i / r``,
+  driving or regenerating) plus the front share of the brakes' force, ``min(m ax + D vx^2 - T i / r, 0)``
+  (what the deceleration leaves after drive and air drag ``D vx^2``); its load from the static
   front load and the longitudinal load transfer, ``Fz = m g b / L - m h ax / L``;
 * the force ratio ``n = |F| / Fz`` (the friction the axle uses) and the axle trail ``t = -Mz sgn(Fy) / |Fy|``
   (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`);
@@ -24,18 +25,27 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   is read (``|Fy| >= min_force_ratio Fz`` and ``|Fx| <= max_long_ratio Fz``: the brush trail is that of pure
   side slip), while the force changes slowly (:attr:`GripParams.max_force_rate`), with a calibrated relative
   error at most ``rel_err_max`` and a half-width at most :attr:`GripParams.halfwidth_max` (else nan: unknown);
+* the road's friction holds while the car drives on: the median of the latest ``hold_count`` given estimates
+  (robust to a stray one) is given on for ``hold_m`` metres after the latest, with its half-width grown by
+  ``hold_widen_per_m`` per metre (the road met since may differ), but only while the tyres are excited, the
+  axle force ratio at least ``hold_min_use`` times the held friction (straight driving and gentle corners stay
+  unknown); a change of road within that distance is its failure mode (see the README);
 * the limit's own evidence, whatever the road: the trail-to-lateral-utilisation curve (the brush model's
   monotone curve measured on the car's own tyres, :attr:`GripParams.util_at_trail`, see
   ``tools/grip_study.py``) where the trail is read, and the front wheels' longitudinal slip over
   ``kappa_limit`` (a spinning or locking driven wheel is at the limit);
 * the utilisation ``u``: ``n / mu_ref``, with ``mu_ref`` the upper end of the latest given friction's interval
   (1 until one is given), or the evidence where that is higher; clipped to [0, 1];
+* the warning's evidence also holds the floor ``n / mu_road_max``: whatever the road (the car is rated up to
+  ``mu_road_max``), the axle uses at least that share of its grip, so a hard combined-slip corner on a dry road
+  (the trail gated off) is seen coming by the force it already uses;
 * the warning: on when the evidence (plus, for :attr:`GripParams.mu_hold_s` after a friction was given,
   ``n / mu_ref``) reaches ``warn_on``, or, above ``warn_off``, is predicted to reach it rising at its rate for
-  ``warn_horizon_s``, or scaled by ``demand_weight`` times how much more lateral force the steering asks for
-  than the axle delivers (the linear car's response to the steering angle); off when it stays below
-  ``warn_off`` for ``warn_hold_s``. (The shipped calibration uses the evidence alone: no look-ahead, no
-  demand, no held friction; the others gave many false warnings, see the README.)
+  ``warn_horizon_s``, or when ``demand_weight`` times the steering's demand, ``|ay_lin| / (g mu_ref)`` (the
+  linear car's lateral acceleration for this steering angle and speed, against the friction assumed), reaches
+  it: the steering asks for the force before the tyres deliver it; off when it stays below ``warn_off`` for
+  ``warn_hold_s``. (The shipped calibration: the floor; no demand, no look-ahead along the rate, no force over
+  the held friction: each gave more false warnings than the fit's budget, see the README.)
 
 The numbers of a car (mass, geometry, drive, the calibrated curves) are :class:`GripParams`, read from the JSON
 shipped with the package (:func:`load_params`, the catalogue car). The per-tick code uses the standard library
@@ -47,6 +57,7 @@ from __future__ import annotations
 import bisect
 import json
 import math
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from importlib.resources import as_file, files
@@ -65,6 +76,8 @@ PARAMS_FILE = "grip_car.json"
 GRIP_INPUTS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "motor_torque_nm",
                "wheel_speed_fl_radps", "wheel_speed_fr_radps")
 G = 9.81
+#: the held friction's median is retaken after this many new given estimates (0.25 s of them at 20 Hz)
+MEDIAN_EVERY = 5
 
 
 @dataclass(frozen=True)
@@ -74,7 +87,9 @@ class GripParams:
     Attributes:
         mass_kg, wheelbase_m, front_load_fraction, cg_height_m, yaw_inertia_kgm2: the rigid car.
         gear_ratio, rolling_radius_m: motor torque (Nm) -> front drive force ``T * gear_ratio / r`` (N).
-        brake_front_share: the front axle's share of a braking deceleration's force.
+        brake_front_share: the front axle's share of the brakes' force.
+        drag_n_per_m2ps2: the air drag per squared speed, ``rho Cd A / 2`` (N s^2/m^2): the brakes' force is what
+            the deceleration ``m ax`` leaves after the drive force and the drag.
         filter_s: time constant of the first-order low-pass on SAT sum and axle forces (s).
         min_force_ratio: ``n`` below which the trail is not used (too little lateral force to divide by).
         trail_m: ascending trail knots (m); util_at_trail: the front utilisation at each (non-increasing).
@@ -98,8 +113,13 @@ class GripParams:
         warn_hold_s: the warning stays on at least this long below ``warn_off``.
         mu_hold_s: for this long after a friction is given, the force used against it (``n / mu_ref``) counts
             for the warning too (the road may change after that).
-        demand_weight: the warning also looks at the utilisation scaled by the ratio of the steering's demand to
-            the force delivered, times this (0: not).
+        demand_weight: the warning also looks at the steering's demand ``|ay_lin| / (g mu_ref)`` times this
+            (0: not).
+        hold_count, hold_m, hold_widen_per_m, hold_min_use: the held friction (see the module docstring): the
+            median of this many latest given estimates, given on for this many metres after the latest (0: not
+            held), its half-width grown this much per metre, while ``n >= hold_min_use * mu``.
+        mu_road_max: the highest road friction the car is rated for; ``n / mu_road_max`` is a floor of the
+            warning's evidence (0: none).
         source: where the numbers come from (free text).
     """
 
@@ -111,6 +131,7 @@ class GripParams:
     gear_ratio: float
     rolling_radius_m: float
     brake_front_share: float
+    drag_n_per_m2ps2: float
     filter_s: float
     min_force_ratio: float
     max_force_rate: float
@@ -133,6 +154,11 @@ class GripParams:
     warn_hold_s: float
     demand_weight: float
     mu_hold_s: float
+    mu_road_max: float
+    hold_m: float
+    hold_widen_per_m: float
+    hold_min_use: float
+    hold_count: float
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -232,7 +258,6 @@ class GripEstimator:
         self._fz_ax = p.mass_kg * p.cg_height_m / L
         self._drive = p.gear_ratio / p.rolling_radius_m
         self._steer_l = p.steer_ratio * L
-        self._brake = p.brake_front_share * p.mass_kg
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
@@ -253,6 +278,10 @@ class GripEstimator:
             #: given one's interval (1 until one is given)
             self.mu_ref = 1.0
             self._mu_age = math.inf
+            #: the latest given friction, its half-width and the distance travelled since (m)
+            self._mu_held, self._hw_held, self._held_m = math.inf, math.inf, math.inf
+            self._recent: deque[float] = deque(maxlen=max(int(self.params.hold_count), 1))
+            self._fresh = MEDIAN_EVERY  # (given estimates since the held median was last taken)
 
     def _lp(self, prev: float, x: float) -> float:
         return x if prev != prev else prev + self._a * (x - prev)  # (prev != prev: nan, the first tick)
@@ -272,9 +301,8 @@ class GripEstimator:
         p = self.params
         rdot = 0.0 if self._r_prev != self._r_prev else (yaw_rate - self._r_prev) / self.dt
         self._r_prev = yaw_rate
-        fx = motor_torque * self._drive if motor_torque > 0.0 else 0.0
-        if ax < 0.0 and motor_torque <= 0.0:
-            fx = self._brake * ax
+        fx = motor_torque * self._drive  # the front drive (or regenerative) force; then the brakes' front share
+        fx += p.brake_front_share * min(p.mass_kg * ax + p.drag_n_per_m2ps2 * vx * vx - fx, 0.0)
         fy_prev = self._fy
         self._mz = mz = self._lp(self._mz, mz)
         self._fy = fy = self._lp(self._fy, self._fy_ay * ay + self._fy_rdot * rdot)
@@ -286,26 +314,14 @@ class GripEstimator:
         lateral = abs(fx) <= p.max_long_ratio * fz  # (under drive or braking the trail reads combined slip)
         ev = 0.0  # the limit's own evidence, whatever the road: the trail's collapse, the wheels' slip
         if lateral and abs(fy) >= p.min_force_ratio * fz:
-            t = -mz / fy
-            s.trail_m = t
-            i, w = _locate(t, self._trail)
-            c = self._util
-            ev = c[i] + w * (c[i + 1] - c[i])
-            c = self._use
-            mu = n / (c[i] + w * (c[i + 1] - c[i]))
-            c = self._err
-            rel = c[i] + w * (c[i + 1] - c[i])
-            b = bisect.bisect_left(self._bands, mu)
-            c = self._abs[min(b, len(self._abs) - 1)]
-            hw = c[i] + w * (c[i + 1] - c[i])
-            if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
-                s.mu, s.halfwidth = mu, hw
-                self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
-                self._mu_age = 0.0
-            else:
-                s.mu = s.halfwidth = math.nan
+            ev = self._read_trail(n, -mz / fy, steady)
         else:
             s.trail_m = s.mu = s.halfwidth = math.nan
+        self._held_m += vx * self.dt
+        if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
+            hw = self._hw_held + p.hold_widen_per_m * self._held_m  # (the road met since may differ)
+            if hw <= p.halfwidth_max:
+                s.mu, s.halfwidth = self._mu_held, hw
         if vx > 3.0:  # the driven front wheels spinning or locking: the longitudinal limit
             kappa = 0.5 * (wheel_fl + wheel_fr) * p.rolling_radius_m / vx - 1.0
             ev = max(ev, abs(kappa) / p.kappa_limit)
@@ -313,14 +329,45 @@ class GripEstimator:
         u_force = n / self.mu_ref
         if self._mu_age <= p.mu_hold_s:  # a friction given lately: the force used against it is evidence too
             ev = max(ev, u_force)
+        if p.mu_road_max > 0.0:  # whatever the road, the axle uses at least n / (k_limit mu_road_max) of it
+            ev = max(ev, n / p.mu_road_max)
         ev = min(ev, 1.0)
         u = min(max(u_force, ev), 1.0)
         s.util = u
         # the steering's demand: the linear car's lateral acceleration for this steering at this speed
         ay_lin = vx * vx * steer_angle / (self._steer_l * (1.0 + p.understeer_s2pm2 * vx * vx))
-        q = abs(ay_lin) / (G * n) if n >= p.min_force_ratio else 1.0
-        self._warn(ev, ev * min(max(q, 1.0), 3.0))
+        self._warn(ev, abs(ay_lin) / (G * self.mu_ref))
         return s
+
+    def _read_trail(self, n: float, t: float, steady: bool) -> float:
+        """The trail ``t`` (m) read: sets the state's trail and friction (given or nan), returns the evidence
+        (the lateral utilisation at that trail)."""
+        p, s = self.params, self.state
+        s.trail_m = t
+        i, w = _locate(t, self._trail)
+        c = self._util
+        ev = c[i] + w * (c[i + 1] - c[i])
+        c = self._use
+        mu = n / (c[i] + w * (c[i + 1] - c[i]))
+        c = self._err
+        rel = c[i] + w * (c[i + 1] - c[i])
+        b = bisect.bisect_left(self._bands, mu)
+        c = self._abs[min(b, len(self._abs) - 1)]
+        hw = c[i] + w * (c[i + 1] - c[i])
+        if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
+            s.mu, s.halfwidth = mu, hw
+            self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
+            self._mu_age = 0.0
+            r = self._recent
+            r.append(mu)
+            self._fresh += 1
+            self._hw_held, self._held_m = hw, 0.0
+            if len(r) == r.maxlen and self._fresh >= MEDIAN_EVERY:  # hold the median of the latest given (robust
+                self._mu_held, self._fresh = sorted(r)[len(r) // 2], 0  # to a stray one; sorted every few ticks)
+                self.mu_ref = self._mu_held + hw
+        else:
+            s.mu = s.halfwidth = math.nan
+        return ev
 
     def _warn(self, u: float, demand: float) -> None:
         p, s = self.params, self.state

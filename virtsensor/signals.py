@@ -110,7 +110,7 @@ MESSAGES: Mapping[str, Message] = MappingProxyType(
             Message("ESC_WheelSpeeds_R", 0x102, "ESC", 0.020, 0x1021),
             Message("ESC_VehicleSpeed", 0x101, "ESC", 0.020, 0x1011),
             Message("CHS_Suspension", 0x120, "CHS", 0.020, 0x1201),
-            Message("TPMS_Pressures", 0x3A0, "TPMS", 0.100, 0x3A01),
+            Message("TPMS_Pressures", 0x3A0, "TPMS", 1.000, 0x3A01),  # slow, as production TPMS: 1 frame/s
             Message("SAT_FRONT", 0x200, "VSENS", 0.050, 0x2001),
             Message("VS_Health", 0x201, "VSENS", 0.050, 0x2011),
             Message("VS_Grip", 0x202, "VSENS", 0.050, 0x2021),
@@ -165,13 +165,13 @@ _ALL: tuple[Signal, ...] = (
        "aux", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_RL"),
     _s("susp_defl_rr_m", "m", "Rear-right suspension compression from design height.",
        "aux", -0.15, 0.15, 0.0001, "CHS_Suspension", "SuspDefl_RR"),
-    _s("tyre_pressure_fl_pa", "Pa", "Front-left tyre inflation pressure (TPMS, gauge).",
+    _s("tyre_pressure_fl_pa", "Pa", "Front-left tyre inflation pressure (TPMS, gauge; SNA: sensor missing).",
        "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_FL"),
-    _s("tyre_pressure_fr_pa", "Pa", "Front-right tyre inflation pressure (TPMS, gauge).",
+    _s("tyre_pressure_fr_pa", "Pa", "Front-right tyre inflation pressure (TPMS, gauge; SNA: sensor missing).",
        "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_FR"),
-    _s("tyre_pressure_rl_pa", "Pa", "Rear-left tyre inflation pressure (TPMS, gauge).",
+    _s("tyre_pressure_rl_pa", "Pa", "Rear-left tyre inflation pressure (TPMS, gauge; SNA: sensor missing).",
        "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_RL"),
-    _s("tyre_pressure_rr_pa", "Pa", "Rear-right tyre inflation pressure (TPMS, gauge).",
+    _s("tyre_pressure_rr_pa", "Pa", "Rear-right tyre inflation pressure (TPMS, gauge; SNA: sensor missing).",
        "aux", 0.0, 510000.0, 500.0, "TPMS_Pressures", "Pressure_RR"),
     # ---- simulator truth: the tyre states that explain the SAT --------------------
     *(
@@ -223,6 +223,11 @@ TABLE_COLUMNS: tuple[str, ...] = ("time_s", *INPUTS, *OUTPUTS)
 GRIP: tuple[str, ...] = tuple(s.name for s in _ALL if s.role == "grip")
 #: Signals that travel on CAN (inputs, reference outputs, aux).
 CAN_SIGNALS: tuple[str, ...] = tuple(s.name for s in _ALL if s.message is not None)
+#: The TPMS pressures (Pa, gauge), front then rear. Optional in a table: a recording of a car without TPMS
+#: (or made before the TPMS was on the bus) has no such column, or NaN where a sensor is missing (its SNA).
+TPMS_SIGNALS: tuple[str, ...] = tuple(f"tyre_pressure_{w}_pa" for w in ("fl", "fr", "rl", "rr"))
+#: The front pressures, the ones a front-SAT estimator reads.
+TPMS_FRONT: tuple[str, ...] = TPMS_SIGNALS[:2]
 #: The canonical table rate of the paper (Hz).
 TABLE_RATE_HZ = 20.0
 #: One tick of the canonical table (s): the step between its rows, the period of the daemon's clock.

@@ -2,7 +2,7 @@
 
 Values cross this module's boundary in the catalogue's SI units under their
 catalogue names (``tyre_pressure_fl_pa`` in Pa); the DBC may carry another
-unit (kPa) and the conversion is done here, once (factors from
+unit (bar for the TPMS pressures) and the conversion is done here, once (factors from
 :data:`virtsensor.canbus.dbcgen.UNIT_CONVERSIONS`). Frames are 8-byte classic
 CAN frames protected with AUTOSAR E2E Profile 11 as described in
 :mod:`virtsensor.canbus.e2e`.

@@ -19,7 +19,7 @@ Intel/little-endian, bit 0 = LSB of byte 0):
   signed signals, all ones for unsigned ones. A signal is stored signed with
   offset 0 when that is as short as unsigned with ``offset = minimum``.
 * physical DBC units equal the catalogue SI units except those in
-  :data:`UNIT_CONVERSIONS` (pressure in kPa); :mod:`virtsensor.canbus.codec`
+  :data:`UNIT_CONVERSIONS` (gauge pressure in bar, as production TPMS report it); :mod:`virtsensor.canbus.codec`
   does that scaling, once.
 * every signal is packed at its catalogue resolution; a message whose signals
   do not fit in the 52 free bits is refused (split it in the catalogue, as the
@@ -38,7 +38,7 @@ from virtsensor import signals as cat
 from virtsensor.canbus.e2e import COUNTER_MAX
 
 #: catalogue SI unit -> (DBC unit, factor): DBC value = SI value * factor.
-UNIT_CONVERSIONS: dict[str, tuple[str, float]] = {"Pa": ("kPa", 1e-3)}
+UNIT_CONVERSIONS: dict[str, tuple[str, float]] = {"Pa": ("bar", 1e-5)}
 
 #: ECU nodes, in catalogue order, with their comments.
 NODES: dict[str, str] = {
@@ -220,9 +220,16 @@ def _integer(
 
 
 def _input_messages() -> tuple[str, ...]:
-    """Messages carrying at least one estimator input, in frame-id order (VS_Health bitmap order)."""
+    """Messages carrying at least one estimator input, in frame-id order, then the optional input messages
+    (:data:`OPTIONAL_INPUT_MESSAGES`): the VS_Health bitmap order."""
     names = {cat.SIGNALS[n].message for n in cat.INPUTS}
-    return tuple(m.name for m in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id) if m.name in names)
+    ordered = tuple(m.name for m in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id) if m.name in names)
+    return ordered + OPTIONAL_INPUT_MESSAGES
+
+
+#: Messages some models read (the TPMS model, issue 17), after the inputs' messages in the VS_Health bitmap; a
+#: daemon whose model does not read one leaves its bit at 0.
+OPTIONAL_INPUT_MESSAGES = ("TPMS_Pressures",)
 
 
 def _payload_sat_front(rx: tuple[str, ...]) -> list[SignalLayout]:
@@ -296,7 +303,7 @@ def _payload_vs_health(rx: tuple[str, ...]) -> list[SignalLayout]:
             "",
             rx,
             "Input status bitmap, one bit per input message, 1 = received intact "
-            f"(E2E OK) within its timeout: {bitmap}; unused bits 0.",
+            f"(E2E OK) within its timeout: {bitmap} (only when the model reads it); unused bits 0.",
         )
     )
     bit += 8

@@ -25,7 +25,7 @@ def add_car_arguments(parser: argparse.ArgumentParser) -> None:
                         help="TOML file of parameter overrides, same shape as sim/data/car_c_segment.toml")
     parser.add_argument("--pressure-bar", type=t.positive_float(10.0), default=None, metavar="P",
                         help="inflation pressure of all four tyres (gauge, bar; > 0 and <= 10, the tyre "
-                             "file sets the usable range)")
+                             "file sets the usable range); without it a campaign draws each run's four pressures")
     parser.add_argument("--tyre", dest="tyres", action="append", default=[], metavar="[front=|rear=]FILE.tir",
                         type=t.tyre_spec(),
                         help="MF 6.1 tyre property file, or a bundled tyre's name (see 'virtsensor tyre'), of all "

@@ -36,6 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default=None, choices=BACKENDS,
                         help="joblib backend (default loky; ray and dask need their packages)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--car-pressures", action="store_true",
+                        help="no pressure draw: every run keeps the car's own tyre pressures (parameter file, --set); "
+                             "default: each run's four pressures drawn around nominal (--pressure-bar forces one)")
     add_car_arguments(parser)
 
 
@@ -56,7 +59,7 @@ def _sigterm_interrupts() -> Iterator[None]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim.campaign import PRESETS
+    from sim.campaign import PRESETS, draw_pressures
     from virtsensor.recordings.campaign import write_campaign
 
     if args.preset not in PRESETS:
@@ -65,8 +68,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
     params = car_from_args(args)
     requests = PRESETS[args.preset](args.seed)
+    if args.car_pressures and args.pressure_bar is not None:
+        raise UserError("--car-pressures and --pressure-bar exclude each other")
+    drawn = args.pressure_bar is None and not args.car_pressures
+    if drawn:  # each run's four tyres at their own pressures (--pressure-bar: one for all)
+        requests = draw_pressures(requests, args.seed)
     info = {"preset": args.preset, "seed": args.seed, "overrides": args.overrides,
-            "param_files": args.param_files, "pressure_bar": args.pressure_bar}
+            "param_files": args.param_files, "pressure_bar": args.pressure_bar,
+            "pressures": "drawn per run" if drawn else "forced" if args.pressure_bar is not None else "the car's"}
     with sim_errors(), _sigterm_interrupts():
         manifest = write_campaign(requests, params, Path(args.out), fmt=args.format, info=info, n_jobs=args.jobs,
                                   batch_size=args.batch_size, backend=args.backend, progress=not args.quiet)

@@ -32,6 +32,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--circuits", nargs="+", default=[], metavar="FILE", type=t.existing_file(),
                         help="recordings of circuits never trained on: one Table IV row each (named by the file "
                              "stem), the shipped model also scored inside and outside its validity envelope")
+    parser.add_argument("--tpms-model", metavar="FILE.onnx", type=t.existing_file(".onnx"),
+                        help="the TPMS model (recipe tpms) scored beside --model in the pressure protocol")
+    parser.add_argument("--pressure-runs", nargs="+", default=[], metavar="PATH", type=t.existing_path(),
+                        help="pressure protocol: whole held-out runs (seeds unused in training) at fixed pressures, "
+                             "nominal among them, grouped by their front TPMS pressure; needs --tpms-model")
+    parser.add_argument("--pressure-train", nargs="+", default=[], metavar="PATH", type=t.existing_path(),
+                        help="the TPMS model's training runs: the trail correction by pressure of the pressure-free "
+                             "model is fitted on them and scored in the pressure protocol too")
     parser.add_argument("--json", required=True, metavar="FILE", type=t.output_file(), help="write the results here")
     parser.add_argument("--markdown", metavar="FILE", type=t.output_file(),
                         help="also write the Table IV comparison as Markdown")
@@ -53,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.metrics import metrics
     from virtsensor.model.onnx import OnnxModel
 
+    if bool(args.pressure_runs) != bool(args.tpms_model) or (args.pressure_train and not args.pressure_runs):
+        raise UserError("--pressure-runs and --tpms-model go together (--pressure-train needs both)")
     model = OnnxModel.load(args.model)
     card = model.card
     recipe = card.get("recipe")
@@ -88,9 +98,31 @@ def run(args: argparse.Namespace) -> int:
                 ds.Y, P, None if env is None else env.outside_rows(ds.X, ds.feature_names))
         result["shipped_model"] = {"file": str(args.model), "sha256": card["sha256"], **shipped}
     result["grip"] = score_grip(model, [*runs, *([track] if track is not None else []), *circuits])
+    if args.pressure_runs:
+        result["pressure_protocol"] = _pressure(model, args)
     write_json(args.json, result)
     table = markdown_table(result)
+    if args.pressure_runs:
+        from virtsensor.learning.pressure import pressure_markdown
+
+        table += "\n" + pressure_markdown(result["pressure_protocol"])
     if args.markdown:
         atomic_write_bytes(args.markdown, table.encode())
     print(table)
     return 0
+
+
+def _pressure(model, args):
+    """The pressure protocol: --model (pressure-free) and --tpms-model on --pressure-runs."""
+    from virtsensor import signals as cat
+    from virtsensor.features import FeatureSpec
+    from virtsensor.learning.dataset import load_runs
+    from virtsensor.learning.pressure import fit_trail_correction, pressure_protocol
+    from virtsensor.model.onnx import OnnxModel
+
+    tpms = OnnxModel.load(args.tpms_model)
+    spec = FeatureSpec.from_json(tpms.card["feature_spec"])
+    needed = sorted({*spec.signals, *cat.OUTPUTS})
+    coef = fit_trail_correction(model, load_runs(args.pressure_train, needed=needed), spec) \
+        if args.pressure_train else None
+    return pressure_protocol(model, tpms, load_runs(args.pressure_runs, needed=needed), coef)

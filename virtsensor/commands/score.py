@@ -48,6 +48,10 @@ def run(args: argparse.Namespace) -> int:
     o = result["overall"]
     print(f"{len(runs)} run(s), {o['n']} samples: R2 {o['r2']:.3f}, MAE {o['mae_nm']:.2f} Nm "
           f"(mean of both front wheels) -> {args.json}", file=sys.stderr)
+    if o.get("pressure_unknown_rows"):
+        print(f"{o['pressure_unknown_rows']} sample(s) without a known front tyre pressure (no TPMS or a sensor "
+              f"missing; not taken as nominal): scored with the pressure-free fallback {o['fallback']['file']}",
+              file=sys.stderr)
     if o.get("grip") is not None:
         print(grip_markdown({"overall": o["grip"]}).strip(), file=sys.stderr)
     return 0

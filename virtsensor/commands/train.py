@@ -25,7 +25,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--data", nargs="+", required=True, metavar="PATH", type=t.existing_path(),
                         help="recordings (.csv tables or CAN logs) or directories of them (2 runs or more)")
-    parser.add_argument("--recipe", default="paper", help="paper (Table III) or improved (default: paper)")
+    parser.add_argument("--recipe", default="paper",
+                        help="paper (Table III), improved, or tpms (improved + front TPMS pressures; needs --fallback) "
+                             "(default: paper)")
+    parser.add_argument("--fallback", metavar="FILE.onnx", type=t.existing_file(".onnx"), default=None,
+                        help="recipe tpms: the pressure-free model (beside --out, reading this model's first "
+                             "features) that estimates where the pressures are unknown")
     parser.add_argument("--out", required=True, metavar="FILE.onnx", type=t.output_file(".onnx"),
                         help="ONNX file; the card goes beside it")
     parser.add_argument("--grid", action="store_true", help="grid search of Section III.B before the final fit")
@@ -60,8 +65,12 @@ def run(args: argparse.Namespace) -> int:
 
     recipe = json.loads(json.dumps(RECIPES[args.recipe]))
     spec = SPECS[recipe["features"]]
+    fallback = _fallback(args, recipe, spec, out)
     runs = load_runs(args.data, needed=(*spec.signals, *cat.OUTPUTS))
     ds = build_dataset(runs, spec)
+    unknown = sum(1 for r in runs if r.meta.get("pressure_unknown"))
+    if unknown:
+        say(f"{unknown} run(s) without TPMS pressures: pressure unknown (not nominal), their rows not trained on")
     n_runs = len(np.unique(ds.groups))
     if n_runs < 2 or (args.grid and n_runs < GRID_FOLDS):
         need = GRID_FOLDS if args.grid else 2
@@ -97,14 +106,29 @@ def run(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     parity_rows = ds.X[rng.choice(len(ds.X), min(5000, len(ds.X)), replace=False)]
     try:
-        card = _export(model, ds, out, parity_rows, args, recipe, spec, report)
+        card = _export(model, ds, out, parity_rows, args, recipe, spec, report, fallback)
     except ValueError as exc:  # parity beyond 1e-3 Nm: nothing was written
         raise UserError(f"{out}: export refused: {exc}") from None
     say(f"wrote {out} (sha256 {card['sha256'][:12]}..., ONNX/sklearn parity {card.get('parity_max_abs_nm', 0):.2e} Nm)")
     return 0
 
 
-def _export(model, ds, out, parity_rows, args, recipe, spec, report):
+def _fallback(args, recipe, spec, out):
+    """The card's fallback entry (recipe with a fallback: --fallback required), or None."""
+    from virtsensor.errors import UserError
+    from virtsensor.model.fallback import fallback_entry
+
+    if "fallback" not in recipe:
+        if args.fallback is not None:
+            raise UserError(f"--fallback: recipe {args.recipe} has no fallback (only tpms has)")
+        return None
+    if args.fallback is None:
+        raise UserError(f"--recipe {args.recipe}: needs --fallback FILE.onnx (a {recipe['fallback']} model beside "
+                        f"--out) for the rows without pressures")
+    return fallback_entry(Path(args.fallback), out, spec.names)
+
+
+def _export(model, ds, out, parity_rows, args, recipe, spec, report, fallback=None):
     from virtsensor.model import ModelCard
     from virtsensor.model.envelope import Envelope
     from virtsensor.model.export import export_pipeline, pipeline_weights
@@ -118,4 +142,4 @@ def _export(model, ds, out, parity_rows, args, recipe, spec, report):
         # the same weights as plain arrays: the numpy back-end and audits need no sklearn
         weights=pipeline_weights(model),
         # where the training rows lie: the daemon, score and explain flag rows outside it
-        envelope=Envelope.fit(ds.X, ds.feature_names)))
+        envelope=Envelope.fit(ds.X, ds.feature_names)) | ({} if fallback is None else {"fallback": fallback}))

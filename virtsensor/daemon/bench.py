@@ -150,7 +150,7 @@ class Inputs:
         b = a + LOOP_S
         if time_s[-1] < b + 0.1:
             raise UserError(f"the bench manoeuvre {manoeuvre} is shorter than {b} s")
-        frames = [m for m in iter_frames(time_s, sig, seed=int(manoeuvre[3])) if a - 1e-9 < m.timestamp < b - 1e-9]
+        frames = [m for m in iter_frames(time_s, sig) if a - 1e-9 < m.timestamp < b - 1e-9]
         n_ticks = round(LOOP_S / TICK_S)
         grid = a + np.arange(n_ticks) * TICK_S
         # frame of tick k: stamped in (grid[k-1], grid[k]]; the first window tick also gets frames at grid[0]
@@ -170,6 +170,7 @@ class Inputs:
         self.manoeuvre = manoeuvre
         # the tail frames (after the last instant) of loop L are stamped before loop L+1's first instant
         self._tail_n = len(tail)
+        self._recount = _slow_message_counters(batches, len(tail))
 
     def tick(self, k: int) -> tuple[list[Any], Any]:
         """Frames and sync frame of global tick ``k`` (timestamps set for its loop; objects are reused)."""
@@ -184,9 +185,41 @@ class Inputs:
         else:
             for i, m in enumerate(batch):
                 m.timestamp = ts[i] + off
+        for i, variants, base, per_loop in self._recount[j]:  # (a message slower than the loop: the TPMS)
+            lp = loop - 1 if j == 0 and i < self._tail_n else loop
+            batch[i].data = variants[(base + lp * per_loop) % len(variants)]
         s = self.syncs[j]
         s.timestamp = float(self.grid[j] + SYNC_OFFSET_S + off)
         return batch, s
+
+
+def _slow_message_counters(batches: list[list[Any]], tail_n: int) -> list[list[tuple[Any, ...]]]:
+    """Per tick of the window, ``(index in batch, payloads by alive counter, counter, frames per loop)`` of the
+    frames of messages whose frames in the window are not a whole number of counter periods (the TPMS, one frame
+    a second, three per 3 s loop): each loop then sends them with their counters continued (CRC recomputed), so
+    the Profile 11 check sees an unbroken sequence, as on a car."""
+    from virtsensor.canbus.codec import CanMatrix
+    from virtsensor.canbus.e2e import COUNTER_MAX
+
+    matrix = CanMatrix.load()
+    period = COUNTER_MAX + 1
+    count: dict[int, int] = {}
+    for b_ in batches:
+        for m in b_:
+            count[m.arbitration_id] = count.get(m.arbitration_id, 0) + 1
+    out: list[list[tuple[Any, ...]]] = [[] for _ in batches]
+    for j, b_ in enumerate(batches):
+        for i, m in enumerate(b_):
+            n = count[m.arbitration_id]
+            if n % period == 0 or m.arbitration_id not in matrix.by_id:
+                continue
+            d = matrix.fresh().decode(m.arbitration_id, bytes(m.data), 0.0)
+            if d is None:
+                continue
+            name = matrix.by_id[m.arbitration_id].name
+            variants = [bytearray(matrix.encode(name, dict(d.values), c)) for c in range(period)]
+            out[j].append((i, variants, int(m.data[1]) & 0xF, n))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------------------

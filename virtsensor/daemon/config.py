@@ -16,6 +16,7 @@ from typing import Any
 from virtsensor import assets
 from virtsensor.daemon.jsonlog import LOG_LEVELS
 from virtsensor.errors import UserError
+from virtsensor.fileio import read_user_text
 
 __all__ = ["RuntimeConfig", "load_config", "read_config_file"]
 
@@ -116,12 +117,7 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
         import tomli as tomllib  # type: ignore[no-redef]
 
     path = Path(path)
-    try:
-        text = path.read_bytes().decode("utf-8")
-    except OSError as exc:
-        raise UserError(f"cannot read config file {path}: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise UserError(f"config file {path} is not UTF-8 text") from None
+    text = read_user_text(path, "config file")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -147,7 +147,9 @@ class InputLayout:
             if not matrix.messages[m].cycle_s > 0:
                 raise UserError(f"{matrix.source}: message {m} (carrying model input {s}) has no GenMsgCycleTime")
             sig_msgs.append(m)
-        bit_of = bitmap_order(matrix)
+        # a message that carries none of the catalogue's inputs (the TPMS) has its bit only when the model reads it
+        bit_of = {m: b for m, b in bitmap_order(matrix).items()
+                  if m in sig_msgs or any(s.role == "input" for s in cat.by_message(m))}
         if not bit_of:  # no documented order: the input messages by frame id
             ordered = sorted(set(sig_msgs), key=lambda m: matrix.messages[m].frame_id)
             bit_of = {m: i for i, m in enumerate(ordered[:8])}

@@ -45,6 +45,7 @@ from virtsensor.daemon.buslink import BusLink
 from virtsensor.daemon.config import RuntimeConfig, load_config
 from virtsensor.daemon.jsonlog import event, log
 from virtsensor.daemon.layout import InputLayout
+from virtsensor.daemon.pressure import PressureFallback
 from virtsensor.daemon.publish import Publisher
 from virtsensor.daemon.receive import ReceivePath, StageHook
 from virtsensor.daemon.runner import TICK_NS, Runner
@@ -142,6 +143,7 @@ class VirtualSensor:
         self._link = BusLink(bus, bus_factory, self.counters, self._stop, reconnect_backoff_s, reconnect_max_s)
         self._push = hook("feature_vector", FeatureBuilder(lay.spec).push)
         self._predict = hook("inference", model.predict_one)
+        self.fallback, self._predict_fb, self._inputs_complete = _fallback_parts(model, lay, hook, self._predict)
         self._send_sat = hook("send", self._link.send)
         self._rules = lay.rules()
         self._state = ValidityState(len(lay.signals))
@@ -280,7 +282,7 @@ class VirtualSensor:
             if n_future:
                 self.counters["future_stamped"] += n_future
             if not self._complete:
-                self._complete = min(rx.times) > -math.inf
+                self._complete = self._inputs_complete(rx.times)
             plaus = self._plaus
             if plaus.update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
                 _log_implausible(self, t)
@@ -319,8 +321,9 @@ class VirtualSensor:
                 sv[est] = math.nan
                 sv[st] = INIT
             return False
-        x_ok = x.dot(self._xzero) == 0.0  # every feature finite (one call instead of isfinite + all)
-        y = self._predict(x) if x_ok else None
+        x, predict, zero = _model_inputs(self, x)  # (the pressure-free fallback while the pressures are unknown)
+        x_ok = x.dot(zero) == 0.0  # every feature finite (one call instead of isfinite + all)
+        y = predict(x) if x_ok else None
         rules = self._env_rules
         outside = x_ok and rules is not None and outside_envelope(self.inputs.values, rules)
         for k, est, st, lo, hi in self._wheels:
@@ -377,6 +380,25 @@ class VirtualSensor:
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+def _fallback_parts(model: Any, lay: InputLayout, hook: Any, predict: Any) -> tuple[Any, Any, Any]:
+    """A TPMS model's pressure-free fallback (:class:`~virtsensor.daemon.pressure.PressureFallback`, None when
+    the card names none), its timed inference, and the test "every required input was received once" (a TPMS
+    model does not wait for the slow, optional TPMS)."""
+    fb = PressureFallback.for_model(model, lay.signals)
+    if fb is None:
+        return None, predict, lambda times: min(times) > -math.inf
+    return fb, hook("inference", fb.predict_one), fb.complete
+
+
+def _model_inputs(self: VirtualSensor, x: np.ndarray) -> tuple[np.ndarray, Any, np.ndarray]:
+    """This tick's ``(features, inference, zeros)``: the model's, or, while a front pressure is bad (stale, SNA,
+    E2E error, out of order), the pressure-free fallback's on the first features (the status is DEGRADED then)."""
+    fb = self.fallback
+    if fb is not None and fb.active(self._state.bad):
+        return x[: fb.n], self._predict_fb, fb.zero
+    return x, self._predict, self._xzero
 
 
 def _log_implausible(self: VirtualSensor, t: float) -> None:

@@ -57,7 +57,10 @@ def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[R
     Args:
         paths: recording files, or directories holding them.
         needed: catalogue signals every run must carry; a run without one is
-            refused with a one-line error naming the signal and the file.
+            refused with a one-line error naming the signal and the file. The TPMS
+            pressures are the exception: a run without them (a car or a recording
+            without TPMS) gets NaN columns (pressure unknown, not nominal) and
+            ``meta["pressure_unknown"] = True``.
 
     Raises:
         UserError: the first file that fails, naming it (and column and row).
@@ -67,6 +70,9 @@ def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[R
     for source in recording_files(paths):
         f = source.path
         table = read_table(f)
+        unknown = [s for s in needed if s in cat.TPMS_SIGNALS and s not in table]
+        for s in unknown:  # a recording without TPMS: its pressures are unknown (NaN), never taken as nominal
+            table[s] = np.full(len(table["time_s"]) if "time_s" in table else 0, np.nan)
         missing = [s for s in needed if s not in table]
         if missing:
             raise UserError(f"{f}: recording lacks the needed signal(s) {', '.join(missing)}")
@@ -75,6 +81,8 @@ def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[R
         if source.entry is not None:
             check_rows(f, source.entry, len(table["time_s"]))
             meta = {k: v for k, v in source.entry.items() if k != "file"}
+        if unknown:
+            meta["pressure_unknown"] = True
         runs.append(Run(f.stem, table, meta, f))
     return runs
 
@@ -120,8 +128,12 @@ class Dataset:
         return h.hexdigest()
 
 
-def build_dataset(runs: Sequence[Run], spec: FeatureSpec, targets: Sequence[str] = cat.OUTPUTS) -> Dataset:
-    """Feature vectors of every run (history never crosses a run boundary)."""
+def build_dataset(runs: Sequence[Run], spec: FeatureSpec, targets: Sequence[str] = cat.OUTPUTS,
+                  optional: Sequence[str] = ()) -> Dataset:
+    """Feature vectors of every run (history never crosses a run boundary).
+
+    ``optional``: names of features that may be non-finite in a kept row (the TPMS pressures of a model with a
+    pressure-free fallback: such a row is estimated by the fallback); every other feature and target must be."""
     if not runs:
         raise UserError("no runs to build a data set from")
     xs, ys, gs, ts = [], [], [], []
@@ -133,7 +145,8 @@ def build_dataset(runs: Sequence[Run], spec: FeatureSpec, targets: Sequence[str]
             raise UserError(f"{where}: recording lacks the needed signal(s) {', '.join(missing)}")
         x = spec.transform(run.table)
         y = np.column_stack([np.asarray(run.table[t], dtype=np.float64) for t in targets])
-        ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
+        must = [j for j, name in enumerate(spec.names) if name not in optional]
+        ok = np.isfinite(x[:, must]).all(axis=1) & np.isfinite(y).all(axis=1)
         dropped += int((~ok).sum())
         xs.append(x[ok])
         ys.append(y[ok])

@@ -150,13 +150,15 @@ def model_sats(model: Any, table: Mapping[str, Any]) -> tuple[np.ndarray, np.nda
     """The model's front SATs (Nm) on every row of a run's table: nan where a feature is not finite (the
     first rows lack history), as the daemon publishes none there."""
     from virtsensor.features import FeatureSpec
+    from virtsensor.model.fallback import load_fallback
 
     spec = FeatureSpec.from_json(model.card["feature_spec"])
     X = spec.transform(table)
-    ok = np.isfinite(X).all(axis=1)
+    fb = load_fallback(model)  # a TPMS model: its pressure-free fallback where a pressure is unknown, as published
+    ok = np.isfinite(X[:, : fb.n] if fb is not None else X).all(axis=1)
     P = np.full((len(X), 2), np.nan)
     if ok.any():
-        P[ok] = model.predict(X[ok])
+        P[ok] = model.predict(X[ok]) if fb is None else fb.predict(model, X[ok])[0]
     return P[:, 0], P[:, 1]
 
 

@@ -27,12 +27,15 @@ from virtsensor.learning.dataset import Run, build_dataset
 from virtsensor.learning.gripscore import grip_markdown, score_grip
 from virtsensor.metrics import metrics
 from virtsensor.model.envelope import Envelope
+from virtsensor.model.fallback import load_fallback
 
 __all__ = ["envelope_split", "needed_signals", "score_runs", "markdown"]
 
 
 def needed_signals(card: Any) -> list[str]:
-    """The catalogue signals a run needs to be scored by a model of this card: its inputs and the SATs."""
+    """The catalogue signals a run needs to be scored by a model of this card: its inputs and the SATs (the TPMS
+    pressures are asked for too, but a run without them loads with its pressures unknown, see
+    :func:`~virtsensor.learning.dataset.load_runs`, and a model with a fallback scores it with the fallback)."""
     spec = _spec(card)
     return sorted(set(spec.signals) | set(cat.OUTPUTS))
 
@@ -66,20 +69,27 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
         raise UserError(f"{getattr(model, 'path', 'model')}: it estimates {', '.join(model.outputs)}, "
                         f"not {', '.join(cat.OUTPUTS)}")
     env = _envelope(model)
+    fallback = load_fallback(model)
+    optional = () if fallback is None else fallback.optional
     per_run, ys, ps = [], [], []
     outs: list[np.ndarray] = []
-    dropped = 0
+    dropped = unknown = 0
     for run in runs:
-        ds = build_dataset([run], spec, cat.OUTPUTS)
+        ds = build_dataset([run], spec, cat.OUTPUTS, optional=optional)
         where = str(run.path or run.name)
         if len(ds.Y) == 0:
             raise UserError(f"{where}: no sample with every input of the model and both reference SATs finite")
-        pred = model.predict(ds.X)
+        if fallback is None:
+            pred, fb_rows = model.predict(ds.X), np.zeros(len(ds.X), dtype=bool)
+        else:  # rows whose pressures are unknown: the pressure-free fallback's estimate, as the daemon publishes
+            pred, fb_rows = fallback.predict(model, ds.X)
         m = metrics(ds.Y, pred)
         out = None if env is None else env.outside_rows(ds.X, spec.names)
         per_run.append({"file": where, "r2": m["r2"], "mae_nm": m["mae_nm"], "n": m["n"], "fl": m["fl"],
                         "fr": m["fr"], "axle": m["axle"], "dropped_nonfinite": ds.dropped_nonfinite,
-                        "envelope": envelope_split(ds.Y, pred, out)})
+                        "envelope": envelope_split(ds.Y, pred, out),
+                        **({} if fallback is None else {"pressure_unknown_rows": int(fb_rows.sum())})})
+        unknown += int(fb_rows.sum())
         ys.append(ds.Y)
         ps.append(pred)
         if out is not None:
@@ -88,6 +98,9 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
     Y, P = np.concatenate(ys), np.concatenate(ps)
     overall = metrics(Y, P)
     overall["dropped_nonfinite"] = dropped
+    if fallback is not None:  # said, never hidden: how many rows had no known pressure and who estimated them
+        overall["pressure_unknown_rows"] = unknown
+        overall["fallback"] = {"file": str(fallback.model.path), "sha256": fallback.model.card.get("sha256")}
     overall["envelope"] = envelope_split(Y, P, None if env is None else np.concatenate(outs))
     grip = score_grip(model, runs)  # (the grip margin from these SATs, where a run carries its truth)
     overall["grip"] = None if grip is None else grip["overall"]
@@ -137,6 +150,11 @@ def markdown(result: dict[str, Any]) -> str:
 
     lines += [row(r["file"], r) for r in result["runs"]]
     lines.append(row("**all runs**", result["overall"]))
-    grip = result["overall"].get("grip")
+    o = result["overall"]
+    if "pressure_unknown_rows" in o:
+        lines += ["", f"{o['pressure_unknown_rows']} of {o['n']} samples had no known front tyre pressure (no TPMS, "
+                      f"or a sensor missing): estimated by the pressure-free fallback `{o['fallback']['file']}`, as "
+                      "the daemon publishes them (DEGRADED)."]
+    grip = o.get("grip")
     tail = "" if grip is None else "\n" + grip_markdown({"overall": grip})
     return "\n".join(lines) + "\n" + tail

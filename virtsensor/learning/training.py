@@ -66,6 +66,12 @@ RECIPES: dict[str, dict[str, Any]] = {
     "improved": {"features": "history",
                  "params": {**PAPER_PARAMS, "hidden_layer_sizes": (96, 48), "max_iter": 800, "early_stopping": False,
                             "learning_rate_init": 3e-4, "tol": 1e-6, "alpha": 1e-5}},
+    # issue 17: the improved recipe with the front tyres' TPMS pressures as two more inputs (the paper's
+    # Section V: SAT falls as pressure rises); trained on runs whose pressures vary. Where the pressures are
+    # unknown the pressure-free model named "fallback" (the improved recipe) takes over (score, daemon).
+    "tpms": {"features": "history+tpms", "fallback": "improved",
+             "params": {**PAPER_PARAMS, "hidden_layer_sizes": (96, 48), "max_iter": 800, "early_stopping": False,
+                        "learning_rate_init": 3e-4, "tol": 1e-6, "alpha": 1e-5}},
 }
 
 

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from virtsensor.errors import UserError
-from virtsensor.fileio import atomic_write_bytes, json_default
+from virtsensor.fileio import atomic_write_bytes, json_default, read_user_text
 from virtsensor.model.envelope import Envelope
 
 #: Card key holding the digest of the card's canonical content.
@@ -213,14 +213,7 @@ class ModelCard(Mapping[str, Any]):
                 or a digest mismatch; the message names ``path`` and never quotes the file's content.
         """
         path = Path(path)
-        try:
-            raw = path.read_bytes()
-        except OSError as exc:
-            raise UserError(f"cannot read model card {path}: {exc.strerror or exc}") from None
-        try:
-            text = raw.decode("utf-8")
-        except UnicodeDecodeError:
-            raise UserError(f"{path}: model card is not UTF-8 text") from None
+        text = read_user_text(path, "model card")
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:

@@ -29,19 +29,21 @@ whose last row has no end of line.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.canbus.codec import CanMatrix
-from virtsensor.canbus.e2e import E2EStatus, counter_sequence
+from virtsensor.canbus.e2e import USABLE, E2EStatus, counter_sequence
 from virtsensor.errors import UserError
-from virtsensor.frontend import TableBuild, collect, table_from_collected
+from virtsensor.frontend import TIME_TOLERANCE_S, TableBuild, collect, table_from_collected
 from virtsensor.recordings.files import LOG_SUFFIXES
 
 __all__ = [
@@ -99,7 +101,6 @@ def frame_arrays(
     *,
     matrix: CanMatrix | None = None,
     start_time: float = 0.0,
-    seed: int = 0,
     phases: Mapping[str, float] | None = None,
 ):
     """All frames of a run as arrays, in time order (the vectorised core of :func:`write_log`).
@@ -109,7 +110,6 @@ def frame_arrays(
         signals: catalogue name -> array on ``time_s`` (SI). Other names are ignored.
         matrix: CAN matrix (default: bundled).
         start_time: timestamp (s) of run time ``time_s[0]``.
-        seed: no effect (it used to draw the first alive counters; they now start at 0).
         phases: message name -> transmit phase (s, ``0 <= phase < cycle``) overriding
             :func:`phase_offset`, e.g. to send right after a sensor's own update instants.
 
@@ -159,7 +159,6 @@ def iter_frames(
     *,
     matrix: CanMatrix | None = None,
     start_time: float = 0.0,
-    seed: int = 0,
     phases: Mapping[str, float] | None = None,
     channel=None,
 ) -> Iterator:
@@ -167,7 +166,7 @@ def iter_frames(
     import can
 
     ts, ids, data, _ = frame_arrays(
-        time_s, signals, matrix=matrix, start_time=start_time, seed=seed, phases=phases
+        time_s, signals, matrix=matrix, start_time=start_time, phases=phases
     )
     Message = can.Message
     for t, i, d in zip(ts.tolist(), ids.tolist(), data, strict=True):
@@ -199,14 +198,13 @@ def write_log(
     *,
     matrix: CanMatrix | None = None,
     start_time: float = 0.0,
-    seed: int = 0,
     phases: Mapping[str, float] | None = None,
 ) -> LogSummary:
     """Write a run as a CAN log; the format follows the suffix (see :data:`CAN_LOG_SUFFIXES`).
 
     Args:
         path: output file (``.blf``, ``.asc``, ``.log``, ``.csv``, ``.trc``).
-        time_s, signals, matrix, start_time, seed, phases: see :func:`frame_arrays`
+        time_s, signals, matrix, start_time, phases: see :func:`frame_arrays`
             (SI values under catalogue names on the base grid ``time_s`` in s).
 
     Note:
@@ -220,7 +218,7 @@ def write_log(
     _check_suffix(path)
     matrix = matrix or CanMatrix.load()
     ts, ids, data, counts = frame_arrays(
-        time_s, signals, matrix=matrix, start_time=start_time, seed=seed, phases=phases
+        time_s, signals, matrix=matrix, start_time=start_time, phases=phases
     )
     try:
         writer = can.Logger(path)
@@ -504,15 +502,45 @@ def simulated_recording(
     *,
     matrix: CanMatrix | None = None,
     rate_hz: float = 20.0,
-    seed: int = 0,
 ) -> Recording:
     """What a receiver on the bus makes of a simulated run: its sensor streams are
     encoded into frames exactly as :func:`write_log` writes them, decoded with the
     E2E checks and sampled by the front-end. The simulator's canonical table is
     built this way, so a table and the log of the same run agree frame for frame,
     and training sees the signals as the runtime will."""
-    frames = iter_frames(time_s, signals, matrix=matrix, seed=seed)
+    frames = iter_frames(time_s, signals, matrix=matrix)
     return decode_recording(frames, Path("<simulated>"), matrix=matrix, rate_hz=rate_hz)
+
+
+_TPMS_MESSAGE = "TPMS_Pressures"
+
+
+class _TpmsTrack:
+    """The TPMS frames of a log, kept apart from the table's inputs: they are slow (1 frame/s) and optional, so
+    they neither delay the table's first row nor are required. A wheel whose sensor reports SNA ("sensor
+    missing") is NaN from that frame on, not its last value held."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.rows: list[tuple[float, ...]] = []
+
+    def add(self, d: Any) -> None:
+        if d.status not in USABLE:
+            return
+        self.t.append(float(d.timestamp))
+        self.rows.append(tuple(float(d.values.get(s, math.nan)) for s in cat.TPMS_SIGNALS))
+
+    def sample(self, ticks: np.ndarray) -> dict[str, np.ndarray]:
+        """Sample-and-hold at the table's absolute ``ticks`` (s, log clock): NaN before the first frame (pressure
+        unknown). No TPMS frame at all: no column (a car or a recording without TPMS)."""
+        if not self.t:
+            return {}
+        t = np.asarray(self.t)
+        v = np.asarray(self.rows, dtype=np.float64)
+        order = np.argsort(t, kind="stable")
+        idx = np.searchsorted(t[order], ticks + TIME_TOLERANCE_S, side="right") - 1
+        vals = np.where((idx >= 0)[:, None], v[order][np.maximum(idx, 0)], math.nan)
+        return {s: vals[:, i] for i, s in enumerate(cat.TPMS_SIGNALS)}
 
 
 def decode_recording(
@@ -539,9 +567,12 @@ def decode_recording(
                 per = e2e[d.message] = {}
             name = d.status.name
             per[name] = per.get(name, 0) + 1
+            if tpms is not None and d.message == _TPMS_MESSAGE:
+                tpms.add(d)
             yield d
 
     wanted = tuple(signals) if signals is not None else tuple(cat.TABLE_COLUMNS[1:])
+    tpms = _TpmsTrack() if signals is None else None
     for s in wanted:
         if s not in cat.SIGNALS:
             raise UserError(f"{path}: unknown signal {s!r} requested")
@@ -560,6 +591,8 @@ def decode_recording(
         )
     build: TableBuild = table_from_collected(col, used, rate_hz, col.t_first + t0)
     table = dict(build.table)
+    if tpms is not None:
+        table.update(tpms.sample(np.asarray(build.table["time_s"], dtype=np.float64)))
     k = np.arange(build.dropped_ticks, build.ticks)
     table["time_s"] = t0 + k / rate_hz
     by_status: dict[str, int] = {}

@@ -149,7 +149,7 @@ def simulated_frames(
         time_s, signals = simulate_streams(manoeuvre, speed_kmh=speed_kmh, mu=mu, seed=seed, overrides=overrides)
     except (ManoeuvreError, ParamError, TirError) as exc:
         raise UserError(str(exc)) from None
-    return list(iter_frames(time_s, signals, matrix=matrix, seed=seed))
+    return list(iter_frames(time_s, signals, matrix=matrix))
 
 
 def _sources(frames_or_path, loop: bool):

@@ -31,8 +31,7 @@ def run_table(sim_run: Any) -> dict[str, np.ndarray]:
     from virtsensor.recordings.canlog import simulated_recording
 
     streams = sim_run.streams
-    rec = simulated_recording(streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
-                              seed=sim_run.request.seed)
+    rec = simulated_recording(streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"})
     table = dict(rec.table)
     table.update(truth_at(sim_run.truth, table["time_s"]))
     return table
@@ -57,8 +56,7 @@ def write_run_file(sim_run: Any, path: Path) -> dict[str, np.ndarray]:
         write_csv(path, table)
     else:
         streams = sim_run.streams
-        write_log(path, streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"},
-                  seed=sim_run.request.seed)
+        write_log(path, streams["time_s"], {k: v for k, v in streams.items() if k != "time_s"})
     return table
 
 
