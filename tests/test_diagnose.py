@@ -123,7 +123,7 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     assert OnnxModel.load(tmp_path / "e.onnx").predict(X[:3]).shape == (3, 2)
 
 
-def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shifts=None):
+def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shifts=None, backend="loky"):
     """Stands in for :func:`virtsensor.diagnose.resim.simulate_hypotheses`: a car whose every signal
     reads 0 whatever the hypothesis (same return layout: ``out[h][r][s]``)."""
     keep = list(keep_streams) if keep_streams is not None else [False] * len(hyps)
@@ -147,8 +147,9 @@ def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shif
 def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch, rho, n):
     """An offset of 0.3 m/s^2 on ay_mps2 and AR(1) noise of standard deviation sigma on every signal, on a
     car that reads 0: the offset's estimate is the mean of ay, whose standard error is
-    ``sigma sqrt((1 + rho) / ((1 - rho) m))`` (m samples compared). The 95 % interval must be 1.96 of
-    those (not the raw-n one, 3x narrower at rho 0.8) and cover the true offset 95 % of the time."""
+    ``sigma sqrt((1 + rho) / ((1 - rho) m))`` (m samples compared). The interval's statistical half-width
+    must be 1.96 of those (not the raw-n one, 3x narrower at rho 0.8); the whole interval adds the model
+    error in quadrature and covers the true offset at least 95 % of the time."""
     from pathlib import Path
 
     from scipy.signal import lfilter
@@ -177,9 +178,11 @@ def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch,
         assert res.n_eff_factor == pytest.approx((1 - rho) / (1 + rho), abs=0.1)
         lo, hi = res.best.ci95
         covered += lo <= true <= hi
-        ratios.append((hi - lo) / 2 / (1.96 * se))
+        ratios.append(res.best.half_stat / (1.96 * se))
+        assert (hi - lo) / 2 == pytest.approx(np.hypot(res.best.half_stat, idn.model_error(
+            res.best.candidate, res.best.estimate)))
     assert np.median(ratios) == pytest.approx(1.0, abs=0.15), np.median(ratios)
-    assert 0.88 <= covered / seeds <= 1.0, covered
+    assert covered / seeds >= 0.93, covered
 
 
 # ---------------------------------------------------------------------------------------- end to end
@@ -203,7 +206,7 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     names = [p.name for p in hidden_case.diagnosis + hidden_case.holdout]
     assert all(n.startswith("run") for n in names)  # nothing in the names gives it away
     runs, hold = load_measured(hidden_case.diagnosis, skipped=[]), load_measured(hidden_case.holdout, skipped=[])
-    res, _ = diagnose(runs, hold, car_parameters(), preset="tiny", max_iter=300, n_jobs=2)
+    res, _ = diagnose(runs, hold, car_parameters(), mu=1.0, preset="tiny", max_iter=300, n_jobs=2)
     assert res["cause"] == h.cause, (h, res["candidates"][:3])
     assert res["signal"] == h.signal
     e = EFFECTS[h.cause]
@@ -214,21 +217,26 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     assert np.isfinite([lo, hi]).all() and hi > lo, res["ci95"]
     assert not lo <= e.nominal <= hi, (res["ci95"], e.nominal)
     assert (hi - lo) / 2 < max(e.tolerance[0], e.tolerance[1] * abs(h.value - e.nominal)), res["ci95"]
-    assert res["mae_after_nm"] < res["mae_before_nm"], res
-    assert res["r2_after"] > res["r2_before"]
+    # the calibrated estimator is kept only when its held-out gain is more than noise
+    g = res["gain"]
+    assert g["better"] == (g["ci95_nm"][0] > 0)
+    assert res["estimator_kept"] == ("calibrated" if g["better"] else "nominal")
+    assert res["mae_after_nm"] <= res["mae_before_nm"], res
     # the result: its keys, and the values each one must have
-    assert set(res) == {
-        "cause", "signal", "estimate", "ci95", "unit", "nominal", "variance_explained", "signature", "candidates",
+    assert set(res) - {"gain_note"} == {
+        "cause", "causes", "unexplained", "run_conditions", "signal", "estimate", "ci95", "unit", "nominal",
+        "variance_explained", "signature", "second_stage", "candidates",
         "n_eff_factor", "message_shifts_s", "runs", "holdout_runs", "simulations", "seconds_identify",
         "comparison", "estimator", "estimator_on_diagnosis_runs", "mae_before_nm", "mae_after_nm", "r2_before",
-        "r2_after", "holdout_before", "holdout_after", "seconds_total"}
+        "r2_after", "holdout_before", "holdout_after", "gain", "estimator_kept", "seconds_total"}
+    assert res["causes"][0]["cause"] == res["cause"] and res["unexplained"] is None
     assert res["unit"] == (cat.SIGNALS[h.signal].unit if h.cause == "sensor_offset" else e.unit)
     assert res["nominal"] == e.nominal
     assert 0.0 < res["variance_explained"] <= 1.0 and 0.0 < res["n_eff_factor"] <= 1.0
     cands = res["candidates"]
     assert len(cands) > 20 and all(c["score"] == c["bic_gain"] for c in cands)
     assert [c["score"] for c in cands] == sorted((c["score"] for c in cands), reverse=True)
-    named = next(c for c in cands if c["significant"])  # the best-supported candidate that matters
+    named = next(c for c in cands if c["significant"] and c["consistent"])  # the best-supported that matters
     assert (named["cause"], named["signal"], named["estimate"], named["ci95"]) == (
         res["cause"], res["signal"], res["estimate"], res["ci95"])
     assert {r["name"] for r in res["runs"]} <= {p.stem for p in hidden_case.diagnosis} and res["runs"]
@@ -243,6 +251,7 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     assert (f"**{h.cause}**{on}: estimate {res['estimate']:.4g} {res['unit']} "
             f"(95 % interval {lo:.4g} to {hi:.4g}; nominal {e.nominal:.4g})") in md
     assert f"MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f} Nm" in md
+    assert f"estimator kept: {res['estimator_kept']}" in md
     assert f"({res['n_eff_factor']:.3f} x n" in md
 
 
@@ -324,3 +333,160 @@ def test_sensor_effects_cover_exactly_the_catalogue_inputs():
     from virtsensor import signals as cat
 
     assert SENSOR_SIGNALS == cat.INPUTS
+
+
+# ---------------------------------------------------------------------------------------- per-run conditions
+def test_conditions_from_a_csv_and_a_json_beside_the_run(tmp_path):
+    from virtsensor.diagnose.conditions import load_conditions
+
+    runs = [tmp_path / f"run0{i}.csv" for i in (1, 2, 3)]
+    (tmp_path / "run01.json").write_text(json.dumps({"conditions": {"mu": "0.5..0.8", "pressure_bar": 1.9}}))
+    (tmp_path / "run02.json").write_text(json.dumps({"request": {"mu": 0.3}, "outcome": {}}))  # a sim record
+    (tmp_path / "c.csv").write_text("file,mu,mass_kg\nrun01.csv,0.6..0.7,\nrun03,,1500\n")
+    c = load_conditions(runs, tmp_path / "c.csv")
+    assert c[0].values == {"mu": (0.6, 0.7), "pressure_bar": (1.9, 1.9)}  # the CSV wins, per quantity
+    assert c[0].unknown() == {"mu": (0.6, 0.7)} and c[0].exact("pressure_bar") == 1.9
+    assert c[1].values == {"mu": (0.2, 1.2)}  # nothing stated: friction unknown over its whole range
+    assert c[2].values == {"mass_kg": (1500.0, 1500.0), "mu": (0.2, 1.2)}
+    assert load_conditions(runs[1:2], None, default_mu=0.9)[0].values == {"mu": (0.9, 0.9)}
+
+
+@pytest.mark.parametrize(("text", "msg"), [
+    ("name,mu\nrun01.csv,1\n", "line 1: the header needs a 'file' column"),
+    ("file,grip\nrun01.csv,1\n", "line 1: unknown column 'grip'"),
+    ("file,mu\nrun01.csv,0.9..0.5\n", "line 2: mu '0.9..0.5': a range needs finite lo <= hi"),
+    ("file,mu\nrun01.csv,wet\n", "line 2: mu 'wet' is not a number or a range lo..hi"),
+    ("file,mu\nrun01.csv,3\n", "line 2: mu '3' is outside 0.2..1.2"),
+    ("file,mu\nrun01.csv,1,2\n", "line 2: 3 cells for 2 columns"),
+    ("file,mu\nrun09.csv,1\n", "run09.csv is not one of the measured runs"),
+])
+def test_a_bad_conditions_file_is_one_line_and_exit_2(tmp_path, capsys, text, msg):
+    from test_measured import _table
+
+    from virtsensor.cli import main
+    from virtsensor.recordings.canlog import write_csv
+
+    write_csv(tmp_path / "run01.csv", _table())
+    (tmp_path / "c.csv").write_text(text)
+    assert main(["diagnose", "--measured", str(tmp_path / "run01.csv"), "--conditions", str(tmp_path / "c.csv"),
+                 "--no-retrain"]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_bad_json_beside_a_run_is_refused(tmp_path, capsys):
+    from test_measured import _table
+
+    from virtsensor.cli import main
+    from virtsensor.recordings.canlog import write_csv
+
+    write_csv(tmp_path / "run01.csv", _table())
+    (tmp_path / "run01.json").write_text(json.dumps({"conditions": {"mu": [0.5]}}))
+    assert main(["diagnose", "--measured", str(tmp_path / "run01.csv"), "--no-retrain"]) == 2
+    err = capsys.readouterr().err
+    assert "run01.json: conditions: mu [0.5] is not a number or a range" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_nuisance_interval_is_read_off_its_profile():
+    from virtsensor.diagnose.nuisance import _interval
+
+    grid = np.linspace(0.2, 1.2, 7)
+    # a run at its grip limit: a parabola of curvature 2/s^2 about 0.55 (feff 1: the 95 % half-width is 1.96 s)
+    s = 0.05
+    est, lo, hi = _interval(grid, ((grid - 0.55) / s) ** 2, 1.0)
+    assert est == pytest.approx(0.55, abs=1e-6)
+    assert lo == pytest.approx(0.55 - 1.96 * s, abs=0.04) and hi == pytest.approx(0.55 + 1.96 * s, abs=0.04)
+    # a run below its limit: any friction above what it used fits; the interval reaches the top of the range
+    flat = np.where(grid < 0.6, 200.0 * (0.6 - grid), 0.0)
+    est, lo, hi = _interval(grid, flat, 1.0)
+    assert hi == 1.2 and 0.5 < lo < 0.65
+
+
+def test_parallel_runs_in_order_on_local_workers():
+    from virtsensor.diagnose.parallel import run_parallel
+
+    assert run_parallel(pow, [(2, k) for k in range(6)], n_jobs=2) == [2**k for k in range(6)]
+    assert run_parallel(pow, [(3, 2)], n_jobs=1) == [9]
+
+
+@pytest.mark.slow
+def test_parallel_on_a_local_ray_cluster():
+    pytest.importorskip("ray", reason="Ray is the optional extra 'distributed'")
+    import ray
+
+    from virtsensor.diagnose.parallel import run_parallel
+
+    try:
+        assert run_parallel(pow, [(2, k) for k in range(5)], n_jobs=2, backend="ray") == [2**k for k in range(5)]
+    finally:
+        ray.shutdown()
+
+
+def test_backend_ray_without_ray_is_one_line(monkeypatch, capsys, tmp_path):
+    import sys
+
+    from test_measured import _table
+
+    from virtsensor.cli import main
+    from virtsensor.recordings.canlog import write_csv
+
+    write_csv(tmp_path / "run01.csv", _table())
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
+    assert main(["diagnose", "--measured", str(tmp_path / "run01.csv"), "--backend", "ray", "--no-retrain"]) == 2
+    err = capsys.readouterr().err
+    assert "--backend ray needs Ray: pip install 'virtsensor[distributed]'" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+# ------------------------------------------------------------------ a real test day: hidden, found by the pipeline
+def _day(tmp_path, seed, *, hidden=None, surfaces=None, programme=None):
+    """Diagnose (no retraining) a small day of short runs with ``hidden`` effect(s); returns (case, result)."""
+    from virtsensor.diagnose import diagnose
+    from virtsensor.diagnose.conditions import load_conditions
+    from virtsensor.diagnose.hidden import make_case
+    from virtsensor.recordings.measured import load_measured
+
+    programme = programme or (("random-steer", 60.0), ("sine-with-dwell", 80.0), ("double-lane-change", 100.0))
+    case = make_case(seed, tmp_path / "day", hidden=hidden, control=hidden is None, holdout=(),
+                     programme=programme, surfaces=surfaces)
+    skipped: list = []
+    runs = load_measured(case.diagnosis, skipped=skipped)
+    conds = load_conditions([r.path for r in runs], case.conditions, default_mu=None if surfaces else 1.0,
+                            also=[p for p, _ in skipped])
+    res, _ = diagnose(runs, [], car_parameters(), conditions=conds, retrain=False, n_jobs=2)
+    return case, res
+
+
+@pytest.mark.slow
+def test_a_pressure_change_on_a_mixed_surface_day(tmp_path):
+    """Dry, wet and low-grip runs, each surface's friction given only as a range; 0.6 bar under-inflation."""
+    case, res = _day(tmp_path, 931, hidden=Hidden("tyre_pressure", 1.6), surfaces=("dry", "wet", "low"))
+    assert res["cause"] == "tyre_pressure" and res["causes"][0]["cause"] == "tyre_pressure", res["candidates"][:3]
+    assert res["estimate"] < 2.2 - 2 * EFFECTS["tyre_pressure"].floor, res["ci95"]
+    # every run's friction identified within the range stated for its surface, with an interval
+    for rc in res["run_conditions"]:
+        v = rc["identified"]["mu"]
+        lo, hi = v["range"]
+        assert lo <= v["ci95"][0] <= v["estimate"] <= v["ci95"][1] <= hi, rc
+
+
+@pytest.mark.slow
+def test_a_time_delay_on_one_input(tmp_path):
+    case, res = _day(tmp_path, 932, hidden=Hidden("sensor_delay", 0.12, "yaw_rate_radps"))
+    assert (res["cause"], res["signal"]) == ("sensor_delay", "yaw_rate_radps"), res["candidates"][:3]
+    assert res["ci95"][0] <= 0.12 <= res["ci95"][1]
+    assert [c["cause"] for c in res["causes"]] == ["sensor_delay"]
+
+
+@pytest.mark.slow
+def test_a_control_mixed_surface_day_names_no_cause(tmp_path):
+    case, res = _day(tmp_path, 933, surfaces=("dry", "wet", "low"))
+    assert res["cause"] == "none" and res["causes"] == [], res["candidates"][:3]
+
+
+@pytest.mark.slow
+def test_a_two_effect_day_names_both(tmp_path):
+    hidden = [Hidden("tyre_pressure", 1.65), Hidden("sensor_offset", 0.3, "ay_mps2")]
+    case, res = _day(tmp_path, 934, hidden=hidden)
+    named = {(c["cause"], c["signal"]) for c in res["causes"]}
+    assert named == {("tyre_pressure", None), ("sensor_offset", "ay_mps2")}, res["causes"]

@@ -10,6 +10,9 @@ Measured runs are CAN logs (decoded through the DBC), MDF4 files or canonical
 20 Hz CSV tables with the 12 inputs and the reference SATs. ``--holdout`` runs
 are used only to measure the estimator before and after the calibration; without
 it, the last third of the ``--measured`` runs is held out (when there are 3 or more).
+``--conditions`` (or a JSON beside each run) states what is known of each run (see
+:mod:`virtsensor.diagnose.conditions`); ``--backend ray`` runs the re-simulations on
+a Ray cluster.
 """
 
 from __future__ import annotations
@@ -34,8 +37,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="FILE", type=t.output_file(), help="write the result as JSON")
     parser.add_argument("--report", metavar="DIR", type=t.output_dir(),
                         help="write diagnosis.md and PNG plots into this directory")
-    parser.add_argument("--mu", type=t.float_range(*MU_RANGE), default=1.0,
-                        help=f"road friction of the test track ({MU_RANGE[0]:g} to {MU_RANGE[1]:g}; default 1.0)")
+    parser.add_argument("--mu", type=t.float_range(*MU_RANGE), default=None,
+                        help=f"road friction of every run without a stated one ({MU_RANGE[0]:g} to {MU_RANGE[1]:g}; "
+                             "default: not known, identified per run where the run excites it)")
+    parser.add_argument("--conditions", metavar="FILE.csv", type=t.existing_path(),
+                        help="per-run conditions: a 'file' column and any of mu, pressure_bar, mass_kg, each exact "
+                             "(0.7) or a range (0.5..0.9); a JSON beside a run (same stem) works too")
+    parser.add_argument("--backend", default="loky", choices=("loky", "ray"),
+                        help="where re-simulations run: local joblib workers (loky, default) or a Ray cluster "
+                             "(ray; needs the 'distributed' extra)")
     parser.add_argument("--campaign", default="smoke", help="training campaign preset for the estimators "
                         "(smoke, tiny, paper; default smoke)")
     parser.add_argument("--recipe", default="improved", help="estimator recipe (paper, improved; default improved)")
@@ -69,6 +79,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--campaign {args.campaign!r}: one of {', '.join(PRESETS)}")
     if args.recipe not in RECIPES:
         raise UserError(f"--recipe {args.recipe!r}: one of {', '.join(RECIPES)}")
+    from virtsensor.diagnose.conditions import load_conditions
+    from virtsensor.diagnose.parallel import check_backend
+
+    check_backend(args.backend)
     base = car_from_args(args)
     skipped: list[tuple[str, str]] = []
     runs = load_measured(args.measured, skipped=skipped)
@@ -88,13 +102,16 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(msg, file=sys.stderr)
 
+    # held-out runs may be listed in the conditions file too (their conditions are not used)
+    conds = load_conditions([r.path for r in (*runs, *holdout)], Path(args.conditions) if args.conditions else None,
+                            default_mu=args.mu, also=[p for p, _ in skipped])[:len(runs)]
     for path, why in skipped:
         log(f"left out {path}: {why}")
     if holdout and not args.holdout and not args.quiet:
         log(f"holding out {', '.join(r.name for r in holdout)} for the gain (give --holdout to choose)")
-    res, art = diagnose(runs, holdout, base, mu=args.mu, preset=args.campaign, recipe=args.recipe, seed=args.seed,
-                        max_iter=args.max_iter, ensemble=args.ensemble, n_jobs=args.n_jobs,
-                        retrain=not args.no_retrain, log=log)
+    res, art = diagnose(runs, holdout, base, mu=args.mu, conditions=conds, backend=args.backend,
+                        preset=args.campaign, recipe=args.recipe, seed=args.seed, max_iter=args.max_iter,
+                        ensemble=args.ensemble, n_jobs=args.n_jobs, retrain=not args.no_retrain, log=log)
     res["skipped_runs"] = [{"file": p, "reason": why} for p, why in skipped]
     if args.export_model:
         res["exported_model"] = _export(art["after"], res, args)
@@ -116,13 +133,27 @@ def run(args: argparse.Namespace) -> int:
 def _summary(res) -> str:
     if res["cause"] == "none":
         line = "cause: none (no candidate explains the residual decisively)"
+    elif res["cause"] == "unexplained":
+        u = res["unexplained"]
+        line = (f"cause: unexplained (no catalogue effect accounts for the misfit; it remains in "
+                f"{', '.join(u['signals'])}, {u['region']}); no calibration applied")
     else:
-        on = f" on {res['signal']}" if res["signal"] else ""
-        line = (f"cause: {res['cause']}{on}, estimate {res['estimate']:.4g} {res['unit']} "
-                f"(95 % CI {res['ci95'][0]:.4g} to {res['ci95'][1]:.4g}; nominal {res['nominal']:.4g})")
+        parts = []
+        for c in res["causes"]:
+            on = f" on {c['signal']}" if c["signal"] else ""
+            parts.append(f"{c['cause']}{on}, estimate {c['estimate']:.4g} {c['unit']} "
+                         f"(95 % CI {c['ci95'][0]:.4g} to {c['ci95'][1]:.4g}; nominal {c['nominal']:.4g})")
+        line = "cause: " + "\nand: ".join(parts)
+    for rc in res.get("run_conditions", []):
+        for q, v in rc["identified"].items():
+            how = "" if v["excited"] else " (the run does not excite it)"
+            line += (f"\n{rc['name']}: {q} {v['estimate']:.3g} (95 % CI {v['ci95'][0]:.3g} to "
+                     f"{v['ci95'][1]:.3g}){how}")
     if res.get("mae_before_nm") is not None:
         line += (f"\nheld-out SAT MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f} Nm, "
                  f"R2 {res['r2_before']:.3f} -> {res['r2_after']:.3f}")
+        if res.get("gain_note"):
+            line += f"\n{res['gain_note']}"
     return line
 
 

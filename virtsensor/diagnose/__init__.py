@@ -2,14 +2,17 @@
 
 :func:`diagnose` is the whole procedure behind ``virtsensor diagnose``:
 
-1. load and check the measured runs (:mod:`virtsensor.recordings.measured`);
-2. re-simulate them from their driver inputs and compare signal by signal
+1. load and check the measured runs (:mod:`virtsensor.recordings.measured`) and their
+   conditions (:mod:`virtsensor.diagnose.conditions`);
+2. re-simulate them from their driver inputs, identify each run's unknown conditions
+   (:mod:`virtsensor.diagnose.nuisance`) and compare signal by signal
    (:mod:`virtsensor.diagnose.compare`);
-3. identify every candidate effect of :mod:`sim.effects` and name the best
-   explanation, or ``none`` (:mod:`virtsensor.diagnose.identify`);
-4. calibrate the simulator with it, regenerate the training campaign, retrain
+3. identify every candidate effect of :mod:`sim.effects` and name the explanations,
+   best first, or ``none``, or ``unexplained`` (:mod:`virtsensor.diagnose.identify`);
+4. calibrate the simulator with them, regenerate the training campaign, retrain
    (:mod:`virtsensor.diagnose.calibrate`);
-5. score the estimator before and after on held-out measured runs.
+5. score the estimator before and after on held-out measured runs, and keep the
+   calibrated one only if its gain is more than noise.
 """
 
 from __future__ import annotations
@@ -26,7 +29,9 @@ def diagnose(
     holdout: Sequence[MeasuredRun],
     base: Mapping[str, Any],
     *,
-    mu: float = 1.0,
+    mu: float | None = None,
+    conditions: Sequence[Any] | None = None,
+    backend: str = "loky",
     preset: str = "smoke",
     recipe: str = "improved",
     seed: int = 0,
@@ -43,7 +48,9 @@ def diagnose(
         runs: measured runs for the diagnosis and the calibration.
         holdout: measured runs for scoring only (may be empty: no gain is measured).
         base: the simulator's nominal car.
-        mu: the test track's road friction (what the re-simulation assumes).
+        mu: the road friction of every run without a stated one (None: unknown, identified per run).
+        conditions: each run's :class:`~virtsensor.diagnose.conditions.RunConditions` (None: none stated).
+        backend: where the re-simulations run (``loky`` or ``ray``, :mod:`virtsensor.diagnose.parallel`).
         preset, recipe, seed, max_iter, ensemble: the training campaign and estimator
             recipe used before and after the calibration (``ensemble`` networks averaged).
         retrain: calibrate and retrain (False: diagnosis only).
@@ -55,12 +62,16 @@ def diagnose(
         objects the report draws (comparison, estimators).
     """
     from virtsensor.diagnose.compare import compare
+    from virtsensor.diagnose.conditions import RunConditions, load_conditions
     from virtsensor.diagnose.identify import identify
     from virtsensor.diagnose.resim import compared_signals
 
     t0 = time.perf_counter()
     names = compared_signals(runs)
-    idn = identify(runs, base, names, mu=mu, n_jobs=n_jobs, log=log)
+    if conditions is None:
+        conditions = load_conditions([r.path for r in runs], None, default_mu=mu) if all(
+            r.path is not None for r in runs) else [RunConditions({"mu": (mu, mu)} if mu else {}) for r in runs]
+    idn = identify(runs, base, names, conditions=conditions, n_jobs=n_jobs, backend=backend, log=log)
     result = _identification_result(idn, runs, holdout, time.perf_counter() - t0)
     comparison = compare(runs, idn, names)
     result["comparison"] = comparison.as_dict()
@@ -79,9 +90,12 @@ def _identification_result(idn, runs: Sequence[MeasuredRun], holdout: Sequence[M
                            seconds: float) -> dict[str, Any]:
     """The diagnosis part of the result: the cause named, its fit, every candidate, the runs used;
     ``seconds`` is the identification's wall time."""
-    best = idn.best
+    best = idn.best if idn.unexplained is None else None
     return {
         "cause": idn.cause,
+        "causes": [_cause_entry(f) for f in (idn.causes if idn.unexplained is None else [])],
+        "unexplained": idn.unexplained,
+        "run_conditions": _run_conditions(idn, runs),
         "signal": best.candidate.signal if best else None,
         "estimate": best.estimate if best else None,
         "ci95": list(best.ci95) if best else None,
@@ -89,6 +103,7 @@ def _identification_result(idn, runs: Sequence[MeasuredRun], holdout: Sequence[M
         "nominal": best.candidate.nominal if best else None,
         "variance_explained": best.variance_explained if best else 0.0,
         "signature": _signature(best) if best else _residual_signature(idn),
+        "second_stage": [f.as_dict() for f in idn.second],
         "candidates": [f.as_dict() for f in idn.fits],
         "n_eff_factor": idn.n_eff_factor,
         "message_shifts_s": idn.shifts,
@@ -99,6 +114,24 @@ def _identification_result(idn, runs: Sequence[MeasuredRun], holdout: Sequence[M
         "simulations": idn.simulations,
         "seconds_identify": seconds,
     }
+
+
+def _cause_entry(fit) -> dict[str, Any]:
+    c = fit.candidate
+    return {"cause": c.cause, "signal": c.signal, "estimate": fit.estimate, "ci95": list(fit.ci95),
+            "unit": _unit(fit), "nominal": c.nominal, "bic_gain": fit.bic_gain,
+            "variance_explained": fit.variance_explained}
+
+
+def _run_conditions(idn, runs: Sequence[MeasuredRun]) -> list[dict[str, Any]]:
+    """Per run: the condition values the re-simulation used and, for the ranged ones, their identification
+    (estimate, 95 % interval, whether the run excites them)."""
+    out = []
+    for r, run in enumerate(runs):
+        day = idn.day[r] if r < len(idn.day) else {}
+        ident = idn.nuisance[r] if r < len(idn.nuisance) else {}
+        out.append({"name": run.name, "used": dict(day), "identified": ident})
+    return out
 
 
 def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recipe: str, seed: int,
@@ -112,11 +145,15 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
         log(f"training the estimator on the nominal simulator ({preset} campaign, {recipe} recipe)")
         before = calibrate.train(base, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
                                  ensemble=ensemble)
-    best = idn.best
-    if best is None:
+    causes = idn.causes if idn.unexplained is None else []
+    if not causes:
         return before, before
-    log(f"calibrating the simulator ({best.candidate.key} = {best.estimate:.4g}) and retraining")
-    cal = with_effect(base, best.candidate.cause, best.estimate, best.candidate.signal)
+    cal = dict(base)
+    for f in causes:
+        c = f.candidate
+        log(f"calibrating the simulator ({c.key} = {f.estimate:.4g})")
+        cal = with_effect(cal, c.cause, f.estimate, c.signal)
+    log("retraining on the calibrated simulator")
     after = calibrate.train(cal, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
                             ensemble=ensemble)
     return before, after
@@ -138,8 +175,17 @@ def _scores(before: Any, after: Any, runs: Sequence[MeasuredRun], holdout: Seque
     }
     if holdout:
         sb, sa = calibrate.scores([before, after], holdout)
-        result.update(mae_before_nm=sb["mae_nm"], mae_after_nm=sa["mae_nm"], r2_before=sb["r2"], r2_after=sa["r2"],
-                      holdout_before=sb, holdout_after=sa)
+        gain = calibrate.paired_gain(before, after, holdout, seed=seed)
+        keep = after is not before and not gain["better"]
+        result.update(mae_before_nm=sb["mae_nm"], mae_after_nm=sb["mae_nm"] if keep else sa["mae_nm"],
+                      r2_before=sb["r2"], r2_after=sb["r2"] if keep else sa["r2"],
+                      holdout_before=sb, holdout_after=sa, gain=gain,
+                      estimator_kept="nominal" if (keep or after is before) else "calibrated")
+        if keep:
+            result["gain_note"] = (f"the calibrated estimator is not better than the nominal one on the held-out runs "
+                                   f"beyond noise (MAE {sb['mae_nm']:.2f} -> {sa['mae_nm']:.2f} Nm, gain 95 % "
+                                   f"interval {gain['ci95_nm'][0]:+.2f} to {gain['ci95_nm'][1]:+.2f} Nm): "
+                                   "the nominal estimator is kept")
     else:
         result.update(mae_before_nm=None, mae_after_nm=None, r2_before=None, r2_after=None,
                       gain_note="no held-out measured runs: the gain was not measured")

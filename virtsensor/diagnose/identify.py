@@ -22,14 +22,29 @@ Search:
   a typical step (one vectorised batch), then the most promising are refined by
   safeguarded parabolic interpolation, their proposals batched together.
 
-For each candidate: the estimate, a 95 % interval from the curvature of the
-profiled likelihood, the share of misfit explained (the likelihood-ratio R^2,
-``1 - exp(-Delta/n)``), per-signal variance explained, and BIC. The best
-explanation is the candidate with the largest BIC gain over the nominal car;
-the answer is ``none`` unless that gain is decisive, the estimate differs from
-nominal by more than the effect's practical floor and its interval excludes
-the nominal value (the best candidate that passes all three is named, even if
-one below its floor, a tiny but well-supported mismatch, scores higher).
+For each candidate: the estimate, a 95 % interval, the share of misfit explained
+(the likelihood-ratio R^2, ``1 - exp(-Delta/n)``), per-signal variance explained,
+and BIC. The interval's statistical half-width comes from the curvature of the
+profiled likelihood with ``n_eff``; the simulator's own model error on the
+effect (the accuracy :mod:`sim.effects` states for it) is added in quadrature
+(:func:`model_error`): without it a 95 % interval covered the truth in a third
+of the cases of the first study.
+
+The answer, in stages:
+
+1. per-run nuisance values (a friction given as a range, or not given at all) are
+   identified first (:mod:`virtsensor.diagnose.nuisance`), and once more over the
+   named cause (one more pass of the joint fit, the cause refitted at them);
+2. the first cause is the candidate with the largest BIC gain over the nominal car
+   that is decisive (> :data:`BIC_DECISIVE`), differs from nominal by more than
+   the effect's practical floor, and whose interval excludes the nominal value;
+3. a second stage fits every sensor effect and the re-simulated candidates that
+   stood on their own over the car with the first cause; a second cause is named
+   if it passes the same tests and reaches half the smallest realistic size of its
+   effect (:data:`SECOND_SIZE`);
+4. ``unexplained`` instead of a cause when the named cause's signal groups
+   (:data:`GROUPS`) disagree on its value: an effect outside the catalogue fits some
+   signals at the others' expense (:func:`_consistency`), and is not forced onto one.
 """
 
 from __future__ import annotations
@@ -58,7 +73,15 @@ from virtsensor.recordings.measured import MeasuredRun
 BIC_DECISIVE = 10.0
 #: sim-based candidates refined after screening, and refinement rounds
 REFINE_TOP = 3
-REFINE_ROUNDS = 4
+REFINE_ROUNDS = 2
+#: signal groups whose own evidence on a physical effect must agree (the car's motion, the steering, the
+#: tyres' moments): an out-of-catalogue effect forced onto a catalogue one fits one group, not all
+GROUPS = {
+    "motion": ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "motor_torque_nm", "susp_defl_fl_m",
+               "susp_defl_fr_m", "wheel_speed_fl_radps", "wheel_speed_fr_radps"),
+    "steering": ("steer_torque_nm", "assist_torque_nm"),
+    "tyre_moments": ("sat_fl_nm", "sat_fr_nm"),
+}
 #: the physical causes (every cause but the sensor effects), in report order
 PHYSICAL = tuple(c for c in CAUSES if not c.startswith("sensor_"))
 
@@ -120,6 +143,11 @@ class Fit:
     variance_explained: float = 0.0
     per_signal: dict[str, float] = field(default_factory=dict)
     significant: bool = False
+    sim_value: float | None = None    # the simulated value whose re-simulation stands for the fit
+    half_stat: float = float("nan")   # the interval's statistical half-width (before the model error)
+    group_spread: float = 0.0         # largest distance of a signal group's own estimate from the estimate
+    groups: dict[str, Any] = field(default_factory=dict)  # per signal group: its own estimate (sim-based fits)
+    consistent: bool = True
 
     def as_dict(self) -> dict[str, Any]:
         c = self.candidate
@@ -128,6 +156,8 @@ class Fit:
             "nominal": c.nominal, "score": self.bic_gain, "bic_gain": self.bic_gain,
             "variance_explained": self.variance_explained, "significant": self.significant,
             "per_signal_variance_explained": self.per_signal, "evaluations": len(self.points),
+            "half_width_statistical": self.half_stat, "group_spread": self.group_spread, "groups": self.groups,
+            "consistent": self.consistent,
         }
 
 
@@ -282,6 +312,7 @@ class _Search:
     def __init__(self, cand: Candidate):
         self.cand = cand
         self.pts: dict[float, float] = {}  # u -> -2logL
+        self.rss: dict[float, dict[str, float]] = {}  # u -> per-signal RSS
         lo, hi = cand.bounds
         self.ulo, self.uhi = (np.log(lo), np.log(hi)) if cand.log else (lo, hi)
         self.done = False
@@ -301,8 +332,10 @@ class _Search:
                 out.append(self.value(u))
         return out
 
-    def add(self, value: float, m2ll: float) -> None:
+    def add(self, value: float, m2ll: float, rss: Mapping[str, float] | None = None) -> None:
         self.pts[self.u(value)] = m2ll
+        if rss is not None:
+            self.rss[self.u(value)] = dict(rss)
 
     def best(self) -> tuple[float, float]:
         u = min(self.pts, key=self.pts.__getitem__)
@@ -325,8 +358,13 @@ class _Search:
             # keep the new point inside the bracket and away from the ones we have
             u_new = float(np.clip(u_v, x[0] + 0.05 * (x[1] - x[0]), x[2] - 0.05 * (x[2] - x[1])))
             if np.min(np.abs(us - u_new)) < tol:
-                self.done = True
-                return None
+                # the vertex sits on a point we have: done if the bracket is narrow, else halve its wider side
+                # (a parabola through widely spread points misplaces the minimum)
+                wide = max(x[1] - x[0], x[2] - x[1])
+                if wide < 4 * tol:
+                    self.done = True
+                    return None
+                u_new = float(0.5 * (x[1] + (x[0] if x[1] - x[0] >= x[2] - x[1] else x[2])))
         return self.value(u_new)
 
     def estimate(self) -> tuple[float, float]:
@@ -352,7 +390,7 @@ class Identification:
     """Result of :func:`identify`."""
 
     fits: list[Fit]
-    best: Fit | None                  # None: nothing explains the misfit
+    best: Fit | None                  # None: nothing explains the misfit (or the answer is unexplained)
     rss_nominal: dict[str, float]
     n: dict[str, int]
     n_eff_factor: float
@@ -361,136 +399,325 @@ class Identification:
     simulations: int
     names: tuple[str, ...]
     shifts: dict[str, float] = field(default_factory=dict)
+    causes: list[Fit] = field(default_factory=list)   # named causes, best first
+    second: list[Fit] = field(default_factory=list)   # the candidates of the second stage (given the first)
+    nuisance: list[dict[str, Any]] = field(default_factory=list)  # per run: identified conditions
+    day: list[dict[str, float]] = field(default_factory=list)     # per run: condition values used
+    unexplained: dict[str, Any] | None = None                     # the verdict's evidence when unexplained
+    rss_best: dict[str, float] = field(default_factory=dict)
 
     @property
     def cause(self) -> str:
+        if self.unexplained is not None:
+            return "unexplained"
         return self.best.candidate.cause if self.best else "none"
 
 
+@dataclass
+class Stage:
+    """One stage of the search: every candidate's fit over a background."""
+
+    fits: list[Fit]
+    background: Any
+    rss0: dict[str, float]
+    f0: float
+    sims_of: dict[tuple[str, float], Any]
+    feff: float = 1.0
+
+
 def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[str, ...], *, mu: float = 1.0,
-             n_jobs: int = 1, log=lambda msg: None) -> Identification:
-    """Identify every candidate effect on ``runs`` and name the best explanation."""
+             conditions: Sequence[Any] | None = None, n_jobs: int = 1, backend: str = "loky",
+             log=lambda msg: None) -> Identification:
+    """Identify every candidate effect on ``runs`` and name the best explanations (see the module docstring).
+
+    ``conditions``: each run's :class:`~virtsensor.diagnose.conditions.RunConditions` (None: every run on a
+    road of friction ``mu``, known)."""
+    from virtsensor.diagnose import nuisance
+    from virtsensor.diagnose.conditions import RunConditions
+
+    conds = list(conditions) if conditions is not None else [RunConditions({"mu": (mu, mu)}) for _ in runs]
     data = Data(runs, names)
-    cands = candidates()
-    searches = {c.key: _Search(c) for c in cands if c.needs_sim}
-    # 1. the nominal car, the messages' reading ages, then the screening in one batch
-    nominal = _simulate_nominal(data, base, mu, n_jobs, log)
-    sims_of, n_sim = _screen(data, searches, base, mu, n_jobs, log)
-    rss0 = data.rss(nominal)
+    sim = Sim(runs, base, names, nuisance.initial_day(conds), n_jobs=n_jobs, backend=backend)
+    # road friction is a day-wide scale of known frictions: not identifiable when every run's is unknown
+    known_mu = any(rc.exact("mu") is not None for rc in conds)
+    cands = [c for c in candidates() if known_mu or c.cause != "road_friction"]
+    per_run: list[dict[str, Any]] = []
+    if any(rc.unknown() for rc in conds):
+        # the nominal car and the per-run grids in one batch; then the day's cause at the identified values
+        grid = nuisance.grid(conds)
+        nominal, outs = _simulate_nominal(data, sim, log, [h for hs in grid.values() for h in hs])
+        nominal, per_run = nuisance.fit(data, sim, conds, nominal, log, grid, outs)
+        first = _stage(data, sim, cands, nominal, log)
+    else:  # the nominal car and the screening in one batch
+        searches = {c.key: _Search(c) for c in cands if c.needs_sim}
+        nominal, outs = _simulate_nominal(data, sim, log, _screening(searches)[0])
+        first = _stage(data, sim, cands, nominal, log, searches=searches, screened=outs)
+    feff = first.feff
+    fits = first.fits
+    chosen = next((f for f in fits if f.significant), None)
+    causes = [chosen] if chosen else []
+    second: list[Fit] = []
+    best_sims = _sims_for(chosen, nominal, first.sims_of, data) if chosen else nominal
+    if chosen is not None and per_run:
+        chosen, per_run = _joint_pass(data, sim, conds, first, chosen, best_sims, log)
+        nominal = first.background
+        best_sims = _sims_for(chosen, nominal, first.sims_of, data)
+        causes = [chosen] if chosen.significant else []
+        chosen = chosen if chosen.significant else None
+    if chosen is not None:
+        second, best_sims = _second_stage(data, sim, first, chosen, cands, best_sims, feff, log)
+        causes += [f for f in second if f.significant][:1]
+    rss_best = data.rss(best_sims)
+    idn = Identification(first.fits, chosen, first.rss0, dict(data.n), feff, nominal, best_sims, sim.count, data.names,
+                         data.shifts, causes, second, per_run, sim.day, None, rss_best)
+    idn.unexplained = _unexplained(data, idn)
+    return idn
+
+
+def _joint_pass(data: Data, sim: Sim, conds: Sequence[Any], first: Stage, chosen: Fit, chosen_sims: Any,
+                log) -> tuple[Fit, list[dict[str, Any]]]:
+    """One more pass of the joint fit of the day's cause and the per-run nuisance values: the runs' values
+    identified again over the car with the cause, then the cause refitted at them (its estimate and a third of
+    its screening step either side, with the nominal car, in one batch). ``first`` is updated in place (its
+    background, the nominal car at the new values; the refitted fit replaces ``chosen``)."""
+    from virtsensor.diagnose import nuisance
+
+    c = chosen.candidate
+    val = chosen.sim_value if chosen.sim_value is not None else chosen.estimate
+    saved = sim.background
+    sim.background = saved + ((c.cause, val, c.signal),)
+    try:
+        grid = nuisance.grid(conds)
+        log(f"re-identifying the per-run conditions over {c.key} = {val:.4g}")
+        outs = sim.run([h for hs in grid.values() for h in hs], [True] * sum(map(len, grid.values())))
+        _, per_run = nuisance.fit(data, sim, conds, chosen_sims, log, grid, outs)
+    finally:
+        sim.background = saved
+    search = _Search(c)
+    u0, h = search.u(chosen.estimate), abs(c.step) / 3.0
+    vals = [search.value(u) for u in (u0 - h, u0, u0 + h) if search.ulo <= u <= search.uhi] if c.needs_sim else []
+    log(f"refitting {c.key} at the new per-run conditions")
+    out = sim.run([NOMINAL, *[c.hyp(v) for v in vals]], [True] * (1 + len(vals)))
+    first.background = out[0]
+    first.rss0 = data.rss(out[0])
+    first.f0 = data.m2ll(first.rss0)
+    if c.needs_sim:
+        search.add(c.nominal, first.f0, first.rss0)
+        for v, o in zip(vals, out[1:], strict=True):
+            rss = data.rss(o)
+            search.add(v, data.m2ll(rss), rss)
+            first.sims_of[(c.key, v)] = o
+        fit = _search_fit(data, search, first.sims_of, first.background)
+    else:
+        fit = _exact_fit(data, first.background, c, first.rss0)
+    _score(fit, first.f0, first.rss0, first.feff, sum(data.n.values()))
+    first.fits = sorted((fit if f is chosen else f for f in first.fits), key=lambda f: -f.bic_gain)
+    return fit, per_run
+
+
+def _feff(data: Data, stage: Stage) -> float:
+    """The effective share of independent samples at the stage's best fit (AR(1) of its residuals)."""
+    best = min(stage.fits, key=lambda f: f.m2ll)
+    rho = data.rho(_sims_for(best, stage.background, stage.sims_of, data))
+    return (1.0 - rho) / (1.0 + rho)
+
+
+def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, log,
+           feff: float | None = None, searches: dict[str, _Search] | None = None,
+           screened: Sequence[Any] | None = None) -> Stage:
+    """Fit every candidate of ``cands`` over ``background`` (the simulations of the car the stage starts
+    from: nominal, or with the effects already named; None: simulated with the screening); score them,
+    best first. ``searches`` and ``screened``: the searches whose screening was simulated already."""
+    if searches is None:
+        searches = {c.key: _Search(c) for c in cands if c.needs_sim}
+    sims_of = _screen(data, searches, sim, log, with_background=background is None, done=screened)
+    if background is None:
+        background = sims_of.pop(("", 0.0))
+    rss0 = data.rss(background)
     f0 = data.m2ll(rss0)
     for s in searches.values():
-        s.add(s.cand.nominal, f0)
-    # 2. exact fits of the sensor effects on non-drive signals
-    fits = [_exact_fit(data, nominal, c, rss0) for c in cands if not c.needs_sim and _excited(data, nominal, c)]
-    # 3. refine the most promising sim-based candidates, their proposals in one batch per round
+        s.add(s.cand.nominal, f0, rss0)
+    fits = [_exact_fit(data, background, c, rss0) for c in cands
+            if not c.needs_sim and _excited(data, background, c)]
     ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP]
-    n_sim += _refine(data, ranked, sims_of, base, mu, n_jobs, log)
-    # 4. a fit per sim-based candidate; the refined ones are re-simulated at their estimate
-    n_sim += _simulate_estimates(data, searches, ranked, sims_of, base, mu, n_jobs)
-    fits.extend(_search_fit(data, s, sims_of, nominal) for s in searches.values())
-    # 5. scores
-    best_fit = min(fits, key=lambda f: f.m2ll)
-    rho = data.rho(_sims_for(best_fit, nominal, sims_of, data))
-    feff = (1.0 - rho) / (1.0 + rho)
+    _refine(data, ranked, sims_of, sim, log, REFINE_ROUNDS if feff is None else SECOND_ROUNDS)
+    fits.extend(_search_fit(data, s, sims_of, background) for s in searches.values())
+    stage = Stage(fits, background, rss0, f0, sims_of)
+    if feff is None:
+        feff = _feff(data, stage) if fits else 1.0
+    stage.feff = feff
     n_tot = sum(data.n.values())
     for f in fits:
         _score(f, f0, rss0, feff, n_tot)
     fits.sort(key=lambda f: -f.bic_gain)
-    # the cause is the best-supported candidate that matters; a better-supported one
-    # below its practical floor (a 1 % gain, a few ms) is a small mismatch, not a cause
-    chosen = next((f for f in fits if f.significant), None)
-    return Identification(fits, chosen, rss0, dict(data.n), feff, nominal,
-                          _sims_for(chosen, nominal, sims_of, data) if chosen else nominal, n_sim, data.names,
-                          data.shifts)
+    return stage
 
 
-def _simulate_nominal(data: Data, base: Mapping[str, Any], mu: float, n_jobs: int, log) -> Any:
-    """Re-simulate ``data.runs`` with the nominal car, set ``data.shifts`` (the messages' reading ages) and
-    each item's ``pred`` (the compared signals on the table's ticks); return the nominal re-simulation."""
+#: candidates of the second stage: the first stage's best-supported ones (besides the named cause); its
+#: refinement rounds
+SECOND_TOP = 4
+SECOND_ROUNDS = 1
+#: a second cause must differ from nominal by at least this share of the smallest realistic size of its
+#: effect (the lower end of the catalogue's hidden range): the first cause's own error (within its stated
+#: accuracy) leaves residuals that a small second effect would otherwise soak up
+SECOND_SIZE = 0.5
+
+
+def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequence[Candidate], best_sims: Any,
+                  feff: float, log) -> tuple[list[Fit], Any]:
+    """A second cause on top of the first: the first stage's best-supported other candidates, fitted over the
+    car with the first cause. Returns their fits (best first) and the simulations of the best explanation."""
+    c1 = chosen.candidate
+    # re-simulated candidates only if they stood on their own in the first stage (each costs batches)
+    # every sensor effect fitted exactly (cheap), and the best re-simulated candidates that stood on their own
+    others = [f for f in first.fits if f.candidate.key != c1.key and (c1.signal is None or f.candidate.signal !=
+                                                                       c1.signal)]
+    keys = [f.candidate.key for f in others if not f.candidate.needs_sim] + \
+        [f.candidate.key for f in others if f.candidate.needs_sim and f.significant][:SECOND_TOP]
+    pool = [c for c in cands if c.key in keys]
+    if not pool:
+        return [], best_sims
+    log(f"second stage over {c1.key} = {chosen.estimate:.4g}: {len(keys)} candidates")
+    saved = sim.background
+    # over the first cause at the value whose re-simulation stands for it (its estimate for exact fits);
+    # re-simulated with the screening when there is one, else its simulations as they are
+    val = chosen.sim_value if chosen.sim_value is not None else chosen.estimate
+    sim.background = saved + ((c1.cause, val, c1.signal),)
+    try:
+        st = _stage(data, sim, pool, None if any(c.needs_sim for c in pool) else best_sims, log, feff=feff)
+    finally:
+        sim.background = saved
+    for f in st.fits:
+        f.significant = f.significant and abs(f.estimate - f.candidate.nominal) >= SECOND_SIZE * _smallest(f.candidate)
+    pick = next((f for f in st.fits if f.significant), None)
+    return st.fits, _sims_for(pick, st.background, st.sims_of, data) if pick else st.background
+
+
+def _smallest(c: Candidate) -> float:
+    """The smallest realistic deviation from nominal of a candidate's effect (sim.effects' hidden ranges)."""
+    if c.cause == "sensor_offset":
+        return OFFSET_RANGE[str(c.signal)][0]
+    lo = EFFECTS[c.cause].hidden[0]
+    if c.cause == "relaxation_length":  # drawn as a factor either way: the smaller step is 1 - 1/(1 + lo)
+        return 1.0 - 1.0 / (1.0 + lo)
+    return lo
+
+
+@dataclass
+class Sim:
+    """How hypotheses are re-simulated: the runs, the nominal car, each run's condition values (``day``:
+    ``mu`` and known or identified quantities), effects already named (``background``, added to every
+    hypothesis), the messages' reading ages, the workers."""
+
+    runs: Sequence[MeasuredRun]
+    base: Mapping[str, Any]
+    names: tuple[str, ...]
+    day: list[dict[str, float]]
+    n_jobs: int = 1
+    backend: str = "loky"
+    background: tuple[tuple[str, float, str | None], ...] = ()
+    shifts: dict[str, float] = field(default_factory=dict)
+    count: int = 0
+
+    def run(self, hyps: Sequence[Hypothesis], keep: Sequence[bool] | None = None) -> list[Any]:
+        """``simulate_hypotheses`` of ``hyps`` on top of the background, counted."""
+        full = [Hypothesis(h.cause, h.value, h.signal, self.background + h.also, h.runs, h.only) for h in hyps]
+        self.count += len(full)
+        return simulate_hypotheses(self.runs, full, self.base, self.day, self.names, n_jobs=self.n_jobs,
+                                   keep_streams=keep, shifts=self.shifts, backend=self.backend)
+
+
+def _simulate_nominal(data: Data, sim: Sim, log, extra: Sequence[Hypothesis] = ()) -> tuple[Any, list[Any]]:
+    """Re-simulate ``data.runs`` with the nominal car (and ``extra`` hypotheses in the same batch), set
+    ``data.shifts`` (the messages' reading ages, from the nominal car) and each item's ``pred`` (the compared
+    signals on the table's ticks); return the nominal re-simulation and the extra ones."""
     runs, names = data.runs, data.names
-    log(f"re-simulating {len(runs)} run(s) with the nominal car")
-    nominal = simulate_hypotheses(runs, [NOMINAL], base, mu, names, n_jobs=n_jobs, keep_streams=[True])[0]
+    log(f"re-simulating {len(runs)} run(s) with the nominal car" + (f" and {len(extra)} hypotheses" if extra else ""))
+    outs = sim.run([NOMINAL, *extra], [True] * (1 + len(extra)))
+    nominal = outs[0]
     data.shifts = align(runs, nominal, names)
-    for r, per_run in enumerate(nominal):
-        for g, item in enumerate(per_run):
-            item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, data.shifts)
-    return nominal
+    sim.shifts = data.shifts
+    for out in outs:
+        for r, per_run in enumerate(out):
+            for g, item in enumerate(per_run):
+                if item:
+                    item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, data.shifts)
+    return nominal, outs[1:]
 
 
-def _screen(data: Data, searches: Mapping[str, _Search], base: Mapping[str, Any], mu: float, n_jobs: int,
-            log) -> tuple[dict[tuple[str, float], Any], int]:
-    """Simulate every search's screening values in one batch and add their -2 log L to the searches.
-
-    Returns the simulations by ``(candidate key, value)`` and the number of simulations run (the
-    nominal car counted)."""
+def _screening(searches: Mapping[str, _Search]) -> tuple[list[Hypothesis], list[str]]:
+    """Every search's screening hypotheses and the key of the search each belongs to."""
     hyps: list[Hypothesis] = []
     owners: list[str] = []
     for key, search in searches.items():
         for v in search.screening():
             hyps.append(search.cand.hyp(v))
             owners.append(key)
-    log(f"screening {len(hyps)} hypotheses")
-    sims = simulate_hypotheses(data.runs, hyps, base, mu, data.names, n_jobs=n_jobs, shifts=data.shifts)
+    return hyps, owners
+
+
+def _screen(data: Data, searches: Mapping[str, _Search], sim: Sim, log, with_background: bool = False,
+            done: Sequence[Any] | None = None) -> dict[tuple[str, float], Any]:
+    """Simulate every search's screening values in one batch (``done``: already simulated, in the order of
+    :func:`_screening`) and add their -2 log L to the searches; ``with_background``: the background car itself
+    too, in the same batch (``sims_of[("", 0.0)]``). Returns the simulations by ``(candidate key, value)``."""
+    hyps, owners = _screening(searches)
+    if with_background:
+        hyps, owners = [NOMINAL, *hyps], ["", *owners]
+    if done is None:
+        log(f"screening {len(hyps)} hypotheses")
+    sims = list(done) if done is not None else (sim.run(hyps, [True] * len(hyps)) if hyps else [])
     sims_of: dict[tuple[str, float], Any] = {}
-    for hyp, owner, sim in zip(hyps, owners, sims, strict=True):
-        searches[owner].add(hyp.value, data.m2ll(data.rss(sim)))
-        sims_of[(owner, hyp.value)] = sim
-    return sims_of, 1 + len(hyps)
+    for hyp, owner, out in zip(hyps, owners, sims, strict=True):
+        sims_of[(owner, hyp.value)] = out
+        if owner:
+            rss = data.rss(out)
+            searches[owner].add(hyp.value, data.m2ll(rss), rss)
+    return sims_of
 
 
-def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, float], Any],
-            base: Mapping[str, Any], mu: float, n_jobs: int, log) -> int:
-    """Up to :data:`REFINE_ROUNDS` rounds of the ``ranked`` searches' proposals, one batch per round; the
+def _refine(data: Data, ranked: Sequence[_Search], sims_of: dict[tuple[str, float], Any], sim: Sim, log,
+            rounds: int = REFINE_ROUNDS) -> int:
+    """Up to ``rounds`` rounds of the ``ranked`` searches' proposals, one batch per round; the
     simulations go into ``sims_of``. Returns the number of simulations run."""
     n_sim = 0
-    for rnd in range(REFINE_ROUNDS):
+    for rnd in range(rounds):
         props = [(s, v) for s in ranked if not s.done for v in [s.propose()] if v is not None]
         if not props:
             break
         log(f"refining {', '.join(s.cand.key for s, _ in props)} (round {rnd + 1})")
         hs = [s.cand.hyp(v) for s, v in props]
-        out = simulate_hypotheses(data.runs, hs, base, mu, data.names, n_jobs=n_jobs, shifts=data.shifts)
+        out = sim.run(hs, [True] * len(hs))
         n_sim += len(hs)
-        for (s, v), sim in zip(props, out, strict=True):
-            s.add(v, data.m2ll(data.rss(sim)))
-            sims_of[(s.cand.key, v)] = sim
+        for (s, v), o in zip(props, out, strict=True):
+            rss = data.rss(o)
+            s.add(v, data.m2ll(rss), rss)
+            sims_of[(s.cand.key, v)] = o
     return n_sim
 
 
-def _simulate_estimates(data: Data, searches: Mapping[str, _Search], ranked: Sequence[_Search],
-                        sims_of: dict[tuple[str, float], Any], base: Mapping[str, Any], mu: float,
-                        n_jobs: int) -> int:
-    """Simulate, in one batch, the estimates of the ``ranked`` searches not yet simulated (and not nominal);
-    the simulations go into ``sims_of``. Returns the number of simulations run."""
-    final_h: list[Hypothesis] = []
-    final_s: list[_Search] = []
-    for s in searches.values():
-        v, _ = s.estimate()
-        if s in ranked and (s.cand.key, v) not in sims_of and abs(v - s.cand.nominal) > 1e-12:
-            final_h.append(s.cand.hyp(v))
-            final_s.append(s)
-    if not final_h:
-        return 0
-    out = simulate_hypotheses(data.runs, final_h, base, mu, data.names, n_jobs=n_jobs,
-                              keep_streams=[True] * len(final_h), shifts=data.shifts)
-    for s, h, sim in zip(final_s, final_h, out, strict=True):
-        s.add(h.value, data.m2ll(data.rss(sim)))
-        sims_of[(s.cand.key, h.value)] = sim
-    return len(final_h)
-
-
 def _search_fit(data: Data, s: _Search, sims_of: Mapping[tuple[str, float], Any], nominal: Any) -> Fit:
-    """A sim-based candidate's fit: at its estimate if that was simulated, else at the best point
-    evaluated, else at the nominal car."""
+    """A sim-based candidate's fit: the estimate is the vertex of the parabola through the best point
+    evaluated and its neighbours; its misfit (and simulations) those of the best point evaluated (the
+    search stops once a new point would fall within a tenth of a step of one it has). At the nominal car
+    when no value beats it."""
     v, c = s.estimate()
-    for v_use in (v, s.value(s.best()[0])):
-        if (s.cand.key, v_use) in sims_of:
-            sim = sims_of[(s.cand.key, v_use)]
-            break
+    vb = s.value(s.best()[0])
+    sv: float | None = None
+    if (s.cand.key, v) in sims_of:
+        v_use, sv = v, v
+    elif (s.cand.key, vb) in sims_of:
+        v_use, sv = v, vb
     else:
-        v_use, sim = s.cand.nominal, nominal
+        v_use = s.cand.nominal
+    sim = sims_of[(s.cand.key, sv)] if sv is not None else nominal
     rss = data.rss(sim)
-    return Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())])
+    fit = Fit(s.cand, v_use, data.m2ll(rss), c, rss, [(s.value(u), f) for u, f in sorted(s.pts.items())],
+              sim_value=sv)
+    fit.groups = {g: {"points": [(s.value(u), sum(data.n[k] * np.log(r[k] / data.n[k] + data.floor[k])
+                                                  for k in sigs if k in r)) for u, r in sorted(s.rss.items())]}
+                  for g, sigs in GROUPS.items() if any(k in data.names for k in sigs)}
+    return fit
 
 
 def _sims_for(fit: Fit, nominal, sims_of, data: Data):
@@ -508,7 +735,123 @@ def _sims_for(fit: Fit, nominal, sims_of, data: Data):
                 row.append(new)
             out.append(row)
         return out
-    return sims_of.get((c.key, fit.estimate), nominal)
+    return sims_of.get((c.key, fit.sim_value), nominal) if fit.sim_value is not None else nominal
+
+
+def model_error(c: Candidate, estimate: float) -> float:
+    """The 95 % bound of the simulator's own error on an estimate of candidate ``c``: the accuracy the
+    catalogue states for its cause (:attr:`sim.effects.Effect.tolerance`, absolute or relative to the
+    deviation from nominal, whichever is larger). It is added in quadrature to the statistical half-width."""
+    a, r = EFFECTS[c.cause].tolerance
+    return float(max(a, r * abs(estimate - c.nominal)))
+
+
+#: a signal group is informative on a candidate when its own evidence changes by more than this over the
+#: values evaluated (chi-square(1) 99 %, with the effective sample size)
+GROUP_INFORMATIVE = 6.63
+
+
+def _consistency(f: Fit, feff: float) -> None:
+    """Each signal group's own estimate of a sim-based fit and whether they agree. A group disagrees when it is
+    informative (its evidence varies by more than :data:`GROUP_INFORMATIVE` over the values evaluated), its
+    best value is further from the fit's estimate than
+    the sum of their 95 % half-widths (each counting the simulator's model error, :func:`model_error`), and it
+    contradicts the fit (:func:`_contradicts`). The largest distance of an informative group's estimate from
+    the fit's (the model error of this day, seen by the signals) widens the fit's interval, in quadrature."""
+    if not f.groups or not np.all(np.isfinite(f.ci95)):
+        return
+    c = f.candidate
+    half = 0.5 * (f.ci95[1] - f.ci95[0])
+    ok = True
+    ranges = {g: np.ptp([p[1] for p in i.get("points", [])]) * feff if len(i.get("points", [])) else 0.0
+              for g, i in f.groups.items()}
+    total = sum(ranges.values())
+    for g, info in f.groups.items():
+        pts = sorted(info.pop("points", []))
+        if len(pts) < 3:
+            continue
+        x = np.array([p[0] for p in pts])
+        y = feff * np.array([p[1] for p in pts])
+        info["evidence_share"] = float(ranges[g] / total) if total > 0 else 0.0
+        info["informative"] = bool(y.max() - y.min() > GROUP_INFORMATIVE)
+        i = int(np.argmin(y))
+        v, stat = float(x[i]), 0.0
+        if 0 < i < len(x) - 1:
+            vx, curv = _parabola(x[i - 1:i + 2], y[i - 1:i + 2] / feff)
+            if curv > 0:
+                v = float(np.clip(vx, x[i - 1], x[i + 1]))
+                stat = 1.96 * np.sqrt(2.0 / (feff * curv))
+        h = float(np.hypot(stat, model_error(c, v)))
+        info.update(estimate=v, half_width=h)
+        info["agrees"] = not (info["informative"] and abs(v - f.estimate) > h + half and _contradicts(c, f, v, h))
+        ok = ok and info["agrees"]
+    f.consistent = ok
+    # the groups' own estimates differ by the re-simulation's model error on this day: the interval counts it
+    spread = max((abs(i["estimate"] - f.estimate) for i in f.groups.values() if i.get("informative")), default=0.0)
+    f.group_spread = float(spread)
+    if spread > 0:
+        w = float(np.hypot(half, spread))
+        f.ci95 = (float(f.estimate - w), float(f.estimate + w))
+
+
+def _contradicts(c: Candidate, f: Fit, v: float, h: float) -> bool:
+    """Whether a group's own estimate ``v`` (half-width ``h``) contradicts the fit, not merely sizes it
+    differently (which the re-simulation's model error does): it sees no effect (nominal within its interval),
+    an effect the other way, or one beyond the catalogue's bounds for it."""
+    lo, hi = c.bounds
+    span = (hi - lo) if np.isfinite(hi - lo) else 8 * abs(c.step)
+    at_bound = min(abs(v - lo), abs(v - hi)) < 1e-3 * span
+    other_way = (v - c.nominal) * (f.estimate - c.nominal) < 0
+    return bool(abs(v - c.nominal) <= h or other_way or at_bound)
+
+
+def _unexplained(data: Data, idn: Identification) -> dict[str, Any] | None:
+    """Why the day is not explained by the catalogue, or None: a named cause whose signal groups disagree
+    on its value (it fits some signals at the others' expense). The evidence: the disagreeing groups, the
+    signals whose misfit the named causes leave (share of the nominal misfit remaining) and where the
+    reference SAT's residual is largest (the operating region)."""
+    bad = [f for f in idn.causes if not f.consistent]
+    if not bad:
+        return None
+    f = bad[0]
+    remain = {k: idn.rss_best[k] / idn.rss_nominal[k] for k in idn.names if idn.rss_nominal[k] > 0}
+    signals = [k for k, v in sorted(remain.items(), key=lambda kv: -kv[1]) if v > 0.5][:5]
+    return {"forced_onto": f.candidate.key, "estimate": f.estimate,
+            "disagreeing_groups": {g: {k: v for k, v in i.items() if k != "points"} for g, i in f.groups.items()
+                                   if not i.get("agrees", True)},
+            "signals": signals or [max(remain, key=remain.__getitem__)],
+            "remaining_share": {k: round(v, 3) for k, v in remain.items()},
+            "region": _region(data, idn)}
+
+
+def _region(data: Data, idn: Identification) -> str:
+    """Where the front-left SAT residual of the best explanation is largest: |slip angle| and speed bins."""
+    n = "sat_fl_nm"
+    if n not in data.names:
+        return "no reference SAT"
+    xs, vs, es = [], [], []
+    for r, per_run in enumerate(idn.best_sims):
+        for s, item in enumerate(per_run):
+            ref = item if "truth" in item else idn.nominal_sims[r][s]
+            if "truth" not in ref:
+                continue
+            m = data.masks[n][r][s]
+            seg = data.runs[r].segments[s]
+            es.append(np.abs(data.runs[r].table[n][seg.start:seg.stop] - item["pred"][n])[m])
+            xs.append(np.degrees(np.abs(ref["truth"]["alpha_fl"]))[m])
+            vs.append(data.runs[r].table["vx_mps"][seg.start:seg.stop][m])
+    if not es:
+        return "unknown"
+    e, x, v = np.concatenate(es), np.concatenate(xs), np.concatenate(vs)
+    out = []
+    for what, arr, unit in (("|slip angle|", x, "deg"), ("speed", v, "m/s")):
+        edges = np.unique(np.quantile(arr, np.linspace(0, 1, 5)))
+        idx = np.clip(np.searchsorted(edges, arr, side="right") - 1, 0, len(edges) - 2)
+        means = [float(np.mean(e[idx == b])) if np.any(idx == b) else 0.0 for b in range(len(edges) - 1)]
+        b = int(np.argmax(means))
+        out.append(f"{what} {edges[b]:.3g}-{edges[b + 1]:.3g} {unit} (mean |SAT residual| {means[b]:.2f} Nm, "
+                   f"{means[b] / max(float(np.mean(e)), 1e-9):.1f}x the average)")
+    return "; ".join(out)
 
 
 def _score(f: Fit, f0: float, rss0: Mapping[str, float], feff: float, n_tot: int) -> None:
@@ -521,10 +864,12 @@ def _score(f: Fit, f0: float, rss0: Mapping[str, float], feff: float, n_tot: int
     f.variance_explained = float(1.0 - np.exp(-delta / n_tot))
     f.per_signal = {k: float(1.0 - f.rss[k] / rss0[k]) if rss0[k] > 0 else 0.0 for k in rss0}
     if f.curvature > 0:
-        half = 1.96 * np.sqrt(2.0 / (feff * f.curvature))
+        f.half_stat = float(1.96 * np.sqrt(2.0 / (feff * f.curvature)))
+        half = float(np.hypot(f.half_stat, model_error(c, f.estimate)))
         f.ci95 = (float(f.estimate - half), float(f.estimate + half))
     else:
         f.ci95 = (float("-inf"), float("inf"))
+    _consistency(f, feff)
     dev = abs(f.estimate - c.nominal)
     excludes = not (f.ci95[0] <= c.nominal <= f.ci95[1])
     f.significant = bool(f.bic_gain > BIC_DECISIVE and dev > c.floor and excludes)

@@ -35,21 +35,8 @@ def markdown(res: Mapping[str, Any]) -> str:
         out.append("Gaps (not interpolated; each stretch between them was re-simulated on its own): "
                    + "; ".join(f"{n} {a:.2f}-{b:.2f} s" for n, (a, b) in gaps))
     out += ["", "## Cause", ""]
-    if res["cause"] == "none":
-        out.append("**none**: no candidate explains the residual decisively. Residual RMS per signal "
-                   "(the signature left unexplained):")
-        out.append("")
-        out += [f"- {k}: {_f(v)}" for k, v in res["signature"]["residual_rms"].items()]
-    else:
-        on = f" on `{res['signal']}`" if res["signal"] else ""
-        out.append(f"**{res['cause']}**{on}: estimate {_f(res['estimate'])} {res['unit']} "
-                   f"(95 % interval {_f(res['ci95'][0])} to {_f(res['ci95'][1])}; nominal {_f(res['nominal'])}), "
-                   f"explaining {100 * res['variance_explained']:.0f} % of the misfit (likelihood-ratio R2).")
-        sig = res["signature"].get("explains", {})
-        if sig:
-            out.append("")
-            out.append("Signature (share of each signal's residual it explains): "
-                       + ", ".join(f"{k} {100 * v:.0f} %" for k, v in sig.items()))
+    out += _cause_lines(res)
+    out += _conditions_lines(res)
     out += ["", "## Candidates (best first)", "",
             "| cause | signal | estimate | 95 % interval | BIC gain | misfit explained | significant |",
             "|---|---|---|---|---|---|---|"]
@@ -92,9 +79,73 @@ def markdown(res: Mapping[str, Any]) -> str:
         if res.get("mae_before_nm") is not None:
             out.append(f"- On the held-out measured runs: MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f}"
                        f" Nm, R2 {res['r2_before']:.3f} -> {res['r2_after']:.3f} (before -> after calibration).")
+            g = res.get("gain")
+            if g:
+                out.append(f"- Gain of the calibrated estimator: {g['mae_gain_nm']:+.2f} Nm "
+                           f"({100 * g['relative']:+.0f} %), 95 % interval {g['ci95_nm'][0]:+.2f} to "
+                           f"{g['ci95_nm'][1]:+.2f} Nm (block bootstrap over {g['blocks']} stretches of 5 s); "
+                           f"estimator kept: {res.get('estimator_kept')}.")
+            if res.get("gain_note"):
+                out.append(f"- {res['gain_note']}")
         else:
             out.append(f"- {res.get('gain_note', 'no gain measured')}")
     return "\n".join(out) + "\n"
+
+
+def _cause_lines(res: Mapping[str, Any]) -> list[str]:
+    """The verdict: the causes named (best first), ``unexplained`` with its signature, or ``none``."""
+    out: list[str] = []
+    if res["cause"] == "none":
+        out.append("**none**: no candidate explains the residual decisively. Residual RMS per signal "
+                   "(the signature left unexplained):")
+        out.append("")
+        out += [f"- {k}: {_f(v)}" for k, v in res["signature"]["residual_rms"].items()]
+        return out
+    if res["cause"] == "unexplained":
+        u = res["unexplained"]
+        out.append(f"**unexplained**: no effect of the catalogue accounts for the misfit. The best one, "
+                   f"`{u['forced_onto']}` at {_f(u['estimate'])}, fits some signals at the others' expense: "
+                   + "; ".join(f"the {g} signals alone put it at {_f(i['estimate'])} (+-{_f(i['half_width'], 2)})"
+                               for g, i in u["disagreeing_groups"].items())
+                   + ". No calibration is applied.")
+        out.append("")
+        out.append("Signature of what remains: " + ", ".join(
+            f"{k} ({100 * u['remaining_share'][k]:.0f} % of its misfit left)" for k in u["signals"])
+            + f"; largest reference-SAT residual at {u['region']}.")
+        return out
+    for i, c in enumerate(res["causes"]):
+        on = f" on `{c['signal']}`" if c["signal"] else ""
+        lead = "" if i == 0 else "and "
+        out.append(f"{lead}**{c['cause']}**{on}: estimate {_f(c['estimate'])} {c['unit']} "
+                   f"(95 % interval {_f(c['ci95'][0])} to {_f(c['ci95'][1])}; nominal {_f(c['nominal'])}), "
+                   f"explaining {100 * c['variance_explained']:.0f} % of the misfit (likelihood-ratio R2)"
+                   + (" over the first cause." if i else "."))
+        out.append("")
+    sig = res["signature"].get("explains", {})
+    if sig:
+        out.append("Signature (share of each signal's residual the first cause explains): "
+                   + ", ".join(f"{k} {100 * v:.0f} %" for k, v in sig.items()))
+    out.append("")
+    out.append("The 95 % intervals count the re-simulation's own model error (the catalogue's stated accuracy, "
+               "added in quadrature to the statistical half-width from the effective sample size).")
+    return out
+
+
+def _conditions_lines(res: Mapping[str, Any]) -> list[str]:
+    """Per-run conditions: the values the re-simulation used and the identified ones with their intervals."""
+    rcs = res.get("run_conditions") or []
+    if not any(rc["used"] for rc in rcs):
+        return []
+    out = ["", "## Per-run conditions", "",
+           "| run | " + " | ".join(["used", "identified (95 % interval)"]) + " |", "|---|---|---|"]
+    for rc in rcs:
+        used = ", ".join(f"{k} {_f(v, 3)}" for k, v in rc["used"].items())
+        ident = "; ".join(
+            f"{q} {_f(v['estimate'], 3)} ({_f(v['ci95'][0], 3)} to {_f(v['ci95'][1], 3)})"
+            + ("" if v["excited"] else ": the run does not excite it")
+            for q, v in rc["identified"].items()) or "-"
+        out.append(f"| {rc['name']} | {used} | {ident} |")
+    return out
 
 
 def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list[Path]:

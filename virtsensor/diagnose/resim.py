@@ -40,11 +40,28 @@ TRUTH_AT_TICKS = ("alpha_fl", "alpha_fr", "fz_fl", "fz_fr", "sat_fl", "sat_fr")
 
 @dataclass(frozen=True)
 class Hypothesis:
-    """The nominal car (``cause is None``) or one effect at ``value``."""
+    """The nominal car (``cause is None``), or one effect at ``value`` and possibly more on top (``also``:
+    ``(cause, value, signal)`` each); ``runs`` sets per-run condition values (``(run, quantity, value)``,
+    quantities of :mod:`virtsensor.diagnose.conditions`) over the day's; ``only`` re-simulates only those
+    runs (the others' items are left empty)."""
 
     cause: str | None = None
     value: float = 0.0
     signal: str | None = None
+    also: tuple[tuple[str, float, str | None], ...] = ()
+    runs: tuple[tuple[int, str, float], ...] = ()
+    only: tuple[int, ...] | None = None
+
+    def effects(self) -> list[tuple[str, float, str | None]]:
+        """Every effect of the hypothesis, ``(cause, value, signal)``."""
+        first = [(self.cause, self.value, self.signal)] if self.cause is not None else []
+        return first + list(self.also)
+
+    def conditions(self, run: int, day: Mapping[str, float]) -> dict[str, float]:
+        """The condition values of run ``run``: the day's (``day``), with this hypothesis' overrides."""
+        out = dict(day)
+        out.update({q: v for r, q, v in self.runs if r == run})
+        return out
 
 
 NOMINAL = Hypothesis()
@@ -66,12 +83,20 @@ def noise_free(params: Mapping[str, Any]) -> dict[str, Any]:
     return tree
 
 
-def car_for(base: Mapping[str, Any], hyp: Hypothesis) -> dict[str, Any]:
-    """The car of a hypothesis (noise-free sensors)."""
+def car_for(base: Mapping[str, Any], hyp: Hypothesis, conditions: Mapping[str, float] | None = None
+            ) -> dict[str, Any]:
+    """The car of a hypothesis (noise-free sensors) in a run's known ``conditions`` (they win over an effect
+    on the same parameter: what the engineer measured on the day is a fact)."""
+    from virtsensor.diagnose.conditions import run_overrides
+
     tree = noise_free(base)
-    if hyp.cause is None:
-        return tree
-    return apply_overrides(tree, effect_overrides(hyp.cause, hyp.value, tree, hyp.signal))
+    for cause, value, signal in hyp.effects():
+        tree = apply_overrides(tree, effect_overrides(cause, value, tree, signal))
+    if conditions:
+        over = run_overrides(conditions, tree)
+        if over:
+            tree = apply_overrides(tree, over)
+    return tree
 
 
 def measurement_age(params: Mapping[str, Any], name: str) -> float:
@@ -102,15 +127,17 @@ def drive_table(seg: Mapping[str, np.ndarray], hyp: Hypothesis,
         if name == "motor_torque_nm" and params is not None:
             lead += params["powertrain"]["torque_time_constant_s"]  # the motor's own response
         out[name] = np.interp(t + lead, t, y) if lead > 0 else y
-    if hyp.cause and hyp.cause.startswith("sensor_") and hyp.signal in DRIVE_SIGNALS:
-        y = out[hyp.signal]
-        if hyp.cause == "sensor_delay":
-            x = np.interp(t + hyp.value, t, y)  # the last value is held beyond the end
-        elif hyp.cause == "sensor_offset":
-            x = y - hyp.value
+    for cause, value, signal in hyp.effects():
+        if not (cause.startswith("sensor_") and signal in DRIVE_SIGNALS and signal in out):
+            continue
+        y = out[signal]
+        if cause == "sensor_delay":
+            x = np.interp(t + value, t, y)  # the last value is held beyond the end
+        elif cause == "sensor_offset":
+            x = y - value
         else:
-            x = y / hyp.value
-        out[hyp.signal] = x
+            x = y / value
+        out[signal] = x
     return out
 
 
@@ -201,40 +228,45 @@ def _run_jobs(jobs: Sequence[Job], names: tuple[str, ...], shifts: Mapping[str, 
 
 
 def simulate_hypotheses(runs: Sequence[MeasuredRun], hyps: Sequence[Hypothesis], base: Mapping[str, Any],
-                        mu: float, names: tuple[str, ...], *, n_jobs: int = 1,
-                        keep_streams: Sequence[bool] | None = None, shifts: Mapping[str, float] | None = None
-                        ) -> list[list[list[dict[str, Any]]]]:
+                        conds: float | Sequence[Mapping[str, float]], names: tuple[str, ...], *, n_jobs: int = 1,
+                        keep_streams: Sequence[bool] | None = None, shifts: Mapping[str, float] | None = None,
+                        backend: str = "loky") -> list[list[list[dict[str, Any]]]]:
     """Re-simulate every segment of every run under every hypothesis.
+
+    ``conds`` is each run's condition values (``mu`` and any of the car's quantities of
+    :mod:`virtsensor.diagnose.conditions`), or one road friction for all runs.
 
     Returns ``out[h][r][s]``: dict with ``pred`` (signal -> values at the segment's
     ticks) and ``complete`` (False if the re-simulation ended early: the car spun
     or stopped); with ``t``, ``streams`` and ``truth`` for hypotheses whose
-    ``keep_streams`` is set.
+    ``keep_streams`` is set; an empty dict for runs a hypothesis leaves out (``only``).
+    Batches run on joblib workers (``backend``: ``loky``, or ``ray`` for a Ray cluster,
+    see :func:`virtsensor.diagnose.parallel.run_parallel`).
     """
-    from joblib import Parallel, delayed
-
     from sim.manoeuvres import from_recording
+    from virtsensor.diagnose.parallel import run_parallel
 
+    day = [{"mu": float(conds)} for _ in runs] if isinstance(conds, (int, float)) else [dict(c) for c in conds]
     keep = list(keep_streams) if keep_streams is not None else [False] * len(hyps)
     jobs: list[Job] = []
     for h, hyp in enumerate(hyps):
-        tree = car_for(base, hyp)
         for r, run in enumerate(runs):
+            if hyp.only is not None and r not in hyp.only:
+                continue
+            cond = hyp.conditions(r, day[r])
+            tree = car_for(base, hyp, cond)
             for s, seg in enumerate(run.segments):
                 table = run.segment_table(seg)
                 drive = drive_table(table, hyp, base)
-                plan = from_recording(drive, mu, name=f"{run.name}#{s}")
+                plan = from_recording(drive, cond["mu"], name=f"{run.name}#{s}")
                 jobs.append(Job(h, r, s, plan, tree, drive["time_s"], keep[h]))
     # batches of similar length (little padding), a few per worker
     order = np.argsort([len(j.times) for j in jobs], kind="stable")[::-1]
     workers = max(1, n_jobs if n_jobs > 0 else os.cpu_count() or 1)
     n_groups = max(workers, int(np.ceil(len(jobs) / 40)))
     groups = [list(map(int, g)) for g in np.array_split(order, n_groups) if len(g)]
-    if workers == 1 or len(groups) == 1:
-        results = [_run_jobs([jobs[i] for i in g], names, shifts) for g in groups]
-    else:
-        results = Parallel(n_jobs=workers)(delayed(_run_jobs)([jobs[i] for i in g], names, shifts)
-                                           for g in groups)
+    results = run_parallel(_run_jobs, [([jobs[i] for i in g], names, shifts) for g in groups],
+                           n_jobs=workers, backend=backend)
     out: list[list[list[dict[str, Any]]]] = [[[{} for _ in run.segments] for run in runs] for _ in hyps]
     for g, items in zip(groups, results, strict=True):
         for i, item in zip(g, items, strict=True):
