@@ -225,7 +225,7 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     # the result: its keys, and the values each one must have
     assert set(res) - {"gain_note"} == {
         "cause", "causes", "unexplained", "run_conditions", "signal", "estimate", "ci95", "unit", "nominal",
-        "variance_explained", "signature", "second_stage", "candidates",
+        "variance_explained", "signature", "residuals", "second_stage", "candidates",
         "n_eff_factor", "message_shifts_s", "runs", "holdout_runs", "simulations", "seconds_identify",
         "comparison", "estimator", "estimator_on_diagnosis_runs", "mae_before_nm", "mae_after_nm", "r2_before",
         "r2_after", "holdout_before", "holdout_after", "gain", "estimator_kept", "seconds_total"}

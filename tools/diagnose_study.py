@@ -143,7 +143,7 @@ def score_case(spec: dict[str, Any], seed: int, case, res: dict[str, Any], t_gen
     return {"case": spec["case"], "kind": kind, "seed": seed, "hidden": [h.as_dict() for h in hidden],
             "foreign": case.foreign.as_dict() if case.foreign else None, "mixed": case.conditions is not None,
             "answer": res.get("cause"), "named": named, "right": right, "found": found, "mu": mu_cov,
-            "unexplained": res.get("unexplained"),
+            "unexplained": res.get("unexplained"), "residuals": res.get("residuals"),
             "mae_before_nm": res.get("mae_before_nm"), "mae_after_nm": res.get("mae_after_nm"),
             "mae_calibrated_nm": (res.get("holdout_after") or {}).get("mae_nm"),
             "gain_ci95_nm": gain.get("ci95_nm"), "estimator_kept": res.get("estimator_kept"),

@@ -103,6 +103,7 @@ def _identification_result(idn, runs: Sequence[MeasuredRun], holdout: Sequence[M
         "nominal": best.candidate.nominal if best else None,
         "variance_explained": best.variance_explained if best else 0.0,
         "signature": _signature(best) if best else _residual_signature(idn),
+        "residuals": _residuals(idn),
         "second_stage": [f.as_dict() for f in idn.second],
         "candidates": [f.as_dict() for f in idn.fits],
         "n_eff_factor": idn.n_eff_factor,
@@ -214,6 +215,21 @@ def _residual_signature(idn) -> dict[str, Any]:
 
     rel = {k: float(np.sqrt(idn.rss_nominal[k] / max(idn.n[k], 1))) for k in idn.names}
     return {"residual_rms": {k: round(v, 6) for k, v in rel.items()}}
+
+
+def _residuals(idn) -> dict[str, Any]:
+    """Per signal: the residual RMS of the nominal car and of the best explanation (its unit), the
+    measured signal's RMS about its mean, and the best explanation's residual over what a correct one
+    leaves (``excess``, :func:`virtsensor.diagnose.identify.residual_excess`)."""
+    import numpy as np
+
+    def rms(rss: Mapping[str, float]) -> dict[str, float]:
+        return {k: round(float(np.sqrt(rss[k] / max(idn.n[k], 1))), 6) for k in idn.names if k in rss}
+
+    return {"nominal": rms(idn.rss_nominal), "best": rms(idn.rss_best or idn.rss_nominal),
+            "signal": {k: round(v, 6) for k, v in (idn.scale or {}).items()},
+            "excess": {k: round(v, 3) for k, v in (idn.excess or {}).items()},
+            "excess_first_cause": {k: round(v, 3) for k, v in (idn.excess_first or {}).items()}}
 
 
 def _as_simulated(runs: Sequence[MeasuredRun], sims, names) -> list[MeasuredRun]:

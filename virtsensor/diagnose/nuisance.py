@@ -15,8 +15,10 @@ below only (its interval reaches the top of the range).
 
 The interval is then widened (in quadrature) by the simulator's own error on the
 quantity, the catalogue's stated accuracy of the matching day-wide cause
-(:data:`MODEL_ERROR`). The runs go on into the search for the day's cause at the grid
-point nearest their estimate (no further re-simulation).
+(:data:`MODEL_ERROR`). The runs go on into the search for the day's cause at their estimates
+(``sim.day``; the caller re-simulates the nominal car there: at the nearest grid point, up to
+half a grid step off, a sine with dwell at the grip limit left residuals several times a
+control day's). :func:`fit` returns the items of the nearest grid point meanwhile.
 
 Limitation: the quantities are identified on the car with no effect, then the day's cause
 with each run at its value (one pass of what would be an alternating joint fit): a cause
@@ -137,6 +139,6 @@ def fit(data, sim, conds: Sequence[Any], nominal: Any, log, hyps_of: dict[str, l
                              "excited": bool(lo > g0 + 1e-9 or hi < g1 - 1e-9),
                              "bounded_above": bool(hi < g1 - 1e-9)}
             k = int(np.argmin(np.abs(grids[r] - est)))
-            sim.day[r][q] = float(grids[r][k])
+            sim.day[r][q] = float(est)
             current[r] = outs[k][r]
     return current, per_run

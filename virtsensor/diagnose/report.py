@@ -103,10 +103,18 @@ def _cause_lines(res: Mapping[str, Any]) -> list[str]:
         return out
     if res["cause"] == "unexplained":
         u = res["unexplained"]
-        out.append(f"**unexplained**: no effect of the catalogue accounts for the misfit. The best one, "
-                   f"`{u['forced_onto']}` at {_f(u['estimate'])}, fits some signals at the others' expense: "
-                   + "; ".join(f"the {g} signals alone put it at {_f(i['estimate'])} (+-{_f(i['half_width'], 2)})"
-                               for g, i in u["disagreeing_groups"].items())
+        why = []
+        if u["disagreeing_groups"]:
+            why.append(f"the best one, `{u['forced_onto']}` at {_f(u['estimate'])}, fits some signals at the "
+                       "others' expense: " + "; ".join(
+                           f"the {g} signals alone put it at {_f(i['estimate'])} (+-{_f(i['half_width'], 2)})"
+                           for g, i in u["disagreeing_groups"].items()))
+        if u.get("excess"):
+            after = f"with `{u['forced_onto']}` named" if u["forced_onto"] else "with the nominal car"
+            why.append(f"{after}, signals stay far above the re-simulation's own error on a control day: "
+                       + ", ".join(f"{k} {_f(v, 2)}x" for k, v in u["excess"].items())
+                       + f" (limit {_f(u['excess_limit'], 2)}x)")
+        out.append("**unexplained**: no effect of the catalogue accounts for the misfit; " + "; ".join(why)
                    + ". No calibration is applied.")
         out.append("")
         out.append("Signature of what remains: " + ", ".join(
