@@ -848,8 +848,8 @@ MODEL_ERROR_SHARE: dict[str, float] = {
 }
 #: a named explanation (or none) leaves the day unexplained when a signal's residual RMS exceeds the control
 #: days' level (:func:`residual_excess`) by more than this factor. On the development seeds' days with a
-#: catalogue effect the largest excess left by the right cause was 2.2 to 3.4; out-of-catalogue effects left
-#: 5.2 (steering ratio), 9.4 (toe), 11 (camber), 237 (another tyre)
+#: catalogue effect the largest excess left by the right cause was 2.2 to 3.3; out-of-catalogue effects left
+#: 5.2 (steering ratio), 9.3 (toe), 10.9 (camber), 69 (another tyre)
 EXCESS_LIMIT = 4.0
 
 
