@@ -314,6 +314,7 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
     import can
 
     ch, listener, vs, sat_id = _sync_rig(model, matrix)
+    listener.shutdown()  # one peer node sends the inputs and reads SAT_FRONT (no never-read queue to copy into)
     tx = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True)
     lat: list[float] = []
     lost = 0
@@ -328,7 +329,7 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
             end = time.monotonic() + 2.0
             while vs.counters["frames"] < sent and time.monotonic() < end:
                 time.sleep(0)
-            us = timed_response(tx, listener, batch, sync, sat_id)
+            us = timed_response(tx, tx, batch, sync, sat_id)
             sent += 1 + bool(batch)
             if us is not None:
                 lat.append(us)
@@ -338,7 +339,6 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
     finally:
         vs.stop()
         tx.shutdown()
-        listener.shutdown()
     out = percentiles(lat) or {}
     out.update(lost=lost, tick_errors=st["tick_errors"])
     return out
@@ -392,15 +392,17 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
     from virtsensor.daemon.runner import SPIN_S
 
     ch = _virtual_channel()
-    tx = can.Bus(interface="virtual", channel=ch)
-    listener = can.Bus(interface="virtual", channel=ch)
+    # one peer node on the channel, as on a car's bus: it sends the inputs (feeder thread) and reads the
+    # daemon's frames (drain thread). A second, never-read peer bus would make every daemon send copy its
+    # frame into one more queue, which grows without bound.
+    peer = can.Bus(interface="virtual", channel=ch)
     vs = _sensor(model, matrix, can.Bus(interface="virtual", channel=ch))
     stop = threading.Event()
-    feeder = _feeder(tx, inputs, stop)
+    feeder = _feeder(peer, inputs, stop)
 
     def drain() -> None:
         while not stop.is_set():
-            listener.recv(0.05)
+            peer.recv(0.05)
 
     drainer = threading.Thread(target=drain, name="bench-drain", daemon=True)
     feeder.start()
@@ -420,8 +422,7 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
     stop.set()
     feeder.join(2)
     drainer.join(2)
-    tx.shutdown()
-    listener.shutdown()
+    peer.shutdown()
     wall = w1 - w0
     proc = (p1.user - p0.user) + (p1.system - p0.system)
     cpu = sum(pt1) - sum(pt0)
