@@ -407,3 +407,36 @@ def test_daemon_trips_a_redundancy_check_in_a_steady_turn_and_names_it(model, ch
     assert vs.counters["implausible_checks"] == 1
     bad = [e for e in handler.events if e["event"] == "implausible"]
     assert len(bad) == 1 and bad[0]["check"] == check and bad[0]["subject"] == subject
+
+
+@pytest.mark.parametrize("how", ["software_filter", "own_recv"])
+def test_drain_reads_every_queued_frame_through_filters_and_custom_recv(model, frames, how):
+    """A bus with a software filter (python-can's template ``recv`` returns None for a frame that does not match,
+    at a zero timeout) or its own ``recv``: one drain still reads everything queued, the filter holds, and no
+    input frame waits for a later tick."""
+    bus: can.BusABC
+    if how == "software_filter":
+        bus = _QueueBus()
+    else:
+        class _OwnRecv(_QueueBus):
+            def recv(self, timeout=None):
+                return self.queue.popleft() if self.queue else None
+
+        bus = _OwnRecv()
+    vs = VirtualSensor(bus, model, MATRIX, freeze_gc=False)
+    vs.drain()  # (a first drain before the filter is set: the filter set later still holds)
+    if how == "software_filter":
+        bus.set_filters([{"can_id": EPAS, "can_mask": 0x7FF}])
+    window = [m for m in frames if m.timestamp <= frames[0].timestamp + 0.2]
+    for m in window:
+        bus.put(m, m.timestamp)
+        bus.put(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"\0"), m.timestamp)  # not an input
+    vs.drain()
+    assert not bus.queue, "one drain reads the whole queue"
+    n_epas = sum(m.arbitration_id == EPAS for m in window)
+    if how == "software_filter":
+        assert vs.counters["input_frames"] == vs.counters["frames"] == n_epas  # only what the filter passes
+    else:
+        c = vs.counters
+        assert c["frames"] == 2 * len(window) and c["unknown_ids"] == len(window)
+        assert c["input_frames"] + c["other_frames"] == len(window) and c["input_frames"] >= n_epas
