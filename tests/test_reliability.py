@@ -9,6 +9,7 @@ Everything is driven by hand (``VirtualSensor.process``/``drain``/``tick``) on i
 from __future__ import annotations
 
 import collections
+import math
 import time
 
 import can
@@ -440,3 +441,25 @@ def test_drain_reads_every_queued_frame_through_filters_and_custom_recv(model, f
         c = vs.counters
         assert c["frames"] == 2 * len(window) and c["unknown_ids"] == len(window)
         assert c["input_frames"] + c["other_frames"] == len(window) and c["input_frames"] >= n_epas
+
+
+@pytest.mark.parametrize("bad", [math.inf, -math.inf])
+def test_a_non_finite_feature_never_reaches_the_model_as_valid(model, frames, bad):
+    """Inputs fresh and plausible, but a feature not finite (an input held at +-inf): no estimate, INVALID."""
+    stream, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    calls = []
+
+    def hook(stage, fn):
+        if stage != "inference":
+            return fn
+        return lambda x: calls.append(list(x)) or fn(x)
+
+    vs = VirtualSensor(_QueueBus(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False, stage_hook=hook)
+    for m in stream:
+        vs.process(m)
+    assert vs.last_statuses == (VALID, VALID) and calls
+    n = len(calls)
+    vs.inputs.values[vs.layout.signals.index("susp_defl_fl_m")] = bad
+    assert vs.tick(stream[-1].timestamp) == (INVALID, INVALID)
+    assert len(calls) == n, "the model must not see a non-finite feature"
+    assert all(math.isnan(vs._out.sat_values[w.estimate]) for w in vs.layout.wheels)
