@@ -37,7 +37,8 @@ The answer, in stages:
    named cause (one more pass of the joint fit, the cause refitted at them);
 2. the first cause is the candidate with the largest BIC gain over the nominal car
    that is decisive (> :data:`BIC_DECISIVE`), differs from nominal by more than
-   the effect's practical floor, and whose interval excludes the nominal value;
+   the effect's practical floor, and whose interval excludes the nominal value; of those,
+   the first whose explanation leaves no signal in excess (:func:`_first_cause`);
 3. a second stage fits every sensor effect and the re-simulated candidates that
    stood on their own over the car with the first cause; a second cause is named
    if it passes the same tests and reaches half the smallest realistic size of its
@@ -476,8 +477,7 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
         nominal, outs = _simulate_nominal(data, sim, log, _screening(searches)[0])
         first = _stage(data, sim, cands, nominal, log, searches=searches, screened=outs)
     feff = first.feff
-    fits = first.fits
-    chosen = next((f for f in fits if f.significant), None)
+    chosen = _first_cause(data, first, base)
     causes = [chosen] if chosen else []
     second: list[Fit] = []
     best_sims = _sims_for(chosen, nominal, first.sims_of, data) if chosen else nominal
@@ -499,6 +499,25 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     idn.excess_first = excess_first
     idn.unexplained = _unexplained(data, idn)
     return idn
+
+
+#: significant candidates tried, best first, for one whose explanation leaves no signal in excess
+FIRST_TRIED = 5
+
+
+def _first_cause(data: Data, first: Stage, base: Mapping[str, Any]) -> Fit | None:
+    """The first cause: the best-supported significant candidate whose explanation leaves no signal's residual
+    beyond :data:`EXCESS_LIMIT` times the re-simulation's own error (:func:`residual_excess`), among the
+    :data:`FIRST_TRIED` best; the best-supported one if none does (the day is then unexplained). A candidate
+    that buys its evidence on a few signals at the expense of others (an offset of the speed that a payload's
+    slower acceleration put on it, leaving the wheel speeds 27 times off) is not the explanation."""
+    sig = [f for f in first.fits if f.significant]
+    for f in sig[:FIRST_TRIED]:
+        sims = _sims_for(f, first.background, first.sims_of, data)
+        ex = residual_excess(data, data.rss(sims), expected_rms(data, sims, base))
+        if max(ex.values(), default=0.0) <= EXCESS_LIMIT:
+            return f
+    return sig[0] if sig else None
 
 
 def _joint_pass(data: Data, sim: Sim, conds: Sequence[Any], first: Stage, chosen: Fit, chosen_sims: Any,
