@@ -242,23 +242,32 @@ def _understeer(runs: list[dict]) -> float:
 
 
 def _fit_warning(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
-    best = None
-    grid = ((a, b, c, d, e) for a in WARN_ON for b in WARN_HORIZON_S for c in DEMAND_WEIGHT
-            for d in (DEMAND_LEAD_S if c > 0 else (0.0,)) for e in (DEMAND_MU_HELD if c > 0 else (0.0,)))
+    """The warning with the longest median lead among those with at most FALSE_BUDGET false warnings per 10 min;
+    where none keeps that budget, the one with the fewest (then the longest lead). Only thresholds the trail's
+    evidence can reach (at most the trail curve's highest utilisation): above it the warning would no longer read
+    the SAT at all (a collapsed trail would not warn), which is the point of the estimate."""
+    best: tuple[bool, float, float, grip.GripParams] | None = None
+    grid = ((a, b, c, d, e) for a in WARN_ON if a <= max(p.util_at_trail) for b in WARN_HORIZON_S
+            for c in DEMAND_WEIGHT for d in (DEMAND_LEAD_S if c > 0 else (0.0,))
+            for e in (DEMAND_MU_HELD if c > 0 else (0.0,)))
     for on, hz, dw, dl, dh in grid:
         q = replace(p, warn_on=on, warn_off=round(on - 0.1, 3), warn_horizon_s=hz, demand_weight=dw,
                     demand_lead_s=dl, demand_mu_held=dh)
         o = measure(runs, q)["overall"]
-        ok = (o["false_warnings_per_10min"] or 0.0) <= FALSE_BUDGET
+        false = o["false_warnings_per_10min"] or 0.0
         lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
         print(f"  warning on {on:.2f}, look-ahead {hz:.1f} s, demand {dw:.1f} ahead {dl:.1f} s "
-              f"against {'held' if dh else 'rated'} mu: median lead {lead:.2f} s, "
-              f"false {o['false_warnings_per_10min']:.2f}/10 min", file=sys.stderr)
-        if ok and (best is None or lead > best[0]):
-            best = (lead, q)
+              f"against {'held' if dh else 'rated'} mu: median lead {lead:.2f} s, false {false:.2f}/10 min",
+              file=sys.stderr)
+        key = (false <= FALSE_BUDGET, lead if false <= FALSE_BUDGET else -false, lead, q)
+        if best is None or key[:3] > best[:3]:
+            best = key
     if best is None:
-        raise SystemExit(f"no warning setting keeps false warnings <= {FALSE_BUDGET} per 10 min")
-    return best[1]
+        raise SystemExit("no warning threshold within the trail curve's range")
+    if not best[0]:
+        print(f"  no warning setting keeps false warnings <= {FALSE_BUDGET} per 10 min: the fewest taken",
+              file=sys.stderr)
+    return best[3]
 
 
 def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
