@@ -167,6 +167,64 @@ def test_metrics_lead_and_false_warnings():
     assert none["warning_lead_s"] is None and gs.pool([none])["warning_lead_s_median"] is None
 
 
+def test_lead_metric_cannot_be_gamed_by_a_held_warning_and_always_on_is_false():
+    """A warning kept on through calm driving earns no lead for it (counted from the end of the latest calm second
+    within the episode); an always-on warning is a false warning in every calm run; a limit the run starts in is
+    not one to anticipate (only a rise through 0.95 after the start-up counts)."""
+    t = np.arange(200) * 0.05
+    u = np.where(t < 5.0, 0.3, 0.97)
+    held = gs.grip_metrics(t, u, np.full(200, 0.5), np.full(200, np.nan), t >= 1.5)  # on 3.5 s before, calm
+    assert held["warning_lead_s"] == pytest.approx(0.0)
+    ramp = np.clip(0.3 + 0.4 * (t - 3.0), 0.3, 0.97)  # calm to 4 s, the limit at 4.625 s (tick 4.65)
+    early = gs.grip_metrics(t, ramp, np.full(200, 0.5), np.full(200, np.nan), t >= 3.2)
+    assert early["warning_lead_s"] == pytest.approx(4.65 - 3.2)  # (warned 0.8 s while still below 0.7: counted)
+    calm = gs.grip_metrics(t, np.full(200, 0.3), np.full(200, 0.5), np.full(200, np.nan), np.ones(200, bool))
+    assert calm["false_warnings"] == 1 and calm["false_warnings_per_10min"] > 1.0
+    start = gs.grip_metrics(t, np.where(t < 2.0, 0.97, 0.3), np.full(200, 0.5), np.full(200, np.nan),
+                            np.zeros(200, bool))
+    assert start["warning_lead_s"] is None
+
+
+@pytest.fixture(scope="module")
+def step_runs(model):
+    """Seeded runs, offline with the daemon's code (``estimate_run``, tick for tick the daemon's VS_Grip, see
+    test_offline_estimate_is_the_daemons): a dry fishhook that reaches the limit and two calm random-steer runs."""
+    from sim.api import Request, simulate_many
+    from sim.sensors import truth_at
+
+    reqs = [Request("fishhook", 80.0, 1.0, 8), Request("random-steer", 60.0, 0.3, 7),
+            Request("random-steer", 80.0, 1.0, 11)]
+    out = []
+    for run in simulate_many(reqs):
+        ts = run.streams["time_s"]
+        rec = simulated_recording(ts, {k: v for k, v in run.streams.items() if k != "time_s"})
+        t = np.asarray(rec.table["time_s"], float)
+        tr = truth_at(run.truth, t)
+        out.append((rec.table, t, np.maximum(tr["util_fl_1"], tr["util_fr_1"]), gs.model_sats(model, rec.table)))
+    return out
+
+
+def test_step_steer_warns_before_the_limit_and_the_demand_leads(step_runs):
+    """The fishhook's steering ramp takes the front axle to 95 % utilisation within a second: the warning (the
+    driver's demand against the rated road, with the trail and the force) is on before it, and earlier than the
+    same warning without the demand term."""
+    table, t, u, (fl, fr) = step_runs[0]
+    p = load_params()
+    assert p.demand_weight > 0
+    lead = gs.grip_metrics(t, u, np.ones(len(t)), np.full(len(t), np.nan), estimate_run(table, fl, fr, p)["warning"])
+    without = gs.grip_metrics(t, u, np.ones(len(t)), np.full(len(t), np.nan),
+                              estimate_run(table, fl, fr, replace(p, demand_weight=0.0))["warning"])
+    assert lead["reaches_limit"] and lead["warning_lead_s"] > 0.0
+    assert lead["warning_lead_s"] > without["warning_lead_s"]
+
+
+def test_calm_driving_raises_no_warning(step_runs):
+    """Random steering that stays below 70 % utilisation (a wet road near it, a dry one far from it): no warning."""
+    for table, _, u, (fl, fr) in step_runs[1:]:
+        assert u.max() < 0.7
+        assert not estimate_run(table, fl, fr)["warning"].any()
+
+
 # ------------------------------------------------------------------------------------------------ the matrix
 def test_vs_grip_decodes_with_cantools():
     db = cantools.database.load_file(str(dbc_path()))
