@@ -86,6 +86,25 @@ def test_force_floor_warns_in_combined_slip_where_the_trail_is_gated_off():
     assert not run(replace(p, mu_road_max=0.0))[0]
 
 
+def test_braking_into_a_corner_warns_by_the_more_used_tyre():
+    """Braking into a dry corner (the trail gated off): the axle uses less than the threshold of a rated road,
+    but the inner front tyre, unloaded by the lateral load transfer and braked as hard as the outer one, uses
+    more: the force floor of the more used tyre warns; with no load transfer (the axle's floor) it does not."""
+    p = replace(load_params(), demand_weight=0.0)
+    assert p.load_transfer > 0
+
+    def run(params: GripParams) -> tuple[bool, float]:
+        est = GripEstimator(params)
+        vx, ay, ax = 45.0, 5.9, -4.8  # (a 229 km/h lap's corner entry of the held-out study)
+        for _ in range(40):
+            est.step(-40.0, -40.0, ax, ay, vx, ay / vx, 0.0, 0.0, vx / 0.305, vx / 0.305)
+        return est.state.warning, est.state.force_ratio
+
+    warned, n = run(p)
+    assert n < p.warn_on * p.mu_road_max and warned
+    assert not run(replace(p, load_transfer=0.0))[0]
+
+
 def test_steering_demand_warns_before_the_force_builds():
     """A sharp steering input at speed on a straight: the linear car asks for far more lateral acceleration than
     any rated road gives before the axle force has built up: the demand term (weighted as the fit may choose it;

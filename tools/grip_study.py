@@ -241,11 +241,28 @@ def _understeer(runs: list[dict]) -> float:
     return float(np.round(np.median(np.concatenate(ks)), 5))
 
 
+def _load_transfer(runs: list[dict]) -> float:
+    """The load each front tyre gains or loses per newton of front lateral force: the least-squares slope through
+    the origin of half the left-right wheel-load difference on the front lateral force (simulator truth), over
+    samples with a clear lateral force (|ay| > 1 m/s^2)."""
+    num = den = 0.0
+    for r in runs:
+        t = r["table"]
+        fy = np.abs(np.asarray(t["fy_fl_n"], float) + np.asarray(t["fy_fr_n"], float))
+        dfz = 0.5 * np.abs(np.asarray(t["fz_fl_n"], float) - np.asarray(t["fz_fr_n"], float))
+        ok = np.abs(np.asarray(t["ay_mps2"], float)) > 1.0
+        num += float(np.sum(fy[ok] * dfz[ok]))
+        den += float(np.sum(fy[ok] ** 2))
+    return round(num / den, 4)
+
+
 def _fit_warning(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
     """The warning with the longest median lead among those with at most FALSE_BUDGET false warnings per 10 min;
     where none keeps that budget, the one with the fewest (then the longest lead). Only thresholds the trail's
     evidence can reach (at most the trail curve's highest utilisation): above it the warning would no longer read
     the SAT at all (a collapsed trail would not warn), which is the point of the estimate."""
+    p = replace(p, load_transfer=_load_transfer(runs))
+    print(f"  front load transfer {p.load_transfer:.4f} N per N of front lateral force", file=sys.stderr)
     best: tuple[bool, float, float, grip.GripParams] | None = None
     grid = ((a, b, c, d, e) for a in WARN_ON if a <= max(p.util_at_trail) for b in WARN_HORIZON_S
             for c in DEMAND_WEIGHT for d in (DEMAND_LEAD_S if c > 0 else (0.0,))

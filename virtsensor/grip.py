@@ -125,6 +125,9 @@ class GripParams:
         demand_mu_held: 1: the demand is set against the held friction's upper end while it is held (else the
             rated ``mu_road_max``); 0: always against ``mu_road_max`` (a wrong held friction then cannot raise a
             warning through the demand).
+        load_transfer: the load each front tyre gains (outer) or loses (inner) per newton of front lateral force
+            (measured on the fit data from the simulator's wheel loads): the force floor and the demand are those
+            of the more used tyre (0: the axle's, as older files).
         source: where the numbers come from (free text).
     """
 
@@ -166,6 +169,7 @@ class GripParams:
     hold_count: float
     demand_lead_s: float = 0.0
     demand_mu_held: float = 0.0
+    load_transfer: float = 0.0
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -201,7 +205,7 @@ class GripParams:
 
 
 #: fields a parameter file may leave out (their defaults: the older files' meaning)
-_OPTIONAL = ("source", "demand_lead_s", "demand_mu_held")
+_OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer")
 
 
 def _tuples(v: Any) -> Any:
@@ -271,6 +275,7 @@ class GripEstimator:
         self._steer_l = p.steer_ratio * L
         self._dem_rate = p.demand_lead_s / self.dt  # (the demand's look-ahead per tick difference)
         self._dem_held = p.demand_mu_held > 0.0
+        self._lt = p.load_transfer
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
@@ -344,20 +349,30 @@ class GripEstimator:
         u_force = n / self.mu_ref
         if self._mu_age <= p.mu_hold_s:  # a friction given lately: the force used against it is evidence too
             ev = max(ev, u_force)
-        if p.mu_road_max > 0.0:  # whatever the road, the axle uses at least n / (k_limit mu_road_max) of it
-            ev = max(ev, n / p.mu_road_max)
+        if p.mu_road_max > 0.0:  # whatever the road, the more used tyre uses at least n_tyre / mu_road_max of it
+            ev = max(ev, self._tyre_ratio(fx, fy, fz) / p.mu_road_max)
         ev = min(ev, 1.0)
         u = min(max(u_force, ev), 1.0)
         s.util = u
         self._warn(ev, self._demand(vx, steer_angle, fx_now, fz))
         return s
 
+    def _tyre_ratio(self, fx: float, fy: float, fz: float) -> float:
+        """The force ratio of the more used front tyre: the lateral load transfer ``load_transfer * |fy|`` off the
+        inner tyre, the lateral force shared in proportion to load (the same ratio on both), the longitudinal one
+        evenly (one brake pressure, an open differential), so the inner tyre's ratio is
+        ``sqrt((fx / 2 / fz_in)^2 + (fy / fz)^2)`` (the axle's ``n`` without load transfer or longitudinal force)."""
+        fz_in = max(0.5 * fz - self._lt * abs(fy), 0.05 * fz)
+        a, b = 0.5 * fx / fz_in, fy / fz
+        return math.sqrt(a * a + b * b)
+
     def _demand(self, vx: float, steer_angle: float, fx: float, fz: float) -> float:
         """The driver's demand on the front axle against the friction it may have: the linear car's steady-state
         lateral acceleration for this steering at this speed, ``ay_lin = vx^2 delta / (L (1 + K vx^2))``, looked
         ``demand_lead_s`` ahead along its rate (the tyres' force lags the steering by their relaxation and the
         car's yaw and sideslip), as front lateral force ``m b / L ay``, combined with this tick's longitudinal
-        force ``fx`` (the motor torque's drive at once, the brakes' share), over the load ``fz`` and the friction:
+        force ``fx`` (the motor torque's drive at once, the brakes' share), as the more used tyre's force ratio
+        (:meth:`_tyre_ratio`, from the axle load ``fz``), over the friction:
         the held one's upper end while held if ``demand_mu_held``, else the rated ``mu_road_max`` (a road never
         measured is not assumed wet: the demand then warns only of what no road gives)."""
         v2 = vx * vx
@@ -365,9 +380,8 @@ class GripEstimator:
         prev, self._ay_lin_prev = self._ay_lin_prev, ay_lin
         if prev == prev:  # (nan on the first tick: no rate yet)
             ay_lin += self._dem_rate * (ay_lin - prev)
-        fy = self._fy_ay * ay_lin
         mu = self.mu_ref if self._dem_held and self._held_m <= self.params.hold_m else self.params.mu_road_max
-        return math.sqrt(fy * fy + fx * fx) / (fz * mu) if mu > 0.0 else 0.0
+        return self._tyre_ratio(fx, self._fy_ay * ay_lin, fz) / mu if mu > 0.0 else 0.0
 
     def _read_trail(self, n: float, t: float, steady: bool) -> float:
         """The trail ``t`` (m) read: sets the state's trail and friction (given or nan), returns the evidence
