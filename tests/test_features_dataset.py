@@ -43,7 +43,7 @@ def test_offline_and_online_feature_vectors_are_identical():
         for i in range(200):
             vals = [float(table[s][i]) for s in HISTORY.signals]
             v = builder.push(vals if as_list else np.array(vals))
-            rows.append(np.full(len(HISTORY.features), np.nan) if v is None else v.copy())
+            rows.append(np.full(len(HISTORY.features), np.nan) if v is None else np.array(v))
         online = np.array(rows)
         np.testing.assert_array_equal(online[ok], X[ok])
         builder.reset()

@@ -9,6 +9,7 @@ Everything is driven by hand (``VirtualSensor.process``/``drain``/``tick``) on i
 from __future__ import annotations
 
 import collections
+import math
 import time
 
 import can
@@ -407,3 +408,58 @@ def test_daemon_trips_a_redundancy_check_in_a_steady_turn_and_names_it(model, ch
     assert vs.counters["implausible_checks"] == 1
     bad = [e for e in handler.events if e["event"] == "implausible"]
     assert len(bad) == 1 and bad[0]["check"] == check and bad[0]["subject"] == subject
+
+
+@pytest.mark.parametrize("how", ["software_filter", "own_recv"])
+def test_drain_reads_every_queued_frame_through_filters_and_custom_recv(model, frames, how):
+    """A bus with a software filter (python-can's template ``recv`` returns None for a frame that does not match,
+    at a zero timeout) or its own ``recv``: one drain still reads everything queued, the filter holds, and no
+    input frame waits for a later tick."""
+    bus: can.BusABC
+    if how == "software_filter":
+        bus = _QueueBus()
+    else:
+        class _OwnRecv(_QueueBus):
+            def recv(self, timeout=None):
+                return self.queue.popleft() if self.queue else None
+
+        bus = _OwnRecv()
+    vs = VirtualSensor(bus, model, MATRIX, freeze_gc=False)
+    vs.drain()  # (a first drain before the filter is set: the filter set later still holds)
+    if how == "software_filter":
+        bus.set_filters([{"can_id": EPAS, "can_mask": 0x7FF}])
+    window = [m for m in frames if m.timestamp <= frames[0].timestamp + 0.2]
+    for m in window:
+        bus.put(m, m.timestamp)
+        bus.put(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"\0"), m.timestamp)  # not an input
+    vs.drain()
+    assert not bus.queue, "one drain reads the whole queue"
+    n_epas = sum(m.arbitration_id == EPAS for m in window)
+    if how == "software_filter":
+        assert vs.counters["input_frames"] == vs.counters["frames"] == n_epas  # only what the filter passes
+    else:
+        c = vs.counters
+        assert c["frames"] == 2 * len(window) and c["unknown_ids"] == len(window)
+        assert c["input_frames"] + c["other_frames"] == len(window) and c["input_frames"] >= n_epas
+
+
+@pytest.mark.parametrize("bad", [math.inf, -math.inf])
+def test_a_non_finite_feature_never_reaches_the_model_as_valid(model, frames, bad):
+    """Inputs fresh and plausible, but a feature not finite (an input held at +-inf): no estimate, INVALID."""
+    stream, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    calls = []
+
+    def hook(stage, fn):
+        if stage != "inference":
+            return fn
+        return lambda x: calls.append(list(x)) or fn(x)
+
+    vs = VirtualSensor(_QueueBus(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False, stage_hook=hook)
+    for m in stream:
+        vs.process(m)
+    assert vs.last_statuses == (VALID, VALID) and calls
+    n = len(calls)
+    vs.inputs.values[vs.layout.signals.index("susp_defl_fl_m")] = bad
+    assert vs.tick(stream[-1].timestamp) == (INVALID, INVALID)
+    assert len(calls) == n, "the model must not see a non-finite feature"
+    assert all(math.isnan(vs._out.sat_values[w.estimate]) for w in vs.layout.wheels)

@@ -634,3 +634,22 @@ def test_config_file_and_cli_override(model_path, tmp_path, capsys):
     assert conf["sync_id"] == 0x7F0 and conf["duration"] == 0.4 and conf["log_level"] == "info"
     assert conf["timeout_cycles"] == 4.0 and conf["model"] == str(model_path)
     assert events[-1]["event"] == "shutdown" and events[-1]["ticks"] == 0  # sync mode, no sync frame came
+
+
+def test_output_frames_deep_copy_field_for_field_into_plain_messages():
+    """The virtual bus deep-copies each sent frame: the copy of a preallocated output frame is a plain
+    ``can.Message`` equal in every field, with its own data."""
+    import copy
+
+    from virtsensor.daemon.publish import out_message
+
+    m = out_message(0x201, 8)
+    m.data[:] = bytes(range(1, 9))
+    m.timestamp, m.channel, m.is_rx = 12.5, "vcan0", False
+    c = copy.deepcopy(m)
+    ref = can.Message(timestamp=12.5, arbitration_id=0x201, is_extended_id=False, dlc=8, data=bytes(range(1, 9)),
+                      channel="vcan0", is_rx=False)
+    assert type(c) is can.Message and c.equals(ref) and c.channel == "vcan0"
+    assert all(getattr(c, k) == getattr(ref, k) for k in can.Message.__slots__ if k != "__weakref__")
+    m.data[0] = 99
+    assert c.data[0] == 1

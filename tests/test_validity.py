@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from virtsensor.daemon.receive import ClockMap
@@ -282,3 +283,76 @@ def test_the_catalogue_car_facts_are_the_simulated_car_s():
     assert cat.EPAS_BOOST.gains == tuple(st["assist_gains"])
     assert (cat.EPAS_BOOST.knee_nm, cat.EPAS_BOOST.max_nm) == (st["assist_knee_nm"], st["assist_max_nm"])
     assert (cat.STEADY_TURN.steer_ratio, cat.STEADY_TURN.wheelbase_m) == (st["ratio"], car["vehicle"]["wheelbase_m"])
+
+
+def _reference_update(rules, state, values, stale, prev):
+    """The checks' semantics as written in PlausibilityRule's docstring, interpreted rule by rule (an oracle for
+    the generated code). ``state`` = (failing, run); returns (newly failed, new, implausible)."""
+    from virtsensor.daemon.validity import _boost
+
+    failing, run = state
+    new, n_new = [False] * len(rules), 0
+    for k, r in enumerate(rules):
+        judged = not any(stale[i] for i in (r.subject, *r.refs))
+        judged = judged and all(abs(values[i] - prev[i]) <= step for i, step in r.steady)
+        judged = judged and all(abs(values[i]) <= bound for i, bound in r.within)
+        if judged and r.turn is not None:
+            yaw, vx, steer, kk, min_yaw, lo, hi = r.turn
+            rk = kk * values[vx] * values[steer]
+            judged = abs(rk) >= min_yaw and values[yaw] * rk > 0 and lo * abs(rk) <= abs(values[yaw]) <= hi * abs(rk)
+        if not judged:
+            run[k] = 0
+            continue
+        if r.relation == "product":
+            e = r.scale * math.prod(values[i] for i in r.refs)
+        elif r.relation == "boost":
+            e = _boost(r.boost, values[r.refs[0]], values[r.refs[1]])
+        else:
+            e = r.scale * sum(values[i] for i in r.refs) / len(r.refs)
+        v = values[r.subject]
+        ok = not abs(v - e) > r.tol_abs + r.tol_rel * abs(v)
+        if ok == failing[k]:
+            run[k] += 1
+            if run[k] >= r.debounce:
+                failing[k], new[k], run[k] = not ok, not ok, 0
+                n_new += not ok
+        else:
+            run[k] = 0
+    imp = [any(failing[k] for k, r in enumerate(rules) if r.subject == i) for i in range(len(values))]
+    return n_new, new, imp
+
+
+def test_generated_checks_match_the_rules_semantics_on_random_sequences():
+    from virtsensor.daemon.validity import _boost
+
+    cat, by_name = _catalogue_rules()
+    rules = list(by_name.values())
+    assert {r.relation for r in rules} == {"mean", "product", "boost"} and any(r.turn for r in rules)
+    rng = np.random.default_rng(15)
+    p = Plausibility(rules, len(cat.INPUTS))
+    state = ([False] * len(rules), [0] * len(rules))
+    prev = [math.nan] * len(cat.INPUTS)
+    turn = by_name["ay_vs_yaw_rate_times_speed"].turn
+    yaw = turn[3] * 20.0 * 0.2  # a steady turn at the kinematic yaw rate
+    base = np.array(_row(cat, ay_mps2=yaw * 20.0, yaw_rate_radps=yaw, steer_angle_rad=0.2, steer_torque_nm=2.0,
+                         assist_torque_nm=_boost(by_name["assist_vs_boosted_steer_torque"].boost, 2.0, 20.0)))
+    names = list(cat.INPUTS)
+    failed = [0] * len(rules)
+    for tick in range(4000):
+        # steady driving with small noise; stretches where one redundancy breaks, some unsteady ticks, NaNs
+        row = base * (1.0 + rng.normal(0.0, 0.005, len(base)))
+        phase, stretch = tick % 400, (tick // 400) % 3
+        if 100 <= phase < 200:
+            row[names.index(("vx_mps", "ay_mps2", "assist_torque_nm")[stretch])] += (8.0, 4.0, 10.0)[stretch]
+        if rng.random() < 0.02:
+            row[rng.integers(len(row))] *= 3.0
+        if rng.random() < 0.01:
+            row[rng.integers(len(row))] = math.nan
+        values = [float(x) for x in row]
+        stale = [bool(s) for s in rng.random(len(values)) < 0.01]
+        got = p.update(values, stale)
+        want, new, imp = _reference_update(rules, state, values, stale, prev)
+        prev = values
+        assert (got, p.new, p.implausible, p.failing, p._run) == (want, new, imp, state[0], state[1]), tick
+        failed = [a + b for a, b in zip(failed, p.new, strict=True)]
+    assert all(failed), failed  # the sequence made every check fail

@@ -138,12 +138,12 @@ class FeatureBuilder:
     """The online path of a :class:`FeatureSpec`: one vector per tick, no array allocation.
 
     ``push(values)`` takes the latest values of :attr:`FeatureSpec.signals` (in that order; a list of
-    floats or a 1-D array) at a tick and returns the feature vector (float64, a view of an internal
-    buffer, valid until the next push), or None until enough history exists.
+    floats or a 1-D array) at a tick and returns the feature vector as a list of Python floats (the
+    daemon's tick then calls numpy only to hand it to the model), or None until enough history exists.
 
     The history is ``depth`` Python lists, newest first, rotated per push; the vector is built by a
-    function generated once from the spec (one list display, one copy into the buffer), with the
-    arithmetic of :meth:`FeatureSpec.transform` in the same order, so the two agree to the bit.
+    function generated once from the spec (one list display), with the arithmetic of
+    :meth:`FeatureSpec.transform` in the same order, so the two agree to the bit.
     """
 
     def __init__(self, spec: FeatureSpec):
@@ -152,7 +152,6 @@ class FeatureBuilder:
         n = len(spec.signals)
         self._rows: list[list[float]] = [[math.nan] * n for _ in range(self.depth)]
         self._count = 0
-        self._out = np.empty(len(spec.features))
         self._build = _compile_builder(spec, self.depth)
 
     def reset(self) -> None:
@@ -165,7 +164,7 @@ class FeatureBuilder:
     def ready(self) -> bool:
         return self._count >= self.depth
 
-    def push(self, values: Sequence[float] | np.ndarray) -> np.ndarray | None:
+    def push(self, values: Sequence[float] | np.ndarray) -> list[float] | None:
         rows = self._rows
         row = rows.pop()  # the oldest row becomes the newest
         row[:] = values
@@ -173,8 +172,7 @@ class FeatureBuilder:
         self._count += 1
         if self._count < self.depth:
             return None
-        self._out[:] = self._build(rows)
-        return self._out
+        return self._build(rows)  # type: ignore[no-any-return]
 
 
 def _compile_builder(spec: FeatureSpec, depth: int) -> Any:

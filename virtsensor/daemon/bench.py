@@ -13,6 +13,10 @@ Figures (keys of :func:`run_bench`'s result; times in us unless the key says oth
 * ``stages_us``: per stage of a sync-mode tick (decode per input frame; features, inference, encode, send per
   tick), timed with ``perf_counter_ns`` by thin proxies put in place on that instance (each figure includes
   the proxy call);
+* ``stages_after_idle_us``: the same stages when the bench thread sleeps :data:`IDLE_S` before each tick's
+  frames, as the 20 Hz daemon sleeps between ticks, plus ``tick``: each tick's whole work (its frames, the
+  tick, its sends). Against ``stages_us`` it shows what running on caches gone cold costs each stage, which is
+  what ``cpu_percent_at_20hz`` pays;
 * ``tick_compute_us``: the daemon's own tick start -> SAT_FRONT encoded (no bus I/O), un-instrumented;
 * ``e2e_latency_us``: send of a tick's last input frame -> SAT_FRONT received by a listener;
 * ``jitter_us``, ``cpu_percent_at_20hz``, ``rss_mb_20hz``: the daemon on its free-running 20 Hz clock, fed
@@ -58,8 +62,12 @@ BUDGET_US = 50_000.0
 MANOEUVRE = ("steering-pulse", 60.0, 1.0, 7)
 
 #: counts of a full run and of ``--quick``
-FULL = {"stage_ticks": 5000, "e2e_ticks": 2000, "jitter_s": 10.0, "soak_ticks": 72_000, "xproc_ticks": 400}
-QUICK = {"stage_ticks": 200, "e2e_ticks": 100, "jitter_s": 1.5, "soak_ticks": 1_000, "xproc_ticks": 60}
+FULL = {"stage_ticks": 5000, "idle_ticks": 100, "e2e_ticks": 2000, "jitter_s": 10.0, "soak_ticks": 72_000,
+        "xproc_ticks": 400}
+QUICK = {"stage_ticks": 200, "idle_ticks": 10, "e2e_ticks": 100, "jitter_s": 1.5, "soak_ticks": 1_000,
+         "xproc_ticks": 60}
+#: sleep before each tick of the after-idle stage run (s): the 20 Hz daemon's time asleep between ticks
+IDLE_S = 0.05
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -283,21 +291,30 @@ def _stage_timer(rec: dict[str, list[float]], xs: list[np.ndarray]) -> Callable[
     return hook
 
 
-def measure_stages(model: Any, matrix: Any, inputs: Inputs, n_ticks: int) -> tuple[dict[str, Any], np.ndarray]:
+def measure_stages(model: Any, matrix: Any, inputs: Inputs, n_ticks: int,
+                   idle_s: float = 0.0) -> tuple[dict[str, Any], np.ndarray]:
     """Per-stage times (us) of a sync-mode daemon driven in this thread, through its ``stage_hook``; also
-    returns the feature vectors."""
+    returns the feature vectors. ``idle_s`` > 0: the thread sleeps that long before each tick's frames, as the
+    daemon does between 20 Hz ticks, so every stage runs on caches other work had the time to evict. The stage
+    ``tick`` is each tick's whole work: its frames, the tick, its sends."""
     from virtsensor.daemon.sensor import STAGES
 
     rec: dict[str, list[float]] = {k: [] for k in STAGES}
     xs: list[np.ndarray] = []
+    whole: list[float] = []
+    pc = time.perf_counter_ns
     _, listener, vs, _ = _sync_rig(model, matrix, stage_hook=_stage_timer(rec, xs))
     try:
         for k in range(n_ticks):
             batch, sync = inputs.tick(k)
+            if idle_s > 0.0:
+                time.sleep(idle_s)
+            t0 = pc()
             for m in batch:
                 vs.process(m)
             vs.process(sync)
-            if k % 200 == 199:
+            whole.append((pc() - t0) / 1e3)
+            if k % 200 == 199 or idle_s > 0.0:
                 while listener.recv(0) is not None:
                     pass
         errors = vs.counters["tick_errors"]
@@ -306,7 +323,9 @@ def measure_stages(model: Any, matrix: Any, inputs: Inputs, n_ticks: int) -> tup
         listener.shutdown()
     if errors:
         raise RuntimeError(f"{errors} tick errors in the stage run")
-    return {k: percentiles(v) for k, v in rec.items()}, (np.array(xs) if xs else np.zeros((0, 0)))
+    out = {k: percentiles(v) for k, v in rec.items()}
+    out["tick"] = percentiles(whole)
+    return out, (np.array(xs) if xs else np.zeros((0, 0)))
 
 
 def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int) -> dict[str, Any]:
@@ -314,6 +333,7 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
     import can
 
     ch, listener, vs, sat_id = _sync_rig(model, matrix)
+    listener.shutdown()  # one peer node sends the inputs and reads SAT_FRONT (no never-read queue to copy into)
     tx = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True)
     lat: list[float] = []
     lost = 0
@@ -328,7 +348,7 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
             end = time.monotonic() + 2.0
             while vs.counters["frames"] < sent and time.monotonic() < end:
                 time.sleep(0)
-            us = timed_response(tx, listener, batch, sync, sat_id)
+            us = timed_response(tx, tx, batch, sync, sat_id)
             sent += 1 + bool(batch)
             if us is not None:
                 lat.append(us)
@@ -338,7 +358,6 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
     finally:
         vs.stop()
         tx.shutdown()
-        listener.shutdown()
     out = percentiles(lat) or {}
     out.update(lost=lost, tick_errors=st["tick_errors"])
     return out
@@ -392,15 +411,17 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
     from virtsensor.daemon.runner import SPIN_S
 
     ch = _virtual_channel()
-    tx = can.Bus(interface="virtual", channel=ch)
-    listener = can.Bus(interface="virtual", channel=ch)
+    # one peer node on the channel, as on a car's bus: it sends the inputs (feeder thread) and reads the
+    # daemon's frames (drain thread). A second, never-read peer bus would make every daemon send copy its
+    # frame into one more queue, which grows without bound.
+    peer = can.Bus(interface="virtual", channel=ch)
     vs = _sensor(model, matrix, can.Bus(interface="virtual", channel=ch))
     stop = threading.Event()
-    feeder = _feeder(tx, inputs, stop)
+    feeder = _feeder(peer, inputs, stop)
 
     def drain() -> None:
         while not stop.is_set():
-            listener.recv(0.05)
+            peer.recv(0.05)
 
     drainer = threading.Thread(target=drain, name="bench-drain", daemon=True)
     feeder.start()
@@ -420,8 +441,7 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
     stop.set()
     feeder.join(2)
     drainer.join(2)
-    tx.shutdown()
-    listener.shutdown()
+    peer.shutdown()
     wall = w1 - w0
     proc = (p1.user - p0.user) + (p1.system - p0.system)
     cpu = sum(pt1) - sum(pt0)
@@ -660,6 +680,8 @@ def _run_bench(model_path: str | os.PathLike | None, *, quick: bool, soak_ticks:
     result["stages_method"] = ("VirtualSensor in sync mode driven with process() in the bench thread; the tick's "
                                "calls timed in place by proxies (decode = the generated receiver per input frame: "
                                "DLC, CRC, E2E, decode, store; encode/send of SAT_FRONT)")
+    say(f"stages after {IDLE_S * 1e3:.0f} ms idle: {counts['idle_ticks']} ticks")
+    result["stages_after_idle_us"], _ = measure_stages(model, matrix, inputs, counts["idle_ticks"], idle_s=IDLE_S)
 
     say(f"end to end in process: {counts['e2e_ticks']} ticks")
     e2e_in = measure_e2e_in_process(model, matrix, inputs, counts["e2e_ticks"])
@@ -758,6 +780,9 @@ def write_markdown(r: dict[str, Any], path: str | os.PathLike) -> None:
     for k in ("onnxruntime", "sklearn", "numpy"):
         lines.append(_row(f"inference: {k}", r["inference_us"].get(k)))
     lines.append(_row("tick jitter (20 Hz)", r.get("jitter_us")))
+    idle = r.get("stages_after_idle_us") or {}
+    lines += ["", f"After {IDLE_S * 1e3:.0f} ms idle before each tick (as at 20 Hz), p50 per stage (us): "
+              + ", ".join(f"{k} {v['p50']:.1f}" for k, v in idle.items() if v) + "."]
     lines += ["", f"Stages: {r.get('stages_method')}.  ", f"End to end: {e2e.get('method')}."]
     if e2e.get("cross_process") is None:
         lines.append(f"Cross process skipped: {e2e.get('cross_process_skipped')}.")

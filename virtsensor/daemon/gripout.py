@@ -46,13 +46,11 @@ class GripOutput:
 
     def __init__(self, matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any] = (),
                  params: GripParams | None = None) -> None:
-        import can
-
-        from virtsensor.daemon.publish import _Payload
+        from virtsensor.daemon.publish import out_message
 
         m = matrix.messages["VS_Grip"]
         self._encode = compile_encoder(m)
-        self.msg = can.Message(arbitration_id=m.frame_id, is_extended_id=False, dlc=m.length, data=_Payload(m.length))
+        self.msg = out_message(m.frame_id, m.length)
         self._idx = tuple(list(signals).index(s) for s in GRIP_INPUTS)
         self.estimator = GripEstimator(params)
         self._names = tuple(GRIP_SIGNALS)  # util, mu, half-width

@@ -14,10 +14,9 @@ other inputs are complete.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
-
-import numpy as np
 
 __all__ = ["PressureFallback"]
 
@@ -31,7 +30,7 @@ class PressureFallback:
         predict_one: the fallback model's one-vector inference (its result is overwritten by the next call).
     """
 
-    __slots__ = ("model", "n", "slots", "required", "predict_one", "zero")
+    __slots__ = ("model", "n", "slots", "required", "predict_one")
 
     def __init__(self, model: Any, n: int, slots: Sequence[int], n_signals: int) -> None:
         self.model = model
@@ -39,8 +38,6 @@ class PressureFallback:
         self.slots = tuple(slots)
         self.required = tuple(i for i in range(n_signals) if i not in self.slots)
         self.predict_one = model.predict_one
-        #: zeros of the fallback's features (``x[:n] . zero`` is 0 iff they are all finite)
-        self.zero = np.zeros(self.n)
 
     @classmethod
     def for_model(cls, model: Any, signals: Sequence[str]) -> PressureFallback | None:
@@ -72,6 +69,6 @@ class PressureFallback:
     def complete(self, times: Sequence[float]) -> bool:
         """Whether every required (non-optional) input has been received once."""
         for i in self.required:
-            if times[i] == -np.inf:
+            if times[i] == -math.inf:
                 return False
         return True

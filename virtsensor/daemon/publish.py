@@ -8,6 +8,7 @@ receiver sees the lost frame as a counter gap).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -34,6 +35,34 @@ class _Payload(bytearray):
         return bytearray(self)
 
 
+@functools.cache
+def _out_message_class() -> Any:
+    import can
+
+    class _OutMessage(can.Message):
+        """An output frame whose deep copy is a plain ``can.Message`` built field by field."""
+
+        __slots__ = ()
+
+        def __deepcopy__(self, memo: Any) -> can.Message:
+            m = can.Message.__new__(can.Message)
+            m.timestamp, m.arbitration_id, m.is_extended_id = self.timestamp, self.arbitration_id, self.is_extended_id
+            m.is_remote_frame, m.is_error_frame, m.channel = self.is_remote_frame, self.is_error_frame, self.channel
+            m.dlc, m.data, m.is_fd, m.is_rx = self.dlc, bytearray(self.data), self.is_fd, self.is_rx
+            m.bitrate_switch, m.error_state_indicator = self.bitrate_switch, self.error_state_indicator
+            return m
+
+    return _OutMessage
+
+
+def out_message(frame_id: int, length: int) -> Any:
+    """A preallocated output frame (standard id, ``length`` data bytes of :class:`_Payload`) whose deep copy is a
+    plain ``can.Message`` built field by field: python-can's ``virtual`` bus deep-copies every sent message once
+    per receiving bus, and ``Message.__deepcopy__`` goes through the full constructor. Other interfaces only read
+    the frame."""
+    return _out_message_class()(arbitration_id=frame_id, is_extended_id=False, dlc=length, data=_Payload(length))
+
+
 class Publisher:
     """Preallocated ``can.Message`` objects and value dicts of SAT_FRONT and VS_Health, and their counters.
 
@@ -44,16 +73,12 @@ class Publisher:
     """
 
     def __init__(self, layout: InputLayout, matrix: CanMatrix, hook: StageHook | None = None) -> None:
-        import can
-
         sat_m, health_m = matrix.messages["SAT_FRONT"], matrix.messages["VS_Health"]
         enc = compile_encoder(sat_m)
         self._encode_sat = hook("encode", enc) if hook is not None else enc
         self._encode_health = compile_encoder(health_m)
-        self.sat_msg = can.Message(arbitration_id=sat_m.frame_id, is_extended_id=False, dlc=sat_m.length,
-                                   data=_Payload(sat_m.length))
-        self.health_msg = can.Message(arbitration_id=health_m.frame_id, is_extended_id=False, dlc=health_m.length,
-                                      data=_Payload(health_m.length))
+        self.sat_msg = out_message(sat_m.frame_id, sat_m.length)
+        self.health_msg = out_message(health_m.frame_id, health_m.length)
         self.sat_values: dict[str, float] = {}
         for w in layout.wheels:
             self.sat_values[w.estimate] = math.nan

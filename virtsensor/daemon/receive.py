@@ -27,17 +27,30 @@ _INF = math.inf
 
 
 def polling_read(bus: Any) -> Callable[[float], tuple[Any, bool]]:
-    """``read(timeout) -> (Message | None, filtered)`` for ``bus``: when its ``recv`` is python-can's
-    ``BusABC.recv`` and it has no software filter, the backend hook ``_recv_internal`` itself (which is
-    what ``BusABC.recv`` returns for a zero timeout without filters, at about a third less cost per
-    frame); else its ``recv`` wrapped into the same shape (``bus`` None: reads nothing)."""
+    """``read(timeout) -> (Message | None, filtered)`` for ``bus``, None only when nothing is queued.
+
+    When its ``recv`` is python-can's ``BusABC.recv``: its backend hook ``_recv_internal`` itself without a
+    software filter (what ``BusABC.recv`` returns for a zero timeout, at about a third less cost per frame);
+    with one, the hook's frames that the bus's filters pass (``BusABC.recv`` at a zero timeout would return
+    None at the first frame that does not match, leaving the rest queued for a later tick). Else its own
+    ``recv`` wrapped into the same shape (``bus`` None: reads nothing)."""
     import can
 
     if bus is None:
         return _nothing
     internal = getattr(bus, "_recv_internal", None)
-    if type(bus).recv is can.BusABC.recv and not getattr(bus, "_filters", None) and callable(internal):
-        return internal  # type: ignore[no-any-return]
+    if type(bus).recv is can.BusABC.recv and callable(internal):
+        if not getattr(bus, "_filters", None):
+            return internal  # type: ignore[no-any-return]
+        matches = bus._matches_filters
+
+        def read_filtered(timeout: float) -> tuple[Any, bool]:
+            while True:
+                msg, done = internal(timeout)
+                if msg is None or done or matches(msg):
+                    return msg, True
+
+        return read_filtered
     recv = bus.recv
 
     def read(timeout: float) -> tuple[Any, bool]:
@@ -101,6 +114,7 @@ class ReceivePath:
         self._last_t = self.order.last_t
         self.clock = ClockMap()
         self._read_bus: Any = None
+        self._read_filters: Any = None
         self._read: Callable[[float], tuple[Any, bool]] = polling_read(None)
         self.counters = counters
         self._e2e = [matrix.receivers[name] for name in layout.input_messages]
@@ -164,11 +178,12 @@ class ReceivePath:
         timestamp mapped by :attr:`clock` (the read time when the frame has no timestamp, ``<= 0``).
         Returns the number of frames read; interface errors propagate.
 
-        A bus whose ``recv`` is python-can's own template method and that has no software filter is read
-        through its backend hook ``_recv_internal(0)`` (:func:`polling_read`): the same frames, without
-        the template's per-frame timeout arithmetic, filter test and debug-log call."""
-        if bus is not self._read_bus:  # (the first drain, or a new bus after a reconnect)
-            self._read_bus, self._read = bus, polling_read(bus)
+        A bus whose ``recv`` is python-can's own template method is read through its backend hook
+        ``_recv_internal(0)`` (:func:`polling_read`): the frames its software filters (as set at this drain) pass,
+        every one queued, without the template's per-frame timeout arithmetic and debug-log call."""
+        filters = getattr(bus, "_filters", None)
+        if bus is not self._read_bus or filters is not self._read_filters:  # (first drain, reconnect, new filters)
+            self._read_bus, self._read_filters, self._read = bus, filters, polling_read(bus)
         read = self._read
         mono = time.monotonic
         handle = self.handle

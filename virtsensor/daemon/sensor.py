@@ -17,9 +17,11 @@ before it, at tick time = the sync frame's timestamp (frame times are the bus's 
 sync frame just after each 20 Hz grid instant gives, tick for tick, the offline table of
 :func:`virtsensor.recordings.canlog.read_log`.
 
-Real-time hygiene: every array and list the tick touches is allocated at start-up and reused, except that
-copying the receivers' list of input values into the feature builder's numpy array converts that small
-list; after start-up the heap is ``gc.freeze()``-d and the cyclic GC is off during the tick.
+Real-time hygiene: every array and list the tick touches is allocated at start-up and reused, except the
+feature vector (a list the generated builder makes per tick) and the model's two outputs as a list; numpy
+is called only to hand the features to onnxruntime and take its outputs back (each numpy call costs tens of
+microseconds on caches gone cold between 20 Hz ticks). After start-up the heap is ``gc.freeze()``-d and the
+cyclic GC is off during the tick.
 
 Logs are JSON lines on stderr (:func:`~virtsensor.daemon.jsonlog.configure_logging`): ``started``,
 ``config``, ``bus_error``, ``reconnect``, ``status_change``, ``envelope_exit``/``envelope_return`` (once per
@@ -36,8 +38,6 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
-
-import numpy as np
 
 from virtsensor.canbus.codec import STATUS_KEYS, CanMatrix
 from virtsensor.canbus.e2e import E2EStatus
@@ -152,7 +152,6 @@ class VirtualSensor:
         self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
         #: the latest tick's inputs were outside the model card's validity envelope
         self.outside_envelope = False
-        self._xzero = np.zeros(len(lay.spec.features))  # x . 0 is nan iff some feature is not finite (0 * inf)
         self._msg_err = [False] * len(lay.input_messages)  # the tick's E2E errors (for the logs)
         self._complete = False
         self._sync_count = 0
@@ -321,13 +320,14 @@ class VirtualSensor:
                 sv[est] = math.nan
                 sv[st] = INIT
             return False
-        x, predict, zero = _model_inputs(self, x)  # (the pressure-free fallback while the pressures are unknown)
-        x_ok = x.dot(zero) == 0.0  # every feature finite (one call instead of isfinite + all)
-        y = predict(x) if x_ok else None
+        x, predict = _model_inputs(self, x)  # (the pressure-free fallback while the pressures are unknown)
+        total = sum(x)
+        x_ok = total - total == 0.0  # every feature finite (a nan or an inf makes the sum's difference nan)
+        y = predict(x).tolist() if x_ok else None
         rules = self._env_rules
         outside = x_ok and rules is not None and outside_envelope(self.inputs.values, rules)
         for k, est, st, lo, hi in self._wheels:
-            v = float(y[k]) if (y is not None and k >= 0) else math.nan
+            v = y[k] if (y is not None and k >= 0) else math.nan
             s = envelope_status(wheel_status(status, v, lo, hi), outside)
             sv[est] = math.nan if s == INVALID else v  # nan -> SNA on the bus
             sv[st] = s
@@ -392,13 +392,13 @@ def _fallback_parts(model: Any, lay: InputLayout, hook: Any, predict: Any) -> tu
     return fb, hook("inference", fb.predict_one), fb.complete
 
 
-def _model_inputs(self: VirtualSensor, x: np.ndarray) -> tuple[np.ndarray, Any, np.ndarray]:
-    """This tick's ``(features, inference, zeros)``: the model's, or, while a front pressure is bad (stale, SNA,
-    E2E error, out of order), the pressure-free fallback's on the first features (the status is DEGRADED then)."""
+def _model_inputs(self: VirtualSensor, x: list[float]) -> tuple[list[float], Any]:
+    """This tick's ``(features, inference)``: the model's, or, while a front pressure is bad (stale, SNA, E2E
+    error, out of order), the pressure-free fallback's on the first features (the status is DEGRADED then)."""
     fb = self.fallback
     if fb is not None and fb.active(self._state.bad):
-        return x[: fb.n], self._predict_fb, fb.zero
-    return x, self._predict, self._xzero
+        return x[: fb.n], self._predict_fb
+    return x, self._predict
 
 
 def _log_implausible(self: VirtualSensor, t: float) -> None:

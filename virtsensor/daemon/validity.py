@@ -240,44 +240,71 @@ def _boost(curve: tuple[tuple[float, ...], tuple[float, ...], float, float], t: 
     return top if y > top else -top if y < -top else y
 
 
-def _expected(r: PlausibilityRule, values: Sequence[float]) -> float:
-    if r.relation == "product":
-        y = r.scale
-        for i in r.refs:
-            y *= values[i]
-        return y
-    if r.relation == "boost" and r.boost is not None:
-        return _boost(r.boost, values[r.refs[0]], values[r.refs[1]])
-    ref = 0.0
-    for i in r.refs:
-        ref += values[i]
-    return r.scale * ref / len(r.refs)
+def _lit(x: float, env: dict[str, Any]) -> str:
+    """A float as source text (exact: ``repr`` round-trips), or the name of an ``env`` entry when not finite."""
+    x = float(x)
+    if math.isfinite(x):
+        return repr(x)
+    name = f"_C{len(env)}"
+    env[name] = x
+    return name
 
 
-def _any_stale(r: PlausibilityRule, stale: Sequence[bool]) -> bool:
-    if stale[r.subject]:
-        return True
-    for i in r.refs:
-        if stale[i]:
-            return True
-    return False
-
-
-def _judged(r: PlausibilityRule, values: Sequence[float], prev: Sequence[float]) -> bool:
-    """The check applies at this tick (steady signals, bounded signals, a steady turn with grip); False on NaN."""
-    for i, step in r.steady:
-        if not abs(values[i] - prev[i]) <= step:
-            return False
-    for i, bound in r.within:
-        if not abs(values[i]) <= bound:
-            return False
+def _rule_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> list[str]:
+    """Straight-line source of check ``k`` inside the generated ``update`` (see :func:`compile_checks`)."""
+    v = "values"
+    skip = [f"stale[{i}]" for i in dict.fromkeys((r.subject, *r.refs))]
+    skip += [f"not abs({v}[{i}] - prev[{i}]) <= {_lit(step, env)}" for i, step in r.steady]
+    skip += [f"not abs({v}[{i}]) <= {_lit(bound, env)}" for i, bound in r.within]
     if r.turn is not None:
-        yaw, vx, steer, k, min_yaw, lo, hi = r.turn
-        r_kin = k * values[vx] * values[steer]
-        y = values[yaw]
-        if not (abs(r_kin) >= min_yaw and y * r_kin > 0.0 and lo * abs(r_kin) <= abs(y) <= hi * abs(r_kin)):
-            return False
-    return True
+        yaw, vx, steer, kk, min_yaw, lo, hi = r.turn
+        skip.append(f"not (abs(rk := {_lit(kk, env)} * {v}[{vx}] * {v}[{steer}]) >= {_lit(min_yaw, env)} "
+                    f"and {v}[{yaw}] * rk > 0.0 and {_lit(lo, env)} * abs(rk) <= abs({v}[{yaw}]) "
+                    f"<= {_lit(hi, env)} * abs(rk))")
+    if r.relation == "product":
+        expected = " * ".join([_lit(r.scale, env), *(f"{v}[{i}]" for i in r.refs)])
+    elif r.relation == "boost" and r.boost is not None:
+        env[f"_B{k}"] = r.boost
+        expected = f"_boost(_B{k}, {v}[{r.refs[0]}], {v}[{r.refs[1]}])"
+    else:
+        expected = f"{_lit(r.scale, env)} * ({' + '.join(f'{v}[{i}]' for i in r.refs)}) / {len(r.refs)}"
+    return [f"    new[{k}] = False",
+            f"    if {' or '.join(skip)}:",
+            f"        run[{k}] = 0",
+            "    else:",
+            f"        v = {v}[{r.subject}]",
+            f"        ok = not (abs(v - {expected}) > {_lit(r.tol_abs, env)} + {_lit(r.tol_rel, env)} * abs(v))",
+            f"        if ok == failing[{k}]:",
+            f"            n = run[{k}] + 1",
+            f"            if n >= {int(r.debounce)}:",
+            f"                failing[{k}] = not ok",
+            f"                new[{k}] = not ok",
+            "                n_new += not ok",
+            "                n = 0",
+            f"            run[{k}] = n",
+            "        else:",
+            f"            run[{k}] = 0"]
+
+
+def compile_checks(rules: Sequence[PlausibilityRule]) -> Any:
+    """The checks as one generated function ``update(values, stale, prev, failing, run, new, implausible) ->
+    newly failed``: every rule's judging conditions, expected value and debounce unrolled with its constants
+    inlined (the semantics of :class:`PlausibilityRule`, without a per-rule interpretation each tick);
+    ``prev`` is then overwritten with ``values``, and each rule subject's ``implausible`` item is whether one of
+    its checks fails."""
+    env: dict[str, Any] = {"_boost": _boost}
+    lines = ["def update(values, stale, prev, failing, run, new, implausible):", "    n_new = 0"]
+    for k, r in enumerate(rules):
+        lines += _rule_source(k, r, env)
+    lines.append("    prev[:] = values")
+    subjects: dict[int, list[int]] = {}
+    for k, r in enumerate(rules):
+        subjects.setdefault(r.subject, []).append(k)
+    for i, ks in subjects.items():
+        lines.append(f"    implausible[{i}] = {' or '.join(f'failing[{k}]' for k in ks)}")
+    lines.append("    return n_new")
+    exec(compile("\n".join(lines), "<virtsensor.daemon.validity checks>", "exec"), env)  # noqa: S102 - from rules
+    return env["update"]
 
 
 class Plausibility:
@@ -291,7 +318,7 @@ class Plausibility:
         new: per check, it failed at the latest :meth:`update`.
     """
 
-    __slots__ = ("rules", "failing", "implausible", "new", "_run", "_prev")
+    __slots__ = ("rules", "failing", "implausible", "new", "_run", "_prev", "_never", "_update")
 
     def __init__(self, rules: Sequence[PlausibilityRule], n_signals: int) -> None:
         self.rules = tuple(rules)
@@ -300,37 +327,14 @@ class Plausibility:
         self.new = [False] * len(self.rules)
         self._run = [0] * len(self.rules)  # consecutive judged ticks disagreeing with the current verdict
         self._prev = [math.nan] * n_signals  # the values of the previous update (steadiness)
+        self._never = [False] * n_signals
+        self._update = compile_checks(self.rules)
 
     def update(self, values: Sequence[float], stale: Sequence[bool] | None = None) -> int:
         """Run every check on ``values`` (per input signal); returns how many checks newly failed. A check that
         compares a ``stale`` signal (a held value, not news) is not judged at this tick."""
-        n_new = 0
-        failing, run, imp, new, prev = self.failing, self._run, self.implausible, self.new, self._prev
-        for k, r in enumerate(self.rules):
-            new[k] = False
-            if (stale is not None and _any_stale(r, stale)) or (
-                    (r.steady or r.within or r.turn is not None) and not _judged(r, values, prev)):
-                run[k] = 0
-                continue
-            v = values[r.subject]
-            ok = not (abs(v - _expected(r, values)) > r.tol_abs + r.tol_rel * abs(v))
-            if ok == failing[k]:  # the verdict is contradicted: count the run
-                n = run[k] + 1
-                if n >= r.debounce:
-                    failing[k] = not ok
-                    new[k] = not ok
-                    n_new += not ok
-                    n = 0
-                run[k] = n
-            else:
-                run[k] = 0
-        prev[:] = values
-        for r in self.rules:
-            imp[r.subject] = False
-        for k, r in enumerate(self.rules):
-            if failing[k]:
-                imp[r.subject] = True
-        return n_new
+        return self._update(values, self._never if stale is None else stale, self._prev, self.failing, self._run,
+                            self.new, self.implausible)
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -243,8 +243,9 @@ class OnnxModel:
         y = self.session.run(self._fetch, {self._in_name: np.ascontiguousarray(X, dtype=self._dtype)})[0]
         return y.astype(np.float64, copy=False)
 
-    def predict_one(self, x: np.ndarray) -> np.ndarray:
-        """SAT estimate (n_outputs,) in Nm, float64, for one feature vector ``x`` (n_features,).
+    def predict_one(self, x: Sequence[float] | np.ndarray) -> np.ndarray:
+        """SAT estimate (n_outputs,) in Nm, float64, for one feature vector ``x`` (n_features; a list of floats
+        or a 1-D array).
 
         The real-time path: ``x`` is copied into a preallocated input buffer, the
         result into a preallocated output array, which is returned and **overwritten
