@@ -86,6 +86,25 @@ def test_force_floor_warns_in_combined_slip_where_the_trail_is_gated_off():
     assert not run(replace(p, mu_road_max=0.0))[0]
 
 
+def test_braking_into_a_corner_warns_by_the_more_used_tyre():
+    """Braking into a dry corner (the trail gated off): the axle uses less than the threshold of a rated road,
+    but the inner front tyre, unloaded by the lateral load transfer and braked as hard as the outer one, uses
+    more: the force floor of the more used tyre warns; with no load transfer (the axle's floor) it does not."""
+    p = replace(load_params(), demand_weight=0.0)
+    assert p.load_transfer > 0
+
+    def run(params: GripParams) -> tuple[bool, float]:
+        est = GripEstimator(params)
+        vx, ay, ax = 45.0, 5.9, -4.8  # (a 229 km/h lap's corner entry of the held-out study)
+        for _ in range(40):
+            est.step(-40.0, -40.0, ax, ay, vx, ay / vx, 0.0, 0.0, vx / 0.305, vx / 0.305)
+        return est.state.warning, est.state.force_ratio
+
+    warned, n = run(p)
+    assert n < p.warn_on * p.mu_road_max and warned
+    assert not run(replace(p, load_transfer=0.0))[0]
+
+
 def test_steering_demand_warns_before_the_force_builds():
     """A sharp steering input at speed on a straight: the linear car asks for far more lateral acceleration than
     any rated road gives before the axle force has built up: the demand term (weighted as the fit may choose it;
@@ -165,6 +184,64 @@ def test_metrics_lead_and_false_warnings():
     assert late["warning_lead_s"] == pytest.approx(-1.0) and late["mu_within_0_1_share"] is None
     none = gs.grip_metrics(t, np.full(200, 0.3), np.full(200, 0.5), np.full(200, np.nan), np.zeros(200, bool))
     assert none["warning_lead_s"] is None and gs.pool([none])["warning_lead_s_median"] is None
+
+
+def test_lead_metric_cannot_be_gamed_by_a_held_warning_and_always_on_is_false():
+    """A warning kept on through calm driving earns no lead for it (counted from the end of the latest calm second
+    within the episode); an always-on warning is a false warning in every calm run; a limit the run starts in is
+    not one to anticipate (only a rise through 0.95 after the start-up counts)."""
+    t = np.arange(200) * 0.05
+    u = np.where(t < 5.0, 0.3, 0.97)
+    held = gs.grip_metrics(t, u, np.full(200, 0.5), np.full(200, np.nan), t >= 1.5)  # on 3.5 s before, calm
+    assert held["warning_lead_s"] == pytest.approx(0.0)
+    ramp = np.clip(0.3 + 0.4 * (t - 3.0), 0.3, 0.97)  # calm to 4 s, the limit at 4.625 s (tick 4.65)
+    early = gs.grip_metrics(t, ramp, np.full(200, 0.5), np.full(200, np.nan), t >= 3.2)
+    assert early["warning_lead_s"] == pytest.approx(4.65 - 3.2)  # (warned 0.8 s while still below 0.7: counted)
+    calm = gs.grip_metrics(t, np.full(200, 0.3), np.full(200, 0.5), np.full(200, np.nan), np.ones(200, bool))
+    assert calm["false_warnings"] == 1 and calm["false_warnings_per_10min"] > 1.0
+    start = gs.grip_metrics(t, np.where(t < 2.0, 0.97, 0.3), np.full(200, 0.5), np.full(200, np.nan),
+                            np.zeros(200, bool))
+    assert start["warning_lead_s"] is None
+
+
+@pytest.fixture(scope="module")
+def step_runs(model):
+    """Seeded runs, offline with the daemon's code (``estimate_run``, tick for tick the daemon's VS_Grip, see
+    test_offline_estimate_is_the_daemons): a dry fishhook that reaches the limit and two calm random-steer runs."""
+    from sim.api import Request, simulate_many
+    from sim.sensors import truth_at
+
+    reqs = [Request("fishhook", 80.0, 1.0, 8), Request("random-steer", 60.0, 0.3, 7),
+            Request("random-steer", 80.0, 1.0, 11)]
+    out = []
+    for run in simulate_many(reqs):
+        ts = run.streams["time_s"]
+        rec = simulated_recording(ts, {k: v for k, v in run.streams.items() if k != "time_s"})
+        t = np.asarray(rec.table["time_s"], float)
+        tr = truth_at(run.truth, t)
+        out.append((rec.table, t, np.maximum(tr["util_fl_1"], tr["util_fr_1"]), gs.model_sats(model, rec.table)))
+    return out
+
+
+def test_step_steer_warns_before_the_limit_and_the_demand_leads(step_runs):
+    """The fishhook's steering ramp takes the front axle to 95 % utilisation within a second: the warning (the
+    driver's demand against the rated road, with the trail and the force) is on before it, and earlier than the
+    same warning without the demand term."""
+    table, t, u, (fl, fr) = step_runs[0]
+    p = load_params()
+    assert p.demand_weight > 0
+    lead = gs.grip_metrics(t, u, np.ones(len(t)), np.full(len(t), np.nan), estimate_run(table, fl, fr, p)["warning"])
+    without = gs.grip_metrics(t, u, np.ones(len(t)), np.full(len(t), np.nan),
+                              estimate_run(table, fl, fr, replace(p, demand_weight=0.0))["warning"])
+    assert lead["reaches_limit"] and lead["warning_lead_s"] > 0.0
+    assert lead["warning_lead_s"] > without["warning_lead_s"]
+
+
+def test_calm_driving_raises_no_warning(step_runs):
+    """Random steering that stays below 70 % utilisation (a wet road near it, a dry one far from it): no warning."""
+    for table, _, u, (fl, fr) in step_runs[1:]:
+        assert u.max() < 0.7
+        assert not estimate_run(table, fl, fr)["warning"].any()
 
 
 # ------------------------------------------------------------------------------------------------ the matrix

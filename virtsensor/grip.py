@@ -119,7 +119,15 @@ class GripParams:
             median of this many latest given estimates, given on for this many metres after the latest (0: not
             held), its half-width grown this much per metre, while ``n >= hold_min_use * mu``.
         mu_road_max: the highest road friction the car is rated for; ``n / mu_road_max`` is a floor of the
-            warning's evidence (0: none).
+            warning's evidence (0: none), and the friction the driver's demand is set against where none is held.
+        demand_lead_s: the steering's lateral demand looks this far ahead along its rate (s; 0: the steady state
+            of the present steering only); default 0 keeps older calibration files' meaning.
+        demand_mu_held: 1: the demand is set against the held friction's upper end while it is held (else the
+            rated ``mu_road_max``); 0: always against ``mu_road_max`` (a wrong held friction then cannot raise a
+            warning through the demand).
+        load_transfer: the load each front tyre gains (outer) or loses (inner) per newton of front lateral force
+            (measured on the fit data from the simulator's wheel loads): the force floor and the demand are those
+            of the more used tyre (0: the axle's, as older files).
         source: where the numbers come from (free text).
     """
 
@@ -159,6 +167,9 @@ class GripParams:
     hold_widen_per_m: float
     hold_min_use: float
     hold_count: float
+    demand_lead_s: float = 0.0
+    demand_mu_held: float = 0.0
+    load_transfer: float = 0.0
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -184,13 +195,17 @@ class GripParams:
         """Parameters from a JSON object (every field, lists for the curves). Raises UserError naming ``where``."""
         try:
             kw: dict[str, Any] = {f.name: _tuples(doc[f.name]) for f in fields(cls)
-                                  if f.name in doc or f.name != "source"}
+                                  if f.name in doc or f.name not in _OPTIONAL}
             return cls(**kw)
         except (KeyError, TypeError, ValueError) as exc:
             raise UserError(f"{where}: not usable grip parameters ({exc})") from None
 
     def to_json(self) -> dict[str, Any]:
         return json.loads(json.dumps(asdict(self)))  # (tuples -> lists)
+
+
+#: fields a parameter file may leave out (their defaults: the older files' meaning)
+_OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer")
 
 
 def _tuples(v: Any) -> Any:
@@ -258,6 +273,9 @@ class GripEstimator:
         self._fz_ax = p.mass_kg * p.cg_height_m / L
         self._drive = p.gear_ratio / p.rolling_radius_m
         self._steer_l = p.steer_ratio * L
+        self._dem_rate = p.demand_lead_s / self.dt  # (the demand's look-ahead per tick difference)
+        self._dem_held = p.demand_mu_held > 0.0
+        self._lt = p.load_transfer
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
@@ -269,6 +287,7 @@ class GripEstimator:
         """Forget the filters and the warning (after an invalid tick); keeps the last given friction."""
         self._mz = self._fy = self._fx = self._fz = math.nan
         self._r_prev = math.nan
+        self._ay_lin_prev = math.nan
         self._u_prev = math.nan
         self._rate = 0.0
         self._below = 0.0
@@ -303,6 +322,7 @@ class GripEstimator:
         self._r_prev = yaw_rate
         fx = motor_torque * self._drive  # the front drive (or regenerative) force; then the brakes' front share
         fx += p.brake_front_share * min(p.mass_kg * ax + p.drag_n_per_m2ps2 * vx * vx - fx, 0.0)
+        fx_now = fx
         fy_prev = self._fy
         self._mz = mz = self._lp(self._mz, mz)
         self._fy = fy = self._lp(self._fy, self._fy_ay * ay + self._fy_rdot * rdot)
@@ -329,15 +349,39 @@ class GripEstimator:
         u_force = n / self.mu_ref
         if self._mu_age <= p.mu_hold_s:  # a friction given lately: the force used against it is evidence too
             ev = max(ev, u_force)
-        if p.mu_road_max > 0.0:  # whatever the road, the axle uses at least n / (k_limit mu_road_max) of it
-            ev = max(ev, n / p.mu_road_max)
+        if p.mu_road_max > 0.0:  # whatever the road, the more used tyre uses at least n_tyre / mu_road_max of it
+            ev = max(ev, self._tyre_ratio(fx, fy, fz) / p.mu_road_max)
         ev = min(ev, 1.0)
         u = min(max(u_force, ev), 1.0)
         s.util = u
-        # the steering's demand: the linear car's lateral acceleration for this steering at this speed
-        ay_lin = vx * vx * steer_angle / (self._steer_l * (1.0 + p.understeer_s2pm2 * vx * vx))
-        self._warn(ev, abs(ay_lin) / (G * self.mu_ref))
+        self._warn(ev, self._demand(vx, steer_angle, fx_now, fz))
         return s
+
+    def _tyre_ratio(self, fx: float, fy: float, fz: float) -> float:
+        """The force ratio of the more used front tyre: the lateral load transfer ``load_transfer * |fy|`` off the
+        inner tyre, the lateral force shared in proportion to load (the same ratio on both), the longitudinal one
+        evenly (one brake pressure, an open differential), so the inner tyre's ratio is
+        ``sqrt((fx / 2 / fz_in)^2 + (fy / fz)^2)`` (the axle's ``n`` without load transfer or longitudinal force)."""
+        fz_in = max(0.5 * fz - self._lt * abs(fy), 0.05 * fz)
+        a, b = 0.5 * fx / fz_in, fy / fz
+        return math.sqrt(a * a + b * b)
+
+    def _demand(self, vx: float, steer_angle: float, fx: float, fz: float) -> float:
+        """The driver's demand on the front axle against the friction it may have: the linear car's steady-state
+        lateral acceleration for this steering at this speed, ``ay_lin = vx^2 delta / (L (1 + K vx^2))``, looked
+        ``demand_lead_s`` ahead along its rate (the tyres' force lags the steering by their relaxation and the
+        car's yaw and sideslip), as front lateral force ``m b / L ay``, combined with this tick's longitudinal
+        force ``fx`` (the motor torque's drive at once, the brakes' share), as the more used tyre's force ratio
+        (:meth:`_tyre_ratio`, from the axle load ``fz``), over the friction:
+        the held one's upper end while held if ``demand_mu_held``, else the rated ``mu_road_max`` (a road never
+        measured is not assumed wet: the demand then warns only of what no road gives)."""
+        v2 = vx * vx
+        ay_lin = v2 * steer_angle / (self._steer_l * (1.0 + self.params.understeer_s2pm2 * v2))
+        prev, self._ay_lin_prev = self._ay_lin_prev, ay_lin
+        if prev == prev:  # (nan on the first tick: no rate yet)
+            ay_lin += self._dem_rate * (ay_lin - prev)
+        mu = self.mu_ref if self._dem_held and self._held_m <= self.params.hold_m else self.params.mu_road_max
+        return self._tyre_ratio(fx, self._fy_ay * ay_lin, fz) / mu if mu > 0.0 else 0.0
 
     def _read_trail(self, n: float, t: float, steady: bool) -> float:
         """The trail ``t`` (m) read: sets the state's trail and friction (given or nan), returns the evidence

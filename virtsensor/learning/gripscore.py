@@ -12,11 +12,15 @@ Figures (keys of :func:`grip_metrics` and of the pooled :func:`pool`):
 * ``mu_abs_err_p90``: the 90th percentile of the friction's absolute error where given;
 * ``mu_given_share_above_0_6``: of the samples whose true front utilisation exceeds 0.6, the share where the
   friction is given;
-* ``warning_lead_s``: for a run whose true front utilisation reaches 0.95 (after its first
-  :data:`STARTUP_S`), the time from the onset of the warning episode that is on at that first instant to that
-  instant (s; negative: the warning came that late after it; a run never warned after reaching it scores minus
-  the time from then to the run's end); ``warning_lead_s_median`` pools the runs' leads (null where no run
-  reaches 0.95);
+* ``warning_lead_s``: for a run whose true front utilisation rises through 0.95 (from below, after its first
+  :data:`STARTUP_S`: a limit the run starts in, before the estimator has its inputs' history, is not one it
+  could anticipate), the time from the onset of the warning episode that is on at the first such instant to
+  that instant (s; negative: the warning came that late after it; a run never warned after reaching it scores
+  minus the time from then to the run's end); a warning held on through calm driving earns no lead for it:
+  where the true utilisation stayed below 0.7 for :data:`FALSE_WINDOW_S` or longer within the episode, the
+  lead counts from the end of the latest such stretch (so a warning that is simply kept on, or held for long
+  after an earlier corner, scores as if it came on when the driving left the calm); ``warning_lead_s_median``
+  pools the runs' leads (null where no run reaches 0.95);
 * ``false_warnings_per_10min``: warning onsets while the true utilisation stays below 0.7 from
   :data:`FALSE_WINDOW_S` before to as long after the onset, per 10 minutes of driving below 0.7.
 
@@ -64,16 +68,28 @@ def _onsets(warning: np.ndarray) -> np.ndarray:
 
 
 def _lead(time_s: np.ndarray, util: np.ndarray, warning: np.ndarray) -> float | None:
-    hit = np.flatnonzero((util >= LIMIT_UTIL) & (time_s >= time_s[0] + STARTUP_S))
+    above = util >= LIMIT_UTIL
+    rise = above & ~np.concatenate(([True], above[:-1]))  # (from below: a limit the run starts in is not one)
+    hit = np.flatnonzero(rise & (time_s >= time_s[0] + STARTUP_S))
     if not len(hit):
         return None
     i = int(hit[0])
     on = _onsets(warning)
     if warning[i]:
         start = int(on[on <= i][-1]) if np.any(on <= i) else 0
-        return float(time_s[i] - time_s[start])
+        return float(time_s[i] - time_s[start + _calm_end(time_s[start:i + 1], util[start:i + 1])])
     later = on[on > i]
     return float(time_s[i] - time_s[int(later[0])]) if len(later) else float(time_s[i] - time_s[-1])
+
+
+def _calm_end(time_s: np.ndarray, util: np.ndarray) -> int:
+    """The index just after the latest stretch of at least FALSE_WINDOW_S with the utilisation below CALM_UTIL
+    (0 when there is none): a warning held on through it anticipated nothing there."""
+    calm = np.concatenate(([False], util < CALM_UTIL, [False])).astype(np.int8)
+    edges = np.diff(calm)
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)  # calm is [start, end)
+    long = [e for a, e in zip(starts, ends, strict=True) if time_s[e - 1] - time_s[a] >= FALSE_WINDOW_S]
+    return int(long[-1]) if long else 0
 
 
 def _false_warnings(time_s: np.ndarray, util: np.ndarray, warning: np.ndarray) -> tuple[int, float]:
