@@ -156,3 +156,18 @@ def test_mdf4_unit_mismatch_is_named(tmp_path):
     mdf.save(tmp_path / "m.mf4", overwrite=True)
     with pytest.raises(UserError, match=r"VehSpeed.*km/h.*vx_mps.*m/s"):
         load_measured([tmp_path / "m.mf4"])
+
+
+def test_a_delayed_signal_is_not_taken_for_a_unit_error(tmp_path):
+    """A slalom whose lateral acceleration lags the yaw rate by 0.1 s (a sensor delay, which the diagnosis is there
+    to find): out of phase, a least-squares ratio reads about 0.3 (near 1/3.6, km/h); the amplitudes agree."""
+    tab = _table()
+    t = tab["time_s"]
+    sw = 0.3 * np.sin(2 * np.pi * 2.0 * t)
+    tab["steer_angle_rad"] = sw
+    tab["yaw_rate_radps"] = tab["vx_mps"] * sw / (14.8 * 2.7 * 1.2)
+    ay = tab["yaw_rate_radps"] * tab["vx_mps"]
+    tab["ay_mps2"] = np.concatenate((np.zeros(2), ay[:-2]))  # 2 ticks late
+    write_csv(tmp_path / "a.csv", tab)
+    (run,) = load_measured([tmp_path / "a.csv"])
+    assert np.array_equal(run.table["ay_mps2"], tab["ay_mps2"])
