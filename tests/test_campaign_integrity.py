@@ -107,11 +107,13 @@ def test_ctrl_c_or_sigterm_ends_the_whole_campaign_at_once_and_leaves_nothing(tm
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
     else:
         os.kill(proc.pid, signal.SIGTERM)
+    # on an idle machine it ends in about half a second; the bound only separates "ends" from "hangs", with room
+    # for a CI machine whose two cores are busy with other tests (a 3 s bound was once exceeded there)
     try:
-        proc.wait(timeout=3.0)
+        proc.wait(timeout=15.0)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
-        pytest.fail(f"the campaign did not end within 3 s of {how}")
+        pytest.fail(f"the campaign did not end within 15 s of {how}")
     ended = time.time()
     _assert_all_end_and_nothing_is_written(out, workers, ended)
     err = proc.stderr.read()
