@@ -19,9 +19,9 @@ sync frame just after each 20 Hz grid instant gives, tick for tick, the offline 
 
 Real-time hygiene: every array and list the tick touches is allocated at start-up and reused, except the
 feature vector (a list the generated builder makes per tick) and the model's two outputs as a list; numpy
-is called only to hand the features to onnxruntime and take its outputs back (each numpy call costs tens of
-microseconds on caches gone cold between 20 Hz ticks). After start-up the heap is ``gc.freeze()``-d and the
-cyclic GC is off during the tick.
+is called only to hand the features to onnxruntime and take its outputs back (every numpy call is dear on
+caches gone cold between 20 Hz ticks: README, "Where the CPU at 20 Hz goes"). After start-up the heap is
+``gc.freeze()``-d and the cyclic GC is off during the tick.
 
 Logs are JSON lines on stderr (:func:`~virtsensor.daemon.jsonlog.configure_logging`): ``started``,
 ``config``, ``bus_error``, ``reconnect``, ``status_change``, ``envelope_exit``/``envelope_return`` (once per
