@@ -41,11 +41,13 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   (the trail gated off) is seen coming by the force it already uses;
 * the warning: on when the evidence (plus, for :attr:`GripParams.mu_hold_s` after a friction was given,
   ``n / mu_ref``) reaches ``warn_on``, or, above ``warn_off``, is predicted to reach it rising at its rate for
-  ``warn_horizon_s``, or when ``demand_weight`` times the steering's demand, ``|ay_lin| / (g mu_ref)`` (the
-  linear car's lateral acceleration for this steering angle and speed, against the friction assumed), reaches
-  it: the steering asks for the force before the tyres deliver it; off when it stays below ``warn_off`` for
-  ``warn_hold_s``. (The shipped calibration: the floor; no demand, no look-ahead along the rate, no force over
-  the held friction: each gave more false warnings than the fit's budget, see the README.)
+  ``warn_horizon_s``, or when ``demand_weight`` times the driver's demand reaches it (:meth:`GripEstimator.
+  _demand`: the linear car's lateral force for this steering angle and speed with this tick's longitudinal
+  force, as the more used front tyre's force ratio, over the rated ``mu_road_max`` or, if
+  ``demand_mu_held``, the held friction): the steering asks for the force before the tyres deliver it; off
+  when it stays below ``warn_off`` for ``warn_hold_s``. (The shipped calibration: the floor and the demand
+  against the rated friction; no look-ahead along either rate, no force over the held friction: those gave
+  more false warnings than the fit's budget, see the README.)
 
 The numbers of a car (mass, geometry, drive, the calibrated curves) are :class:`GripParams`, read from the JSON
 shipped with the package (:func:`load_params`, the catalogue car). The per-tick code uses the standard library
@@ -113,7 +115,7 @@ class GripParams:
         warn_hold_s: the warning stays on at least this long below ``warn_off``.
         mu_hold_s: for this long after a friction is given, the force used against it (``n / mu_ref``) counts
             for the warning too (the road may change after that).
-        demand_weight: the warning also looks at the steering's demand ``|ay_lin| / (g mu_ref)`` times this
+        demand_weight: the warning also looks at the driver's demand (:meth:`GripEstimator._demand`) times this
             (0: not).
         hold_count, hold_m, hold_widen_per_m, hold_min_use: the held friction (see the module docstring): the
             median of this many latest given estimates, given on for this many metres after the latest (0: not

@@ -22,19 +22,6 @@ from virtsensor.daemon.validity import INIT
 __all__ = ["Publisher"]
 
 
-class _Payload(bytearray):
-    """The data of the daemon's preallocated output frames: a ``bytearray`` that deep-copies as one C call.
-
-    python-can's ``virtual`` bus deep-copies every sent message once per receiving bus; a plain bytearray
-    goes through the generic ``copy._reconstruct`` path. Other interfaces only read the bytes.
-    """
-
-    __slots__ = ()
-
-    def __deepcopy__(self, memo: Any) -> bytearray:
-        return bytearray(self)
-
-
 @functools.cache
 def _out_message_class() -> Any:
     import can
@@ -56,11 +43,11 @@ def _out_message_class() -> Any:
 
 
 def out_message(frame_id: int, length: int) -> Any:
-    """A preallocated output frame (standard id, ``length`` data bytes of :class:`_Payload`) whose deep copy is a
-    plain ``can.Message`` built field by field: python-can's ``virtual`` bus deep-copies every sent message once
-    per receiving bus, and ``Message.__deepcopy__`` goes through the full constructor. Other interfaces only read
-    the frame."""
-    return _out_message_class()(arbitration_id=frame_id, is_extended_id=False, dlc=length, data=_Payload(length))
+    """A preallocated output frame (standard id, ``length`` data bytes) whose deep copy is a plain ``can.Message``
+    built field by field, its data one C-level bytearray copy: python-can's ``virtual`` bus deep-copies every sent
+    message once per receiving bus, and ``Message.__deepcopy__`` goes through the full constructor and the generic
+    deep copy of the data. Other interfaces only read the frame."""
+    return _out_message_class()(arbitration_id=frame_id, is_extended_id=False, dlc=length, data=bytearray(length))
 
 
 class Publisher:
