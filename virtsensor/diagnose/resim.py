@@ -43,6 +43,8 @@ SETTLE_S = 1.5
 #: the control day's speed residual 0.021 and 0.029 m/s). The friction brakes are not recorded: a run that
 #: brakes is not reproduced open loop.
 LONGITUDINAL = "torque"
+#: the sensors of the car's forward speed: the speed and the front wheel speeds (:func:`reanchor`)
+SPEED_SENSORS = ("vx_mps", "wheel_speed_fl_radps", "wheel_speed_fr_radps")
 #: truth channels kept at the ticks (for the residuals' dependence on the operating point)
 TRUTH_AT_TICKS = ("alpha_fl", "alpha_fr", "fz_fl", "fz_fr", "sat_fl", "sat_fr")
 
@@ -282,8 +284,50 @@ def simulate_hypotheses(runs: Sequence[MeasuredRun], hyps: Sequence[Hypothesis],
     for g, items in zip(groups, results, strict=True):
         for i, item in zip(g, items, strict=True):
             j = jobs[i]
+            if LONGITUDINAL == "torque":
+                reanchor(runs[j.run], j.seg, item)
             out[j.hyp][j.run][j.seg] = item
     return out
+
+
+def reanchor(run: MeasuredRun, seg_index: int, item: dict[str, Any]) -> float:
+    """Re-anchor a segment's re-simulated forward speed on the car's, in place; returns the correction (m/s).
+
+    Driven open loop by the motor torque (:data:`LONGITUDINAL`), the re-simulation starts from one recorded
+    speed sample, whose error (the speed sensor's white noise, 0.02 m/s, its quantisation, the acceleration at
+    the start) nothing pulls back: drag and rolling resistance take a speed error out over a minute or more, so
+    it stays as an offset of the whole segment in the speed and both wheel speeds. A hypothesis that moves that
+    sample (a delay of the speed sensor reads another one) moved the whole re-simulated speed, and soaked up the
+    offset on control days. The car's speed in the segment is instead re-anchored on what its three speed
+    sensors say: each one's mean residual over the compared rows (measured - re-simulated; a wheel speed's
+    scaled to m/s by the re-simulation's speed over it), and of the three the median (one faulty sensor, an
+    offset or gain of its own, does not move it: it keeps its evidence, against the other two). The correction
+    is added to the three predictions (and streams, when kept), the wheel speeds' scaled back. A physical
+    effect that moves the car's speed keeps its evidence in how the speed evolves (a torque gain: a ramp, less
+    its mean) and in the longitudinal acceleration; what a one-sample start cannot tell is not evidence."""
+    if not item or any(n not in item["pred"] or n not in run.table for n in SPEED_SENSORS):
+        return 0.0
+    seg = run.segments[seg_index]
+    pv = item["pred"]["vx_mps"]
+    means, scales = [], {}
+    for n in SPEED_SENSORS:
+        m = segment_mask(run, seg_index, n)
+        p = item["pred"][n]
+        if m.sum() < 2:
+            return 0.0
+        scales[n] = float(np.mean(pv[m])) / max(float(np.mean(p[m])), 1e-6)
+        means.append(scales[n] * float(np.mean(run.table[n][seg.start:seg.stop][m] - p[m])))
+    d = float(np.median(means))
+    if not np.isfinite(d):
+        return 0.0
+    for n in SPEED_SENSORS:
+        res = cat.SIGNALS[n].resolution
+        y = item["pred"][n] + d / scales[n]
+        item["pred"][n] = np.round(y / res) * res if res > 0 else y
+        if "streams" in item:
+            item["streams"][n] = item["streams"][n] + d / scales[n]
+    item["speed_anchor_mps"] = d
+    return d
 
 
 def segment_mask(run: MeasuredRun, seg_index: int, name: str) -> np.ndarray:
