@@ -180,6 +180,16 @@ class Data:
         self.floor = {n: max(cat.SIGNALS[n].resolution, 1e-9) ** 2 / 12.0 for n in names}
         self.shifts: dict[str, float] = {}
 
+    def exclude(self, runs: Sequence[int]) -> None:
+        """Leave runs ``runs`` out of every comparison (no compared rows)."""
+        for n in self.names:
+            for r in runs:
+                self.masks[n][r] = [np.zeros_like(m) for m in self.masks[n][r]]
+        self.meas = {n: np.concatenate([r.table[n][seg.start:seg.stop][m]
+                                        for r, ms in zip(self.runs, self.masks[n], strict=True)
+                                        for seg, m in zip(r.segments, ms, strict=True)]) for n in self.names}
+        self.n = {k: len(v) for k, v in self.meas.items()}
+
     def shift(self, name: str) -> float:
         """Reading age (s) of ``name``'s CAN message (see :func:`virtsensor.diagnose.resim.align`)."""
         return self.shifts.get(str(cat.SIGNALS[name].message), 0.0)
@@ -428,6 +438,7 @@ class Identification:
     scale: dict[str, float] = field(default_factory=dict)          # per signal: measured RMS about its mean
     excess: dict[str, float] = field(default_factory=dict)         # per signal: residual over the expected
     excess_first: dict[str, float] = field(default_factory=dict)   # the same, with the first cause only
+    excluded: dict[str, str] = field(default_factory=dict)         # runs left out of the comparison, and why
 
     @property
     def cause(self) -> str:
@@ -459,6 +470,7 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     from virtsensor.diagnose.conditions import RunConditions
 
     conds = list(conditions) if conditions is not None else [RunConditions({"mu": (mu, mu)}) for _ in runs]
+    excluded: dict[int, str] = {}
     data = Data(runs, names)
     sim = Sim(runs, base, names, nuisance.initial_day(conds), n_jobs=n_jobs, backend=backend)
     # road friction is a day-wide scale of known frictions: not identifiable when every run's is unknown
@@ -471,6 +483,10 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
         nominal, outs = _simulate_nominal(data, sim, log, [h for hs in grid.values() for h in hs])
         _, per_run = nuisance.fit(data, sim, conds, nominal, log, grid, outs)
         nominal, _ = _simulate_nominal(data, sim, log)  # at the runs' estimates
+        excluded = not_reproduced(data, nominal, base, conds)
+        if excluded:
+            log(f"left out (not reproduced at their identified conditions): {', '.join(excluded.values())}")
+            data.exclude(list(excluded))
         first = _stage(data, sim, cands, nominal, log)
     else:  # the nominal car and the screening in one batch
         searches = {c.key: _Search(c) for c in cands if c.needs_sim}
@@ -482,7 +498,10 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     second: list[Fit] = []
     best_sims = _sims_for(chosen, nominal, first.sims_of, data) if chosen else nominal
     if chosen is not None and per_run:
+        kept = {r: (per_run[r], dict(sim.day[r])) for r in excluded}
         chosen, per_run = _joint_pass(data, sim, conds, first, chosen, best_sims, log)
+        for r, (ident, day) in kept.items():  # nothing of theirs is compared: their first identification stands
+            per_run[r], sim.day[r] = ident, day
         nominal = first.background
         best_sims = _sims_for(chosen, nominal, first.sims_of, data)
         causes = [chosen] if chosen.significant else []
@@ -497,8 +516,61 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
                          {k: float(np.std(v)) for k, v in data.meas.items()})
     idn.excess = residual_excess(data, rss_best, expected_rms(data, best_sims, base))
     idn.excess_first = excess_first
+    idn.excluded = {runs[r].name: why for r, why in excluded.items()}
     idn.unexplained = _unexplained(data, idn)
     return idn
+
+
+#: a run whose conditions are identified is left out of the day's comparison when the nominal car at its identified
+#: values leaves its signals' residuals (median over the signals) beyond this many times the control days' level
+#: (:func:`residual_excess`) ...
+RUN_EXCESS = 2.0
+#: ... and beyond this many times the median of the day's other runs (it is the day's outlier, not its effect)
+RUN_OUTLIER = 4.0
+
+
+def not_reproduced(data: Data, sims: Sequence[Sequence[Mapping[str, Any]]], base: Mapping[str, Any],
+                   conds: Sequence[Any]) -> dict[int, str]:
+    """Runs with identified (ranged) conditions that the re-simulation does not reproduce at their estimates:
+    ``{run index: why}``.
+
+    A run driven at or beyond its grip limit (a sine with dwell on a wet road) re-simulates at the limit: within
+    its friction's 95 % interval the trajectory diverges (the car slides more or less, sooner or later), so its
+    residuals are many times any other run's and the day's likelihood is that run's. A day-wide cause that nudges
+    the slide (a delay of the motor torque changes the speed when the car slides) then gains decisive evidence
+    there while the other runs contradict it (development seeds: a control day named a motor-torque delay so).
+    Such a run, an outlier among the day's runs (:data:`RUN_EXCESS`, :data:`RUN_OUTLIER`), carries evidence on
+    its friction, not on the day's cause: it is left out of the cause's identification, and said to be. A
+    day-wide effect raises every run's residual, not one run's; runs whose conditions are known are always kept
+    (their residual is evidence)."""
+    exp = expected_rms(data, sims, base)
+    med: dict[int, float] = {}
+    for r, run in enumerate(data.runs):
+        ratios = []
+        for n in data.names:
+            num, cnt = 0.0, 0
+            for s, item in enumerate(sims[r]):
+                m = data.masks[n][r][s]
+                seg = run.segments[s]
+                e = run.table[n][seg.start:seg.stop][m] - item["pred"][n][m]
+                num += float(np.sum(e * e))
+                cnt += int(m.sum())
+            if cnt:
+                ratios.append(np.sqrt(num / cnt) / max(exp[n], 1e-12))
+        if ratios:
+            med[r] = float(np.median(ratios))
+    out = {}
+    for r, v in med.items():
+        others = [w for q, w in med.items() if q != r]
+        if not others or not conds[r].unknown():
+            continue
+        ref = float(np.median(others))
+        if v > RUN_EXCESS and v > RUN_OUTLIER * ref:
+            out[r] = (f"{data.runs[r].name}: residuals {v:.1f} x the control days' level (median over signals), "
+                      f"{v / max(ref, 1e-12):.1f} x the other runs'")
+    if len(out) >= max(1, len(med) // 2):  # most of the day an outlier: not outliers, keep them all
+        return {}
+    return out
 
 
 #: significant candidates tried, best first, for one whose explanation leaves no signal in excess
