@@ -871,11 +871,16 @@ def model_error(c: Candidate, estimate: float) -> float:
 #: a signal group is informative on a candidate when its own evidence changes by more than this over the
 #: values evaluated (chi-square(1) 99 %, with the effective sample size)
 GROUP_INFORMATIVE = 6.63
+#: ... and holds at least this share of the candidate's evidence (the groups' ranges summed): a group the effect
+#: barely acts on (the steering torques for a motor-torque delay, half a percent of its evidence on a development
+#: day) changes by the re-simulation's model error only, which its sample count alone makes "significant"
+GROUP_SHARE = 0.05
 
 
 def _consistency(f: Fit, feff: float) -> None:
     """Each signal group's own estimate of a sim-based fit and whether they agree. A group disagrees when it is
-    informative (its evidence varies by more than :data:`GROUP_INFORMATIVE` over the values evaluated), its
+    informative (its evidence varies by more than :data:`GROUP_INFORMATIVE` over the values evaluated, and by at
+    least :data:`GROUP_SHARE` of the candidate's evidence), its
     best value is further from the fit's estimate than
     the sum of their 95 % half-widths (each counting the simulator's model error, :func:`model_error`), and it
     contradicts the fit (:func:`_contradicts`). The largest distance of an informative group's estimate from
@@ -895,7 +900,7 @@ def _consistency(f: Fit, feff: float) -> None:
         x = np.array([p[0] for p in pts])
         y = feff * np.array([p[1] for p in pts])
         info["evidence_share"] = float(ranges[g] / total) if total > 0 else 0.0
-        info["informative"] = bool(y.max() - y.min() > GROUP_INFORMATIVE)
+        info["informative"] = bool(y.max() - y.min() > GROUP_INFORMATIVE and info["evidence_share"] >= GROUP_SHARE)
         i = int(np.argmin(y))
         v, stat = float(x[i]), 0.0
         if 0 < i < len(x) - 1:
