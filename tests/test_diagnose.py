@@ -490,3 +490,68 @@ def test_a_two_effect_day_names_both(tmp_path):
     case, res = _day(tmp_path, 934, hidden=hidden)
     named = {(c["cause"], c["signal"]) for c in res["causes"]}
     assert named == {("tyre_pressure", None), ("sensor_offset", "ay_mps2")}, res["causes"]
+
+
+def _speed_run(n: int = 200, offset_fr: float = 0.0):
+    """A synthetic measured run at 20 m/s (rolling radius 0.32 m): speed and front wheel speeds, and their
+    re-simulated prediction ``item`` 0.03 m/s fast (a start sample's error), one wheel speed sensor offset."""
+    from pathlib import Path
+
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    t = np.arange(n) * cat.TABLE_TICK_S
+    v = 20.0 + 0.2 * np.sin(0.5 * t)
+    table = {"time_s": t, "vx_mps": v.copy(), "wheel_speed_fl_radps": v / 0.32,
+             "wheel_speed_fr_radps": v / 0.32 + offset_fr}
+    run = MeasuredRun("r", Path("r.csv"), table, [Segment(0, n)])
+    pv = v + 0.03
+    item = {"pred": {"vx_mps": pv, "wheel_speed_fl_radps": pv / 0.32, "wheel_speed_fr_radps": pv / 0.32},
+            "streams": {"vx_mps": pv.copy(), "wheel_speed_fl_radps": pv / 0.32, "wheel_speed_fr_radps": pv / 0.32}}
+    return run, item
+
+
+def test_the_open_loop_speed_is_reanchored_on_its_three_sensors():
+    from virtsensor.diagnose.resim import SETTLE_S, reanchor
+
+    run, item = _speed_run()
+    d = reanchor(run, 0, item)
+    assert d == pytest.approx(-0.03, abs=0.006)  # the quantised prediction's residual mean
+    m = np.arange(200) * cat.TABLE_TICK_S >= SETTLE_S
+    assert abs(np.mean(run.table["vx_mps"][m] - item["pred"]["vx_mps"][m])) < 0.006
+    assert np.allclose(item["streams"]["wheel_speed_fl_radps"], (run.table["vx_mps"] + 0.03 + d) / 0.32)
+    # one wheel-speed sensor's offset does not move the anchor: it keeps its evidence, whole
+    run, item = _speed_run(offset_fr=-0.6)
+    assert reanchor(run, 0, item) == pytest.approx(-0.03, abs=0.006)
+    e = run.table["wheel_speed_fr_radps"][m] - item["pred"]["wheel_speed_fr_radps"][m]
+    assert np.mean(e) == pytest.approx(-0.6, abs=0.02)
+
+
+def test_a_run_the_resimulation_does_not_reproduce_is_left_out_only_as_an_outlier():
+    from pathlib import Path
+
+    from virtsensor.diagnose.conditions import RunConditions
+    from virtsensor.diagnose.identify import Data, not_reproduced
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    rng = np.random.default_rng(0)
+    n, names = 300, ("ay_mps2", "yaw_rate_radps")
+    t = np.arange(n) * cat.TABLE_TICK_S
+    truth = {"ay_mps2": 3.0 * np.sin(t), "yaw_rate_radps": 0.15 * np.sin(t)}
+
+    def day(scales):
+        runs, sims = [], []
+        for i, k in enumerate(scales):
+            table = {"time_s": t, **{s: truth[s] + k * 0.05 * np.std(truth[s]) * rng.standard_normal(n)
+                                     for s in names}}
+            runs.append(MeasuredRun(f"run{i}", Path(f"run{i}.csv"), table, [Segment(0, n)]))
+            sims.append([{"pred": {s: truth[s].copy() for s in names}}])
+        return Data(runs, names), sims
+
+    ranged = [RunConditions({"mu": (0.5, 0.85)}) for _ in range(5)]
+    base = car_parameters()
+    data, sims = day([1, 1, 1, 30, 1])
+    out = not_reproduced(data, sims, base, ranged)
+    assert list(out) == [3] and "run3" in out[3]
+    assert not_reproduced(data, sims, base, [RunConditions({"mu": (1.0, 1.0)}) for _ in range(5)]) == {}
+    data, sims = day([30, 28, 32, 30, 29])  # a day-wide effect: every run off, none an outlier
+    assert not_reproduced(data, sims, base, ranged) == {}
