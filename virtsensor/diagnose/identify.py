@@ -34,7 +34,9 @@ The answer, in stages:
 
 1. per-run nuisance values (a friction given as a range, or not given at all) are
    identified first (:mod:`virtsensor.diagnose.nuisance`), and once more over the
-   named cause (one more pass of the joint fit, the cause refitted at them);
+   named cause (one more pass of the joint fit, the cause refitted at them); a run the
+   re-simulation does not reproduce at its identified values, the day's outlier, is left
+   out of the cause's identification (:func:`not_reproduced`);
 2. the first cause is the candidate with the largest BIC gain over the nominal car
    that is decisive (> :data:`BIC_DECISIVE`), differs from nominal by more than
    the effect's practical floor, and whose interval excludes the nominal value; of those,

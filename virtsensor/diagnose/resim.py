@@ -6,7 +6,8 @@ re-simulated from its recorded steering-wheel angle and traction-motor torque, o
 (:func:`sim.manoeuvres.from_recording`, :data:`LONGITUDINAL`), and the car's signals are predicted
 at the measured ticks: the sensor model without its random noise (latency,
 update rate, quantisation and the hypothesis' sensor error kept), read as a
-receiver on the bus reads it (a held frame is on average half a cycle old).
+receiver on the bus reads it (a held frame is on average half a cycle old). Open loop, each
+segment's re-simulated speed is re-anchored on the car's three speed sensors (:func:`reanchor`).
 
 A sensor effect on a signal that drives the re-simulation (steering angle,
 speed, motor torque) also corrects the drive: if the car's sensor reads ``y = g x(t - d) + o``,
