@@ -54,8 +54,9 @@ from virtsensor.learning import gripscore as gs  # noqa: E402
 #: seed's go to docs/grip_study_<seed>.{md,json})
 FIT_SEED, ACCEPT_SEED = 1901, 1902
 TRAIL_KNOTS = tuple(round(x, 4) for x in np.arange(-0.015, 0.0376, 0.0025))
-#: (0.8 is above the trail curve's highest utilisation, 0.79 in the shipped calibration: chosen, the warning leaves
-#: the trail's evidence out and reads the force floor, the wheel slip and the driver's demand only)
+#: the warning thresholds the fit chooses from, those the trail curve's highest utilisation reaches (0.87 in the
+#: shipped calibration; above it the warning would leave the trail's evidence out and read the force floor, the wheel
+#: slip and the driver's demand only)
 WARN_ON = (0.65, 0.7, 0.75, 0.8, 0.85)
 WARN_HORIZON_S = (0.0,)
 #: the driver's demand (the linear car's front lateral force for the steering, with the longitudinal force, over
