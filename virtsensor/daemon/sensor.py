@@ -89,7 +89,8 @@ class VirtualSensor:
             ``outputs``, ``card_path``, ``predict_one``).
         matrix: a :class:`~virtsensor.canbus.codec.CanMatrix` (its tables are shared; the sensor keeps its own
             E2E state with ``timeout_cycles``).
-        sync_id, sync_every, timeout_cycles, model_id, cpu, realtime, rt_priority: see :class:`RuntimeConfig`.
+        sync_id, sync_every, timeout_cycles, model_id, cpu, realtime, rt_priority, cpu_latency_us: see
+            :class:`RuntimeConfig`.
         bus_factory: opens a new bus after a bus error (None: the sensor keeps retrying the same bus).
         freeze_gc: ``gc.freeze()`` after start-up and no cyclic GC during the tick.
         reconnect_backoff_s, reconnect_max_s: first and largest wait before re-opening the bus.
@@ -109,7 +110,8 @@ class VirtualSensor:
     def __init__(self, bus: Any, model: Any, matrix: CanMatrix, *, sync_id: int | None = None,
                  sync_every: int = 1, timeout_cycles: float = 3.0, model_id: int | None = None,
                  bus_factory: Callable[[], Any] | None = None, cpu: int | None = None, realtime: bool = False,
-                 rt_priority: int = 50, freeze_gc: bool = True, reconnect_backoff_s: float = 0.05,
+                 rt_priority: int = 50, cpu_latency_us: int | None = None, freeze_gc: bool = True,
+                 reconnect_backoff_s: float = 0.05,
                  reconnect_max_s: float = 2.0, stage_hook: StageHook | None = None) -> None:
         from virtsensor.errors import UserError
 
@@ -163,7 +165,7 @@ class VirtualSensor:
         self.last_statuses: tuple[int, ...] = (INIT,) * len(lay.wheels)
         self.last_bitmap = 0
         self._runner = Runner(self, self._link, self._stop, cpu=cpu, realtime=realtime, rt_priority=rt_priority,
-                              freeze_gc=freeze_gc)
+                              freeze_gc=freeze_gc, cpu_latency_us=cpu_latency_us)
         self.cpu, self.realtime, self.rt_priority = cpu, bool(realtime), int(rt_priority)
         #: the configuration it was built from (set by :meth:`from_config`)
         self.config: RuntimeConfig | None = None
@@ -183,27 +185,7 @@ class VirtualSensor:
         Raises:
             UserError: unreadable/invalid config, model or DBC; model inputs not in the DBC; bus not openable.
         """
-        from virtsensor.model.onnx import OnnxModel
-        from virtsensor.recordings.replay import open_bus
-
-        if isinstance(config, (str, os.PathLike)):
-            cfg = load_config(config)
-        else:
-            cfg = config if isinstance(config, RuntimeConfig) else load_config(None, config)
-        model = OnnxModel.load(str(cfg.model))  # (load_config checked model, interface, channel are set)
-        matrix = CanMatrix.load(cfg.dbc)
-        opener: Callable[[], Any] | None = bus_factory
-        if bus is None:
-            def factory() -> Any:
-                return open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate)
-            opener = bus_factory or factory
-        sensor = cls(bus, model, matrix, sync_id=cfg.sync_id, sync_every=cfg.sync_every,
-                     timeout_cycles=cfg.timeout_cycles, model_id=cfg.model_id, bus_factory=opener,
-                     cpu=cfg.cpu, realtime=cfg.realtime, rt_priority=cfg.rt_priority, **kwargs)
-        if opener is not None and bus is None:  # everything checked: now open the bus (UserError if it cannot)
-            sensor._link.bus = opener()
-        sensor.config = cfg
-        return sensor
+        return _from_config(cls, config, bus, bus_factory, kwargs)
 
     @property
     def bus(self) -> Any:
@@ -218,6 +200,12 @@ class VirtualSensor:
     def threads(self) -> tuple[threading.Thread, ...]:
         """The daemon's running threads (tick and supervisor when free-running; receive in sync mode)."""
         return self._runner.threads
+
+    @property
+    def cpu_latency(self) -> Any:
+        """The PM QoS CPU-latency request (:class:`~virtsensor.daemon.pmqos.CpuLatencyRequest`: ``us``, ``held``,
+        ``error``) held while running, or None when none was asked for."""
+        return self._runner.cpu_latency
 
     # ------------------------------------------------------------------------------------------ receive path
     def process(self, msg: Any, rx_time: float | None = None) -> None:
@@ -380,6 +368,33 @@ class VirtualSensor:
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+def _from_config(cls: type[VirtualSensor], config: RuntimeConfig | Mapping[str, Any] | str | os.PathLike,
+                 bus: Any, bus_factory: Callable[[], Any] | None, kwargs: dict[str, Any]) -> VirtualSensor:
+    """The body of :meth:`VirtualSensor.from_config`."""
+    from virtsensor.model.onnx import OnnxModel
+    from virtsensor.recordings.replay import open_bus
+
+    if isinstance(config, (str, os.PathLike)):
+        cfg = load_config(config)
+    else:
+        cfg = config if isinstance(config, RuntimeConfig) else load_config(None, config)
+    model = OnnxModel.load(str(cfg.model))  # (load_config checked model, interface, channel are set)
+    matrix = CanMatrix.load(cfg.dbc)
+    opener: Callable[[], Any] | None = bus_factory
+    if bus is None:
+        def factory() -> Any:
+            return open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate)
+        opener = bus_factory or factory
+    sensor = cls(bus, model, matrix, sync_id=cfg.sync_id, sync_every=cfg.sync_every,
+                 timeout_cycles=cfg.timeout_cycles, model_id=cfg.model_id, bus_factory=opener,
+                 cpu=cfg.cpu, realtime=cfg.realtime, rt_priority=cfg.rt_priority,
+                 cpu_latency_us=cfg.cpu_latency_us, **kwargs)
+    if opener is not None and bus is None:  # everything checked: now open the bus (UserError if it cannot)
+        sensor._link.bus = opener()
+    sensor.config = cfg
+    return sensor
 
 
 def _fallback_parts(model: Any, lay: InputLayout, hook: Any, predict: Any) -> tuple[Any, Any, Any]:
