@@ -32,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-cross-process", action="store_true",
                         help="skip the udp_multicast run in a private network namespace")
     parser.add_argument("--cpu-latency-us", type=t.int_range(0, 2_000_000_000), default=0, metavar="US",
-                        help="PM QoS CPU-latency request of the free-running daemon (as virtsensor run "
+                        help="PM QoS CPU-latency request (0 to 2e9 us) of the free-running daemon (as virtsensor run "
                              "--cpu-latency-us; default 0); it is also measured without one")
     parser.add_argument("--no-cpu-latency", action="store_true",
                         help="measure the free-running daemon with the machine's idle policy only")
