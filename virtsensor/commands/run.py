@@ -45,10 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rt-priority", type=t.int_range(1, 99), default=None, metavar="P",
                         help="SCHED_FIFO priority (1 to 99; default 50)")
     parser.add_argument("--cpu-latency-us", type=t.int_range(0, 2_000_000_000), default=None, metavar="US",
-                        help="hold a Linux PM QoS CPU-latency request (/dev/cpu_dma_latency) of US microseconds (0 to 2e9) "
-                             "while running: idle cores stay in states they leave within US (0: poll); warmer "
-                             "caches and less wake-up jitter for more idle power (logged and ignored when not "
-                             "permitted)")
+                        help="hold a Linux PM QoS CPU-latency request (/dev/cpu_dma_latency) of US microseconds "
+                             "(0 to 2e9) while running: idle cores stay in states they leave within US (0: poll); "
+                             "warmer caches and less wake-up jitter for more idle power (logged and ignored when "
+                             "not permitted)")
     parser.add_argument("--duration", type=t.float_range(0.0, 1e9, lo_open=True), default=None, metavar="S",
                         help="stop after S seconds (> 0)")
     parser.add_argument("--timeout-cycles", type=t.float_range(1.0, 1000.0), default=None, metavar="C",

@@ -720,7 +720,9 @@ def _run_bench(model_path: str | os.PathLike | None, *, quick: bool, soak_ticks:
     result["stages_us"] = stages
     result["stages_method"] = ("VirtualSensor in sync mode driven with process() in the bench thread; the tick's "
                                "calls timed in place by proxies (decode = the generated receiver per input frame: "
-                               "DLC, CRC, E2E, decode, store; encode/send of SAT_FRONT)")
+                               "DLC, CRC, E2E, decode, store; plausibility = the redundancy checks; validity = the "
+                               "input status and health bitmap; envelope = the model card's envelope test; grip = "
+                               "the VS_Grip estimate and its encoding; encode/send of SAT_FRONT)")
     say(f"stages after {IDLE_S * 1e3:.0f} ms idle: {counts['idle_ticks']} ticks")
     result["stages_after_idle_us"], _ = measure_stages(model, matrix, inputs, counts["idle_ticks"], idle_s=IDLE_S)
 

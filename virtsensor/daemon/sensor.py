@@ -68,7 +68,7 @@ __all__ = ["VirtualSensor", "STAGES"]
 
 #: Stage names a ``stage_hook`` sees: per input frame ``decode`` (DLC, CRC, E2E, decode, store); per tick
 #: ``feature_vector``, ``inference``, ``encode`` (SAT_FRONT) and ``send`` (SAT_FRONT).
-STAGES = ("decode", "feature_vector", "inference", "encode", "send")
+STAGES = ("decode", "plausibility", "validity", "feature_vector", "inference", "envelope", "encode", "grip", "send")
 
 #: the daemon's own frames (a sync id may not be one of them)
 _OWN_MESSAGES = ("SAT_FRONT", "VS_Health", "VS_Grip")
@@ -150,6 +150,10 @@ class VirtualSensor:
         self._rules = lay.rules()
         self._state = ValidityState(len(lay.signals))
         self._plaus = Plausibility(lay.plausibility_rules(), len(lay.signals))
+        self._plaus_update = hook("plausibility", self._plaus.update)
+        self._assess = hook("validity", assess_inputs)
+        self._outside = hook("envelope", outside_envelope)
+        self._fill_grip = hook("grip", self._out.grip.fill_tick)
         self.envelope = _card_envelope(model)
         self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
         #: the latest tick's inputs were outside the model card's validity envelope
@@ -271,9 +275,9 @@ class VirtualSensor:
             if not self._complete:
                 self._complete = self._inputs_complete(rx.times)
             plaus = self._plaus
-            if plaus.update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
+            if self._plaus_update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
                 _log_implausible(self, t)
-            status, bitmap = assess_inputs(t, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
+            status, bitmap = self._assess(t, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
                                            self._rules, self._state, plaus.implausible)
             self._msg_err[:] = rx.errors
             rx.clear_errors()
@@ -313,7 +317,7 @@ class VirtualSensor:
         x_ok = total - total == 0.0  # every feature finite (a nan or an inf makes the sum's difference nan)
         y = predict(x).tolist() if x_ok else None
         rules = self._env_rules
-        outside = x_ok and rules is not None and outside_envelope(self.inputs.values, rules)
+        outside = x_ok and rules is not None and self._outside(self.inputs.values, rules)
         for k, est, st, lo, hi in self._wheels:
             v = y[k] if (y is not None and k >= 0) else math.nan
             s = envelope_status(wheel_status(status, v, lo, hi), outside)
@@ -324,7 +328,7 @@ class VirtualSensor:
     def _publish(self, start_ns: int, bitmap: int) -> None:
         out = self._out
         m = out.fill_sat()
-        out.grip.fill_tick(out.sat_values, self.inputs.values)  # (VS_Grip, in the tick's compute)
+        self._fill_grip(out.sat_values, self.inputs.values)  # (VS_Grip, in the tick's compute)
         compute_us = (time.monotonic_ns() - start_ns) // 1000
         self._send_sat(m)
         out.grip.send(self._link.send)
