@@ -21,14 +21,18 @@ needs_device = pytest.mark.skipif(not _writable(), reason=f"{pmqos.DEVICE} is no
 
 @needs_device
 def test_request_is_in_force_while_held_and_withdrawn_after():
-    before = pmqos.current_limit_us()
+    # (the kernel's bound is the strictest of every process's requests: another test or bench running beside
+    # this one may hold its own, so the bound is checked as "at most ours", and withdrawal as the device closed)
     req = pmqos.CpuLatencyRequest(7)
     assert req.acquire() and req.held and req.error is None
-    assert req.acquire()  # idempotent: still one request
-    assert pmqos.current_limit_us() == min(7, before)
+    fd = req._fd
+    assert req.acquire() and req._fd == fd  # idempotent: still one request
+    assert pmqos.current_limit_us() <= 7
     req.release()
     req.release()
-    assert not req.held and pmqos.current_limit_us() == before
+    assert not req.held
+    with pytest.raises(OSError):
+        os.fstat(fd)  # closed: the kernel has withdrawn the request
 
 
 def test_refused_request_says_why(monkeypatch):
@@ -65,16 +69,15 @@ def test_daemon_holds_the_request_from_start_to_stop():
     from virtsensor.daemon import VirtualSensor
     from virtsensor.model.onnx import OnnxModel
 
-    before = pmqos.current_limit_us()
     bus = can.Bus(interface="virtual", channel=f"pmqos-{uuid.uuid4().hex[:8]}")
     vs = VirtualSensor(bus, OnnxModel.load(assets.model_path()), CanMatrix.load(), cpu_latency_us=0)
-    assert pmqos.current_limit_us() == before  # asked for at start, not at construction
+    assert vs.cpu_latency.us == 0 and not vs.cpu_latency.held  # asked for at start, not at construction
     vs.start()
     try:
         assert vs.cpu_latency.held and pmqos.current_limit_us() == 0
     finally:
         vs.stop()
-    assert not vs.cpu_latency.held and pmqos.current_limit_us() == before
+    assert not vs.cpu_latency.held
 
 
 def test_cli_refuses_a_negative_bound(capsys):
