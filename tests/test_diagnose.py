@@ -183,6 +183,43 @@ def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shif
     return out
 
 
+def test_held_out_evidence_needs_an_effect_every_run_shares():
+    """Four runs of a car that reads 0, white noise on ay: a 0.3 m/s^2 offset on every run has decisive evidence
+    on the runs held out; the same offset on one run only, decisive in sample (a BIC gain far above 10), has none
+    there (the value fitted on the other runs does not fit the one held out); nor has pure noise."""
+    from pathlib import Path
+
+    from virtsensor.diagnose import identify as idn
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    n, names = 400, ("ay_mps2", "yaw_rate_radps")
+    cand = next(c for c in idn.candidates() if c.key == "sensor_offset[ay_mps2]")
+
+    def evidence(offsets, seed=0):
+        rng = np.random.default_rng(seed)
+        runs = [MeasuredRun(f"r{i}", Path(f"r{i}.csv"), {"time_s": np.arange(n) * 0.05, "ay_mps2": o + 0.2 * rng.normal(
+            size=n), "yaw_rate_radps": 0.01 * rng.normal(size=n)}, [Segment(0, n)]) for i, o in enumerate(offsets)]
+        data = idn.Data(runs, names)
+        assert data.n_folds == len(runs) and set(np.unique(data.fold["ay_mps2"])) == set(range(len(runs)))
+        bg = [[{"pred": {k: np.zeros(n) for k in names}}] for _ in runs]
+        rss0 = data.rss(bg)
+        fit = idn._exact_fit(data, bg, cand, rss0)
+        idn._score(fit, data.m2ll(rss0), rss0, 1.0, sum(data.n.values()))
+        return fit, idn.held_out_evidence(data, fit, bg, {}, 1.0)
+
+    fit, ev = evidence([0.3] * 4)
+    assert fit.significant and ev["evidence"] > 100 and min(ev["per_fold"]) > 10, ev
+    assert all(v == pytest.approx(0.3, abs=0.05) for v in ev["values"]), ev
+    fit, ev = evidence([0.0, 0.0, 0.0, 0.3])
+    assert fit.bic_gain > 50 and ev["evidence"] < idn.HELD_OUT_DECISIVE, (fit.bic_gain, ev)
+    assert evidence([0.0] * 4, seed=1)[1]["evidence"] < idn.HELD_OUT_DECISIVE
+    # with fewer runs than folds need, each run's halves are the folds
+    runs = [MeasuredRun("r", Path("r.csv"), {"time_s": np.arange(n) * 0.05, "ay_mps2": np.zeros(n),
+                                             "yaw_rate_radps": np.zeros(n)}, [Segment(0, n)])]
+    data = idn.Data(runs, names)
+    assert data.n_folds == 2 and np.bincount(data.fold["ay_mps2"]).tolist() == [data.n["ay_mps2"] // 2] * 2
+
+
 @pytest.mark.parametrize(("rho", "n"), [(0.0, 300), (0.8, 600)])
 def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch, rho, n):
     """An offset of 0.3 m/s^2 on ay_mps2 and AR(1) noise of standard deviation sigma on every signal, on a

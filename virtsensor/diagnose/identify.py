@@ -41,9 +41,12 @@ The answer, in stages:
    the first whose explanation leaves no signal in excess (:func:`_first_cause`);
 3. a second stage fits every sensor effect and the re-simulated candidates that
    stood on their own over the car with the first cause; a second cause is named
-   if it passes the same tests and reaches half the smallest realistic size of its
-   effect (:data:`SECOND_SIZE`); it is looked for only when the first cause leaves a
-   signal's residual beyond the re-simulation's own error (:data:`SECOND_EXCESS`);
+   if it passes the same tests, reaches half the smallest realistic size of its
+   effect (:data:`SECOND_SIZE`) and has its own evidence on data its value was not
+   fitted on (:func:`held_out_evidence`: each run held out in turn, the value fitted
+   on the others must fit it better than the first cause alone, decisively in sum).
+   When the first cause and its second still leave a signal in excess, the next
+   best-supported candidates are tried as the first of two (:func:`_pair`);
 4. ``unexplained`` instead of a cause (or of ``none``) when the named cause's signal
    groups (:data:`GROUPS`) disagree on its value (an effect outside the catalogue fits
    some signals at the others' expense, :func:`_consistency`), or when the explanation
@@ -153,6 +156,7 @@ class Fit:
     group_spread: float = 0.0         # largest distance of a signal group's own estimate from the estimate
     groups: dict[str, Any] = field(default_factory=dict)  # per signal group: its own estimate (sim-based fits)
     consistent: bool = True
+    held_out: dict[str, Any] = field(default_factory=dict)  # second stage: evidence on held-out runs
 
     def as_dict(self) -> dict[str, Any]:
         c = self.candidate
@@ -162,7 +166,7 @@ class Fit:
             "variance_explained": self.variance_explained, "significant": self.significant,
             "per_signal_variance_explained": self.per_signal, "evaluations": len(self.points),
             "half_width_statistical": self.half_stat, "group_spread": self.group_spread, "groups": self.groups,
-            "consistent": self.consistent,
+            "consistent": self.consistent, "held_out": self.held_out,
         }
 
 
@@ -179,6 +183,36 @@ class Data:
         self.n = {k: len(v) for k, v in self.meas.items()}
         self.floor = {n: max(cat.SIGNALS[n].resolution, 1e-9) ** 2 / 12.0 for n in names}
         self.shifts: dict[str, float] = {}
+        self.fold, self.n_folds = self._folds()
+
+    def _folds(self) -> tuple[dict[str, np.ndarray], int]:
+        """Per signal, the fold of each compared row for held-out evidence (:func:`held_out_evidence`): its run
+        when there are :data:`MIN_FOLDS` runs or more (a catalogue effect is the same on every run of the day),
+        else the first or second half of its run's rows (each run's halves, in time)."""
+        by_run = len(self.runs) >= MIN_FOLDS
+        out = {}
+        for n in self.names:
+            parts = []
+            for r, ms in enumerate(self.masks[n]):
+                k = int(sum(int(m.sum()) for m in ms))
+                parts.append(np.full(k, r) if by_run else 2 * r + (np.arange(k) >= k // 2))
+            out[n] = np.concatenate(parts).astype(int) if parts else np.zeros(0, int)
+        return out, (len(self.runs) if by_run else 2 * len(self.runs))
+
+    def fold_rss(self, name: str, pred: np.ndarray) -> np.ndarray:
+        """Per fold: the residual sum of squares of ``name`` predicted ``pred`` (on the compared rows)."""
+        e = self.meas[name] - pred
+        return np.bincount(self.fold[name], weights=e * e, minlength=self.n_folds)
+
+    def fold_m2ll(self, rss: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Per fold: -2 log L of the signals of ``rss`` (per-fold residual sums of squares), each signal's
+        variance profiled out within the fold."""
+        out = np.zeros(self.n_folds)
+        for k, r in rss.items():
+            n = np.bincount(self.fold[k], minlength=self.n_folds).astype(float)
+            ok = n > 0
+            out[ok] += n[ok] * np.log(r[ok] / n[ok] + self.floor[k])
+        return out
 
     def shift(self, name: str) -> float:
         """Reading age (s) of ``name``'s CAN message (see :func:`virtsensor.diagnose.resim.align`)."""
@@ -488,9 +522,14 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
         causes = [chosen] if chosen.significant else []
         chosen = chosen if chosen.significant else None
     excess_first = residual_excess(data, data.rss(best_sims), expected_rms(data, best_sims, base))
-    if chosen is not None and max(excess_first.values(), default=0.0) > SECOND_EXCESS:
+    if chosen is not None:
         second, best_sims = _second_stage(data, sim, first, chosen, cands, best_sims, feff, log)
         causes += [f for f in second if f.significant][:1]
+        if _worst_excess(data, best_sims, base) > EXCESS_LIMIT:
+            pair = _pair(data, sim, first, chosen, cands, feff, base, log)
+            if pair is not None:
+                chosen, second, best_sims = pair
+                causes = [chosen, *[f for f in second if f.significant][:1]]
     rss_best = data.rss(best_sims)
     idn = Identification(first.fits, chosen, first.rss0, dict(data.n), feff, nominal, best_sims, sim.count, data.names,
                          data.shifts, causes, second, per_run, sim.day, None, rss_best,
@@ -518,6 +557,37 @@ def _first_cause(data: Data, first: Stage, base: Mapping[str, Any]) -> Fit | Non
         if max(ex.values(), default=0.0) <= EXCESS_LIMIT:
             return f
     return sig[0] if sig else None
+
+
+#: when the first cause and its second leave a signal in excess, the best-supported significant candidates
+#: tried as the first of two causes instead (:func:`_pair`, the first cause counted)
+PAIR_TRIED = 3
+
+
+def _worst_excess(data: Data, sims: Any, base: Mapping[str, Any]) -> float:
+    """The largest :func:`residual_excess` an explanation (its simulations ``sims``) leaves."""
+    return max(residual_excess(data, data.rss(sims), expected_rms(data, sims, base)).values(), default=0.0)
+
+
+def _pair(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequence[Candidate], feff: float,
+          base: Mapping[str, Any], log) -> tuple[Fit, list[Fit], Any] | None:
+    """Two causes where the first cause found is not the first of two: a day with two effects may leave a signal
+    in excess whatever one cause is named, and the best-supported single cause may be a stand-in for both (an
+    offset of the speed soaking up a payload's slower acceleration). The next best-supported significant
+    candidates (:data:`PAIR_TRIED` with the first cause) are each taken as the first of two, with their own
+    second stage (:func:`_second_stage`, its held-out evidence); of the pairs with a second cause that leave no
+    signal beyond :data:`EXCESS_LIMIT`, the one with the smallest misfit: ``(first, second-stage fits,
+    simulations)``. None when no pair does (the day is then judged as it was)."""
+    best: tuple[float, Fit, list[Fit], Any] | None = None
+    for f in [x for x in first.fits if x.significant and x is not chosen][:PAIR_TRIED - 1]:
+        second, sims = _second_stage(data, sim, first, f, cands, _sims_for(f, first.background, first.sims_of, data),
+                                     feff, log)
+        if not any(x.significant for x in second) or _worst_excess(data, sims, base) > EXCESS_LIMIT:
+            continue
+        m = data.m2ll(data.rss(sims))
+        if best is None or m < best[0]:
+            best = (m, f, second, sims)
+    return best[1:] if best is not None else None
 
 
 def _joint_pass(data: Data, sim: Sim, conds: Sequence[Any], first: Stage, chosen: Fit, chosen_sims: Any,
@@ -602,11 +672,12 @@ def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, lo
 #: candidates of the second stage: the first stage's best-supported ones (besides the named cause); its
 #: refinement rounds
 SECOND_TOP = 4
-SECOND_ROUNDS = 1
-#: a second cause is looked for only when the first leaves a signal's residual above the re-simulation's own
-#: error on a control day by more than this factor (:func:`residual_excess`): within it, what remains is the
-#: first cause's own error and the re-simulation's, which a small second effect would otherwise soak up
-SECOND_EXCESS = 1.5
+SECOND_ROUNDS = 2
+#: runs needed to hold one run out at a time in :func:`held_out_evidence` (fewer: each run's halves)
+MIN_FOLDS = 3
+#: the evidence a second cause needs on held-out folds (:func:`held_out_evidence`, -2 log L in effective
+#: samples): decisive, as a BIC gain
+HELD_OUT_DECISIVE = BIC_DECISIVE
 #: a second cause must differ from nominal by at least this share of the smallest realistic size of its
 #: effect (the lower end of the catalogue's hidden range): the first cause's own error (within its stated
 #: accuracy) leaves residuals that a small second effect would otherwise soak up
@@ -623,7 +694,7 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
     others = [f for f in first.fits if f.candidate.key != c1.key and (c1.signal is None or f.candidate.signal !=
                                                                        c1.signal)]
     keys = [f.candidate.key for f in others if not f.candidate.needs_sim] + \
-        [f.candidate.key for f in others if f.candidate.needs_sim and f.significant][:SECOND_TOP]
+        [f.candidate.key for f in others if f.candidate.needs_sim and _stood(f)][:SECOND_TOP]
     pool = [c for c in cands if c.key in keys]
     if not pool:
         return [], best_sims
@@ -639,8 +710,49 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
         sim.background = saved
     for f in st.fits:
         f.significant = f.significant and abs(f.estimate - f.candidate.nominal) >= SECOND_SIZE * _smallest(f.candidate)
+        if f.significant:
+            f.held_out = held_out_evidence(data, f, st.background, st.sims_of, feff)
+            f.significant = f.held_out["evidence"] > HELD_OUT_DECISIVE
     pick = next((f for f in st.fits if f.significant), None)
     return st.fits, _sims_for(pick, st.background, st.sims_of, data) if pick else st.background
+
+
+def _stood(f: Fit) -> bool:
+    """Whether a first-stage fit stood on its own enough to be tried again over the first cause: decisive
+    evidence and a deviation from nominal beyond the effect's floor. Its signal groups need not agree, nor its
+    interval exclude nominal: with the first effect unaccounted for, a second one's groups disagree (a steering
+    friction's estimate from the steering torques is right, the car's motion, which a pressure change moves,
+    pulls it elsewhere)."""
+    return bool(f.bic_gain > BIC_DECISIVE and abs(f.estimate - f.candidate.nominal) > f.candidate.floor)
+
+
+def held_out_evidence(data: Data, fit: Fit, background: Any, sims_of: Mapping[tuple[str, float], Any],
+                      feff: float) -> dict[str, Any]:
+    """The candidate's evidence on data its value was not fitted on: for each fold (:attr:`Data.fold`, a run),
+    the value that fits the other folds best (of the values evaluated: the search's points for a re-simulated
+    candidate, a grid from -0.5 to 2.5 times the estimate's deviation for one fitted exactly), and the drop of
+    -2 log L it brings on the fold held out, against ``background`` (each signal's variance profiled out within
+    the fold). ``evidence``: their sum in effective samples (``feff``); a candidate that soaks up noise, or a
+    structure of some runs only, gains nothing on the runs held out, or loses."""
+    c = fit.candidate
+    if c.needs_sim:
+        vals = sorted({v for (k, v) in sims_of if k == c.key})
+        rows = [data.fold_m2ll({k: data.fold_rss(k, data.stack(sm, k)) for k in data.names})
+                for sm in [background, *[sims_of[(c.key, v)] for v in vals]]]
+    else:
+        sig = str(c.signal)
+        grid = np.clip(c.nominal + (fit.estimate - c.nominal) * np.linspace(-0.5, 2.5, 31), *c.bounds)
+        vals = sorted(set(grid.tolist()) - {c.nominal})
+        rows = [data.fold_m2ll({sig: data.fold_rss(sig, data.stack(background, sig))})]
+        rows += [data.fold_m2ll({sig: data.fold_rss(sig, data.stack(background, sig, _sensor_prediction(data, c, v)))})
+                 for v in vals]
+    vals = [c.nominal, *vals]
+    m = np.array(rows)  # (value, fold)
+    total = m.sum(axis=1)
+    picks = [int(np.argmin(total - m[:, f])) for f in range(data.n_folds)]
+    gains = [float(feff * (m[0, f] - m[j, f])) for f, j in enumerate(picks)]
+    return {"evidence": float(sum(gains)), "per_fold": [round(g, 2) for g in gains],
+            "values": [vals[j] for j in picks], "folds": data.n_folds}
 
 
 def _smallest(c: Candidate) -> float:
