@@ -44,7 +44,8 @@ The answer, in stages:
    if it passes the same tests, reaches half the smallest realistic size of its
    effect (:data:`SECOND_SIZE`) and has its own evidence on data its value was not
    fitted on (:func:`held_out_evidence`: each run held out in turn, the value fitted
-   on the others must fit it better than the first cause alone, decisively in sum).
+   on the others must fit it better than the first cause alone, decisively in sum,
+   and make no run decisively worse).
    When the first cause and its second still leave a signal in excess, the next
    best-supported candidates are tried as the first of two (:func:`_pair`);
 4. ``unexplained`` instead of a cause (or of ``none``) when the named cause's signal
@@ -678,6 +679,12 @@ MIN_FOLDS = 3
 #: the evidence a second cause needs on held-out folds (:func:`held_out_evidence`, -2 log L in effective
 #: samples): decisive, as a BIC gain
 HELD_OUT_DECISIVE = BIC_DECISIVE
+#: a held-out fold contradicts a second cause when the value fitted on the others makes its fit worse by more
+#: than this (-2 log L in effective samples: chi-square(1) 99 %). A catalogue effect is the same on every run
+#: of the day: a run that does not excite it loses about 1 (one parameter's cost), not more; a stand-in for
+#: something else (the first cause's or the re-simulation's own error, which depends on the manoeuvre and the
+#: speed) fits some runs at another's expense
+HELD_OUT_CONTRADICTS = 6.63
 #: a second cause must differ from nominal by at least this share of the smallest realistic size of its
 #: effect (the lower end of the catalogue's hidden range): the first cause's own error (within its stated
 #: accuracy) leaves residuals that a small second effect would otherwise soak up
@@ -712,7 +719,7 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
         f.significant = f.significant and abs(f.estimate - f.candidate.nominal) >= SECOND_SIZE * _smallest(f.candidate)
         if f.significant:
             f.held_out = held_out_evidence(data, f, st.background, st.sims_of, feff)
-            f.significant = f.held_out["evidence"] > HELD_OUT_DECISIVE
+            f.significant = f.held_out["evidence"] > HELD_OUT_DECISIVE and not f.held_out["contradicted_by"]
     pick = next((f for f in st.fits if f.significant), None)
     return st.fits, _sims_for(pick, st.background, st.sims_of, data) if pick else st.background
 
@@ -733,7 +740,8 @@ def held_out_evidence(data: Data, fit: Fit, background: Any, sims_of: Mapping[tu
     candidate, a grid from -0.5 to 2.5 times the estimate's deviation for one fitted exactly), and the drop of
     -2 log L it brings on the fold held out, against ``background`` (each signal's variance profiled out within
     the fold). ``evidence``: their sum in effective samples (``feff``); a candidate that soaks up noise, or a
-    structure of some runs only, gains nothing on the runs held out, or loses."""
+    structure of some runs only, gains nothing on the runs held out, or loses. ``contradicted_by``: the folds
+    it makes decisively worse (:data:`HELD_OUT_CONTRADICTS`)."""
     c = fit.candidate
     if c.needs_sim:
         vals = sorted({v for (k, v) in sims_of if k == c.key})
@@ -752,7 +760,8 @@ def held_out_evidence(data: Data, fit: Fit, background: Any, sims_of: Mapping[tu
     picks = [int(np.argmin(total - m[:, f])) for f in range(data.n_folds)]
     gains = [float(feff * (m[0, f] - m[j, f])) for f, j in enumerate(picks)]
     return {"evidence": float(sum(gains)), "per_fold": [round(g, 2) for g in gains],
-            "values": [vals[j] for j in picks], "folds": data.n_folds}
+            "values": [vals[j] for j in picks], "folds": data.n_folds,
+            "contradicted_by": [f for f, g in enumerate(gains) if g < -HELD_OUT_CONTRADICTS]}
 
 
 def _smallest(c: Candidate) -> float:
