@@ -364,8 +364,9 @@ def _parabola(x: np.ndarray, f: np.ndarray) -> tuple[float, float]:
 class _Search:
     """A safeguarded parabolic line search in (possibly log-) parameter space."""
 
-    def __init__(self, cand: Candidate):
+    def __init__(self, cand: Candidate, start: float | None = None):
         self.cand = cand
+        self.start = start  # a value screened too (the second stage: the candidate's first-stage estimate)
         self.pts: dict[float, float] = {}  # u -> -2logL
         self.rss: dict[float, dict[str, float]] = {}  # u -> per-signal RSS
         lo, hi = cand.bounds
@@ -384,6 +385,10 @@ class _Search:
         for d in (-self.cand.step, self.cand.step):
             u = float(np.clip(u0 + d, self.ulo, self.uhi))
             if abs(u - u0) > 1e-12:
+                out.append(self.value(u))
+        if self.start is not None:
+            u = float(np.clip(self.u(self.start), self.ulo, self.uhi))
+            if min(abs(u - u0), *(abs(u - self.u(v)) for v in out)) > 0.1 * abs(self.cand.step):
                 out.append(self.value(u))
         return out
 
@@ -656,7 +661,7 @@ def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, lo
         s.add(s.cand.nominal, f0, rss0)
     fits = [_exact_fit(data, background, c, rss0) for c in cands
             if not c.needs_sim and _excited(data, background, c)]
-    ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP]
+    ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP if feff is None else SECOND_TOP]
     _refine(data, ranked, sims_of, sim, log, REFINE_ROUNDS if feff is None else SECOND_ROUNDS)
     fits.extend(_search_fit(data, s, sims_of, background) for s in searches.values())
     stage = Stage(fits, background, rss0, f0, sims_of)
@@ -712,7 +717,11 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
     val = chosen.sim_value if chosen.sim_value is not None else chosen.estimate
     sim.background = saved + ((c1.cause, val, c1.signal),)
     try:
-        st = _stage(data, sim, pool, None if any(c.needs_sim for c in pool) else best_sims, log, feff=feff)
+        # each re-simulated candidate screened at its first-stage estimate too (a search from nominal alone,
+        # in two rounds, stopped short of a steering friction three times nominal)
+        start = {f.candidate.key: f.estimate for f in others}
+        searches = {c.key: _Search(c, start.get(c.key)) for c in pool if c.needs_sim}
+        st = _stage(data, sim, pool, None if searches else best_sims, log, feff=feff, searches=searches)
     finally:
         sim.background = saved
     for f in st.fits:
