@@ -75,9 +75,13 @@ def test_bench_quick_json_complete_and_sane(tiny_model, tmp_path):
         assert r["e2e_latency_us"]["cross_process_skipped"]  # null only with a reason
     else:
         _check_pct("e2e cross_process", xp)
-    assert set(r["stages_us"]) == set(r["stages_after_idle_us"]) == {"decode", "feature_vector", "inference",
-                                                                      "encode", "send", "tick"}
+    assert set(r["stages_us"]) == set(r["stages_after_idle_us"]) == {
+        "decode", "plausibility", "validity", "feature_vector", "inference", "envelope", "encode", "grip", "send",
+        "tick"}
     for k, v in (*r["stages_us"].items(), *r["stages_after_idle_us"].items()):
+        if k == "envelope":  # the tiny card states no envelope: the stage never runs
+            assert v is None, v
+            continue
         _check_pct(f"stage {k}", v)
     assert r["stages_after_idle_us"]["tick"]["n"] == 10  # the quick count
     for k in ("onnxruntime", "sklearn", "numpy"):  # the tiny card has weights: no back-end is skipped
@@ -89,6 +93,12 @@ def test_bench_quick_json_complete_and_sane(tiny_model, tmp_path):
     assert r["soak"]["ticks"] == 600 and r["soak"]["ticks_produced"] == 600
     assert r["rss_mb_start"] > 0 and r["rss_mb_end"] > 0
     assert 0 < r["cpu_percent_at_20hz"] < 100 * (r["machine"]["cores"] or 1)
+    assert 0 < r["cpu_percent_at_20hz_default_idle"] < 100 * (r["machine"]["cores"] or 1)
+    _check_pct("jitter_us_default_idle", r["jitter_us_default_idle"], strictly_positive=False)
+    req = r["cpu_latency_request"]  # the daemon asked for PM QoS latency 0: held, or refused with a reason
+    assert req["us"] == 0 and (req["held"] or req["error"])
+    assert r["free_running"]["cpu_latency"] == (req if req["held"] else None)
+    assert r["free_running_default_idle"]["cpu_latency"] is None
     assert r["machine"]["python"] and r["machine"]["platform"] and r["machine"]["cores"] >= 1
     assert r["model"]["file"] == str(tiny_model) and len(r["model"]["sha256"]) == 64
     assert set(r["targets"]) >= {"tick_compute_p99_us", "e2e_in_process_p99_us", "max_tick_rate_hz"}

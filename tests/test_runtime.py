@@ -526,7 +526,8 @@ def _env() -> dict:
 
 def test_sigterm_stops_the_daemon_quickly(model_path):
     proc = subprocess.Popen(_cli("run", "--model", str(model_path), "--interface", "virtual", "--channel",
-                                 _channel(), "--cpu", "0", "--realtime", "--log-level", "info"),
+                                 _channel(), "--cpu", "0", "--realtime", "--cpu-latency-us", "0",
+                                 "--log-level", "info"),
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=_env(), cwd=ROOT)
     lines: list[str] = []
     started = threading.Event()
@@ -553,7 +554,9 @@ def test_sigterm_stops_the_daemon_quickly(model_path):
     events = [json.loads(line) for line in lines]  # every stderr line is one JSON object
     names = [e["event"] for e in events]
     assert rc == 0, lines
-    assert {"affinity", "realtime", "config", "started", "shutdown"} <= set(names)
+    assert {"affinity", "realtime", "cpu_latency", "config", "started", "shutdown"} <= set(names)
+    lat = events[names.index("cpu_latency")]
+    assert lat["us"] == 0 and (lat["ok"] or lat["error"].startswith("/dev/cpu_dma_latency"))
     down = events[names.index("shutdown")]
     assert down["signal"] == "SIGTERM" and down["ticks"] >= 5
     assert down["signal_to_loop_exit_ms"] < 1000 and exit_s < 1.0

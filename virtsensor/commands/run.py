@@ -44,6 +44,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ask for SCHED_FIFO scheduling (logged and ignored when not permitted)")
     parser.add_argument("--rt-priority", type=t.int_range(1, 99), default=None, metavar="P",
                         help="SCHED_FIFO priority (1 to 99; default 50)")
+    parser.add_argument("--cpu-latency-us", type=t.int_range(0, 2_000_000_000), default=None, metavar="US",
+                        help="hold a Linux PM QoS CPU-latency request (/dev/cpu_dma_latency) of US microseconds "
+                             "(0 to 2e9) while running: idle cores stay in states they leave within US (0: poll); "
+                             "warmer caches and less wake-up jitter for more idle power (logged and ignored when "
+                             "not permitted)")
     parser.add_argument("--duration", type=t.float_range(0.0, 1e9, lo_open=True), default=None, metavar="S",
                         help="stop after S seconds (> 0)")
     parser.add_argument("--timeout-cycles", type=t.float_range(1.0, 1000.0), default=None, metavar="C",
@@ -60,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.daemon import VirtualSensor, configure_logging, load_config, log
 
     keys = ("model", "dbc", "interface", "channel", "bitrate", "sync_id", "sync_every", "cpu", "realtime",
-            "rt_priority", "duration", "timeout_cycles", "model_id", "log_level")
+            "rt_priority", "cpu_latency_us", "duration", "timeout_cycles", "model_id", "log_level")
     cfg = load_config(args.config, {k: getattr(args, k) for k in keys})
     configure_logging(cfg.log_level)
     sensor = VirtualSensor.from_config(cfg)  # refusals (UserError) happen here, before any log line

@@ -31,6 +31,9 @@ class RuntimeConfig:
         sync_id: CAN id whose frames trigger the ticks (None: free-running 20 Hz).
         sync_every: tick on every n-th sync frame (e.g. 5 for a 100 Hz frame), counted from the first.
         cpu: pin the daemon to this CPU. realtime: ask for SCHED_FIFO at ``rt_priority``.
+        cpu_latency_us: hold a Linux PM QoS CPU-latency request of this many microseconds while running (0: no
+            idle state with any exit latency; None: leave the machine's idle policy alone); see
+            :mod:`virtsensor.daemon.pmqos`.
         duration: stop after this many seconds (None: until SIGTERM/SIGINT).
         log_level: debug, info, warning or error.
         timeout_cycles: an input message is stale after this many of its cycles without a usable frame.
@@ -47,6 +50,7 @@ class RuntimeConfig:
     cpu: int | None = None
     realtime: bool = False
     rt_priority: int = 50
+    cpu_latency_us: int | None = None
     duration: float | None = None
     log_level: str = "info"
     timeout_cycles: float = 3.0
@@ -81,11 +85,11 @@ def _coerce(key: str, value: Any, where: str) -> Any:
         if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 0x7FF:
             raise bad("an 11-bit CAN id 0x000..0x7FF")
         return v
-    if key in ("bitrate", "sync_every", "cpu", "rt_priority", "model_id"):
+    if key in ("bitrate", "sync_every", "cpu", "rt_priority", "model_id", "cpu_latency_us"):
         if isinstance(value, bool) or not isinstance(value, int):
             raise bad("an integer")
         lo, hi = {"bitrate": (1, 10_000_000), "sync_every": (1, 1000), "cpu": (0, 4095),
-                  "rt_priority": (1, 99), "model_id": (0, 255)}[key]
+                  "rt_priority": (1, 99), "model_id": (0, 255), "cpu_latency_us": (0, 2_000_000_000)}[key]
         if not lo <= value <= hi:
             raise bad(f"in {lo}..{hi}")
         return value

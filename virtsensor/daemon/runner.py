@@ -25,6 +25,7 @@ from typing import Any
 
 from virtsensor.daemon.buslink import BusLink
 from virtsensor.daemon.jsonlog import event
+from virtsensor.daemon.pmqos import CpuLatencyRequest
 from virtsensor.signals import TABLE_TICK_S
 
 __all__ = ["TICK_NS", "SPIN_S", "TIMER_SLACK_NS", "RECV_TIMEOUT_S", "Runner", "set_timer_slack"]
@@ -60,12 +61,14 @@ class Runner:
     """Threads and lifecycle of one :class:`~virtsensor.daemon.sensor.VirtualSensor` (see the module doc)."""
 
     def __init__(self, sensor: Any, link: BusLink, stop: threading.Event, *, cpu: int | None, realtime: bool,
-                 rt_priority: int, freeze_gc: bool) -> None:
+                 rt_priority: int, freeze_gc: bool, cpu_latency_us: int | None = None) -> None:
         self._sensor = sensor
         self._link = link
         self._stop = stop
         self.cpu, self.realtime, self.rt_priority = cpu, bool(realtime), int(rt_priority)
         self._freeze_gc = freeze_gc
+        #: the PM QoS CPU-latency request held from start to stop (None: not asked for)
+        self.cpu_latency = None if cpu_latency_us is None else CpuLatencyRequest(cpu_latency_us)
         self.threads: tuple[threading.Thread, ...] = ()
         self._started = self._stopped = self._frozen = False
         self._signal_ns: int | None = None
@@ -121,6 +124,12 @@ class Runner:
             except (OSError, AttributeError) as exc:
                 event(logging.WARNING, "realtime", policy="SCHED_FIFO", priority=self.rt_priority, ok=False,
                       error=str(exc))
+        req = self.cpu_latency
+        if req is not None:
+            if req.acquire():
+                event(logging.INFO, "cpu_latency", us=req.us, ok=True)
+            else:
+                event(logging.WARNING, "cpu_latency", us=req.us, ok=False, error=req.error)
 
     def _tick_loop(self) -> None:
         set_timer_slack(TIMER_SLACK_NS)
@@ -207,6 +216,8 @@ class Runner:
             th.join(timeout)
         joined_ns = time.monotonic_ns()
         self._link.close()
+        if self.cpu_latency is not None:
+            self.cpu_latency.release()
         if self._frozen:
             gc.unfreeze()
             self._frozen = False

@@ -68,7 +68,7 @@ __all__ = ["VirtualSensor", "STAGES"]
 
 #: Stage names a ``stage_hook`` sees: per input frame ``decode`` (DLC, CRC, E2E, decode, store); per tick
 #: ``feature_vector``, ``inference``, ``encode`` (SAT_FRONT) and ``send`` (SAT_FRONT).
-STAGES = ("decode", "feature_vector", "inference", "encode", "send")
+STAGES = ("decode", "plausibility", "validity", "feature_vector", "inference", "envelope", "encode", "grip", "send")
 
 #: the daemon's own frames (a sync id may not be one of them)
 _OWN_MESSAGES = ("SAT_FRONT", "VS_Health", "VS_Grip")
@@ -89,7 +89,8 @@ class VirtualSensor:
             ``outputs``, ``card_path``, ``predict_one``).
         matrix: a :class:`~virtsensor.canbus.codec.CanMatrix` (its tables are shared; the sensor keeps its own
             E2E state with ``timeout_cycles``).
-        sync_id, sync_every, timeout_cycles, model_id, cpu, realtime, rt_priority: see :class:`RuntimeConfig`.
+        sync_id, sync_every, timeout_cycles, model_id, cpu, realtime, rt_priority, cpu_latency_us: see
+            :class:`RuntimeConfig`.
         bus_factory: opens a new bus after a bus error (None: the sensor keeps retrying the same bus).
         freeze_gc: ``gc.freeze()`` after start-up and no cyclic GC during the tick.
         reconnect_backoff_s, reconnect_max_s: first and largest wait before re-opening the bus.
@@ -109,7 +110,8 @@ class VirtualSensor:
     def __init__(self, bus: Any, model: Any, matrix: CanMatrix, *, sync_id: int | None = None,
                  sync_every: int = 1, timeout_cycles: float = 3.0, model_id: int | None = None,
                  bus_factory: Callable[[], Any] | None = None, cpu: int | None = None, realtime: bool = False,
-                 rt_priority: int = 50, freeze_gc: bool = True, reconnect_backoff_s: float = 0.05,
+                 rt_priority: int = 50, cpu_latency_us: int | None = None, freeze_gc: bool = True,
+                 reconnect_backoff_s: float = 0.05,
                  reconnect_max_s: float = 2.0, stage_hook: StageHook | None = None) -> None:
         from virtsensor.errors import UserError
 
@@ -148,6 +150,10 @@ class VirtualSensor:
         self._rules = lay.rules()
         self._state = ValidityState(len(lay.signals))
         self._plaus = Plausibility(lay.plausibility_rules(), len(lay.signals))
+        self._plaus_update = hook("plausibility", self._plaus.update)
+        self._assess = hook("validity", assess_inputs)
+        self._outside = hook("envelope", outside_envelope)
+        self._fill_grip = hook("grip", self._out.grip.fill_tick)
         self.envelope = _card_envelope(model)
         self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
         #: the latest tick's inputs were outside the model card's validity envelope
@@ -163,7 +169,7 @@ class VirtualSensor:
         self.last_statuses: tuple[int, ...] = (INIT,) * len(lay.wheels)
         self.last_bitmap = 0
         self._runner = Runner(self, self._link, self._stop, cpu=cpu, realtime=realtime, rt_priority=rt_priority,
-                              freeze_gc=freeze_gc)
+                              freeze_gc=freeze_gc, cpu_latency_us=cpu_latency_us)
         self.cpu, self.realtime, self.rt_priority = cpu, bool(realtime), int(rt_priority)
         #: the configuration it was built from (set by :meth:`from_config`)
         self.config: RuntimeConfig | None = None
@@ -183,27 +189,7 @@ class VirtualSensor:
         Raises:
             UserError: unreadable/invalid config, model or DBC; model inputs not in the DBC; bus not openable.
         """
-        from virtsensor.model.onnx import OnnxModel
-        from virtsensor.recordings.replay import open_bus
-
-        if isinstance(config, (str, os.PathLike)):
-            cfg = load_config(config)
-        else:
-            cfg = config if isinstance(config, RuntimeConfig) else load_config(None, config)
-        model = OnnxModel.load(str(cfg.model))  # (load_config checked model, interface, channel are set)
-        matrix = CanMatrix.load(cfg.dbc)
-        opener: Callable[[], Any] | None = bus_factory
-        if bus is None:
-            def factory() -> Any:
-                return open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate)
-            opener = bus_factory or factory
-        sensor = cls(bus, model, matrix, sync_id=cfg.sync_id, sync_every=cfg.sync_every,
-                     timeout_cycles=cfg.timeout_cycles, model_id=cfg.model_id, bus_factory=opener,
-                     cpu=cfg.cpu, realtime=cfg.realtime, rt_priority=cfg.rt_priority, **kwargs)
-        if opener is not None and bus is None:  # everything checked: now open the bus (UserError if it cannot)
-            sensor._link.bus = opener()
-        sensor.config = cfg
-        return sensor
+        return _from_config(cls, config, bus, bus_factory, kwargs)
 
     @property
     def bus(self) -> Any:
@@ -218,6 +204,12 @@ class VirtualSensor:
     def threads(self) -> tuple[threading.Thread, ...]:
         """The daemon's running threads (tick and supervisor when free-running; receive in sync mode)."""
         return self._runner.threads
+
+    @property
+    def cpu_latency(self) -> Any:
+        """The PM QoS CPU-latency request (:class:`~virtsensor.daemon.pmqos.CpuLatencyRequest`: ``us``, ``held``,
+        ``error``) held while running, or None when none was asked for."""
+        return self._runner.cpu_latency
 
     # ------------------------------------------------------------------------------------------ receive path
     def process(self, msg: Any, rx_time: float | None = None) -> None:
@@ -283,9 +275,9 @@ class VirtualSensor:
             if not self._complete:
                 self._complete = self._inputs_complete(rx.times)
             plaus = self._plaus
-            if plaus.update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
+            if self._plaus_update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
                 _log_implausible(self, t)
-            status, bitmap = assess_inputs(t, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
+            status, bitmap = self._assess(t, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
                                            self._rules, self._state, plaus.implausible)
             self._msg_err[:] = rx.errors
             rx.clear_errors()
@@ -325,7 +317,7 @@ class VirtualSensor:
         x_ok = total - total == 0.0  # every feature finite (a nan or an inf makes the sum's difference nan)
         y = predict(x).tolist() if x_ok else None
         rules = self._env_rules
-        outside = x_ok and rules is not None and outside_envelope(self.inputs.values, rules)
+        outside = x_ok and rules is not None and self._outside(self.inputs.values, rules)
         for k, est, st, lo, hi in self._wheels:
             v = y[k] if (y is not None and k >= 0) else math.nan
             s = envelope_status(wheel_status(status, v, lo, hi), outside)
@@ -336,7 +328,7 @@ class VirtualSensor:
     def _publish(self, start_ns: int, bitmap: int) -> None:
         out = self._out
         m = out.fill_sat()
-        out.grip.fill_tick(out.sat_values, self.inputs.values)  # (VS_Grip, in the tick's compute)
+        self._fill_grip(out.sat_values, self.inputs.values)  # (VS_Grip, in the tick's compute)
         compute_us = (time.monotonic_ns() - start_ns) // 1000
         self._send_sat(m)
         out.grip.send(self._link.send)
@@ -380,6 +372,33 @@ class VirtualSensor:
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+def _from_config(cls: type[VirtualSensor], config: RuntimeConfig | Mapping[str, Any] | str | os.PathLike,
+                 bus: Any, bus_factory: Callable[[], Any] | None, kwargs: dict[str, Any]) -> VirtualSensor:
+    """The body of :meth:`VirtualSensor.from_config`."""
+    from virtsensor.model.onnx import OnnxModel
+    from virtsensor.recordings.replay import open_bus
+
+    if isinstance(config, (str, os.PathLike)):
+        cfg = load_config(config)
+    else:
+        cfg = config if isinstance(config, RuntimeConfig) else load_config(None, config)
+    model = OnnxModel.load(str(cfg.model))  # (load_config checked model, interface, channel are set)
+    matrix = CanMatrix.load(cfg.dbc)
+    opener: Callable[[], Any] | None = bus_factory
+    if bus is None:
+        def factory() -> Any:
+            return open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate)
+        opener = bus_factory or factory
+    sensor = cls(bus, model, matrix, sync_id=cfg.sync_id, sync_every=cfg.sync_every,
+                 timeout_cycles=cfg.timeout_cycles, model_id=cfg.model_id, bus_factory=opener,
+                 cpu=cfg.cpu, realtime=cfg.realtime, rt_priority=cfg.rt_priority,
+                 cpu_latency_us=cfg.cpu_latency_us, **kwargs)
+    if opener is not None and bus is None:  # everything checked: now open the bus (UserError if it cannot)
+        sensor._link.bus = opener()
+    sensor.config = cfg
+    return sensor
 
 
 def _fallback_parts(model: Any, lay: InputLayout, hook: Any, predict: Any) -> tuple[Any, Any, Any]:
