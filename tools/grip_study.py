@@ -3,25 +3,29 @@
     python tools/grip_study.py                      # measure the shipped calibration on fresh seeds (~15 min)
     python tools/grip_study.py fit --seed 1901      # re-calibrate virtsensor/grip_car.json (~10 min)
     python tools/grip_study.py fit --warning-only   # re-calibrate its warning only (the curves and hold kept)
+    python tools/grip_study.py fit --evidence-only  # the trail's utilisation curve and the warning (the rest kept)
 
 ``accept`` (the default) simulates the ``paper`` campaign (Table I: every manoeuvre, mu 0.2 to 1.0) and the
-``circuits`` campaign (random circuits, mu 0.25 to 1.0) with ``--seed`` (default 1902: neither the models'
-training seed 0 nor the calibration seed 1901), runs the shipped SAT model and the grip estimate tick by tick
-(the daemon's code) and writes the acceptance figures to ``docs/grip_study.json`` and ``docs/grip_study.md``
-and, with matplotlib, ``figures/grip_study.png``.
+``circuits`` campaign (random circuits, mu 0.25 to 1.0) with ``--seed`` (default 1902: neither the models' training
+seed 0 nor the calibration seed 1901), runs the shipped SAT model and the grip estimate tick by tick (the daemon's
+code) and writes the acceptance figures to ``docs/grip_study.json`` and ``docs/grip_study.md`` and, with
+matplotlib, ``figures/grip_study.png`` (another seed: ``docs/grip_study_<seed>.{json,md}``, no figure).
 
 ``fit`` simulates the same campaigns with its own seed and derives the calibrated curves of
-:class:`virtsensor.grip.GripParams` from them: per trail bin the median true lateral utilisation of the front
-tyres (made non-increasing; the trail reads the lateral slip), the median axle force ratio per unit of road
-friction, the 90th percentile of the friction's relative error and, per band of the estimate, of its absolute
-error (the interval), for each longitudinal-force gate and largest half-width, keeping the pair that gives the
-friction most often with 95 % within +-0.1 pooled and 90 % on every road (mu); then, by the same rule, the hold
-of the friction (median count, distance, least use); then the warning (threshold; the driver's demand: weight,
-look-ahead along the steering's rate, the friction it is set against), chosen on that data as the longest median
-lead with at most FALSE_BUDGET false warnings per 10 minutes below 70 % utilisation. ``fit --warning-only`` keeps
-the shipped curves and hold and re-calibrates the warning alone. The car's own numbers come from the simulator's
-parameter file (``sim/data/car_c_segment.toml``: mass, geometry, drive, brakes, air drag, steering ratio) and the
-catalogue's rolling radius; the linear car's understeer gradient is measured on the fit data.
+:class:`virtsensor.grip.GripParams` from them: per trail bin the median true lateral utilisation of the front tyres
+(made non-increasing by a weighted isotonic fit over the bins, each weighted by its samples: a running minimum let
+one sparse bin at the collapsed end cap the whole curve; the trail reads the lateral slip), the median axle force
+ratio per unit of road friction, the 90th percentile of the friction's relative error and, per band of the
+estimate, of its absolute error (the interval), for each longitudinal-force gate and largest half-width, keeping
+the pair that gives the friction most often with 95 % within +-0.1 pooled and 90 % on every road (mu); then, by the
+same rule, the hold of the friction (median count, distance, least use); then the warning (threshold; the driver's
+demand: weight, look-ahead along the steering's rate, the friction it is set against), chosen on that data as the
+longest median lead with at most FALSE_BUDGET false warnings per 10 minutes below 70 % utilisation. ``fit
+--warning-only`` keeps the shipped curves and hold and re-calibrates the warning alone; ``fit --evidence-only`` the
+trail's utilisation curve and the warning (the friction curves, their gates and the hold kept). The car's own
+numbers come from the simulator's parameter file (``sim/data/car_c_segment.toml``: mass, geometry, drive, brakes,
+air drag, steering ratio) and the catalogue's rolling radius; the linear car's understeer gradient is measured on
+the fit data.
 
 The campaigns are simulated as ``virtsensor campaign`` makes them by default: since the TPMS work each run's four
 tyre pressures are drawn (1.6-3.0 bar set, a leaking wheel in a quarter of the runs). The shipped curves were fit
@@ -46,10 +50,14 @@ sys.path.insert(0, str(ROOT))
 from virtsensor import grip  # noqa: E402
 from virtsensor.learning import gripscore as gs  # noqa: E402
 
+#: the default seeds: the calibration's, and the held-out one whose figures are docs/grip_study.{md,json} (another
+#: seed's go to docs/grip_study_<seed>.{md,json})
+FIT_SEED, ACCEPT_SEED = 1901, 1902
 TRAIL_KNOTS = tuple(round(x, 4) for x in np.arange(-0.015, 0.0376, 0.0025))
-#: (0.8 is above the trail curve's highest utilisation, 0.79 in the shipped calibration: chosen, the warning leaves
-#: the trail's evidence out and reads the force floor, the wheel slip and the driver's demand only)
-WARN_ON = (0.65, 0.7, 0.75, 0.8)
+#: the warning thresholds the fit chooses from, those the trail curve's highest utilisation reaches (0.87 in the
+#: shipped calibration; above it the warning would leave the trail's evidence out and read the force floor, the wheel
+#: slip and the driver's demand only)
+WARN_ON = (0.65, 0.7, 0.75, 0.8, 0.85)
 WARN_HORIZON_S = (0.0,)
 #: the driver's demand (the linear car's front lateral force for the steering, with the longitudinal force, over
 #: the load and the friction held or else the rated one) counts for the warning as this times its ratio
@@ -172,6 +180,12 @@ def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripPara
     return best[1] if curves_only else _fit_warning(runs, _fit_hold(runs, best[1]))
 
 
+def fit_evidence(runs: list[dict], seed: int, p: grip.GripParams) -> grip.GripParams:
+    """``p`` with the trail's utilisation curve re-calibrated on ``runs`` (the friction curves, their gates and the
+    hold kept), then the warning."""
+    return _fit_warning(runs, replace(p, util_at_trail=_fit_curves(runs, seed, p).util_at_trail))
+
+
 def _given_within(res: dict) -> tuple[float, float]:
     """(share given above 0.6, share within +-0.1) pooled, the latter the worst of the pooled share and the
     share on each road (mu) + 0.05: a calibration must hold on every road, not on average over this mix."""
@@ -207,7 +221,7 @@ def _fit_curves(runs: list[dict], seed: int, p0: grip.GripParams) -> grip.GripPa
     T, N, U, MU = (np.concatenate(a) for a in (tr, n, u, mu))
     ok = np.isfinite(T)
     T, N, U, MU = T[ok], N[ok], U[ok], MU[ok]
-    util = np.minimum.accumulate(np.clip(_binned(T, U, 0.5), 0.0, 1.0))
+    util = _non_increasing(np.clip(_binned(T, U, 0.5), 0.0, 1.0), _counts(T))
     use = _binned(T, N / MU, 0.5)
     k = np.interp(T, TRAIL_KNOTS, use)
     rel = np.maximum.accumulate(_binned(T, np.abs(N / k - MU) / MU, 0.9))  # (never tighter at a longer trail)
@@ -219,6 +233,26 @@ def _fit_curves(runs: list[dict], seed: int, p0: grip.GripParams) -> grip.GripPa
                 rel_err90_at_trail=tuple(np.round(rel, 4)), abs_err90_at_trail=absr,
                 source=f"tools/grip_study.py fit --seed {seed}: paper + circuits campaigns, shipped SAT model")
     return p
+
+
+def _counts(trail: np.ndarray) -> np.ndarray:
+    """The samples at each trail knot (as :func:`_binned` bins them)."""
+    h = 0.5 * (TRAIL_KNOTS[1] - TRAIL_KNOTS[0])
+    edges = np.concatenate(([-np.inf], np.asarray(TRAIL_KNOTS[:-1]) + h, [np.inf]))
+    return np.histogram(trail, bins=edges)[0].astype(float)
+
+
+def _non_increasing(y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The weighted least-squares non-increasing fit of ``y`` (pool-adjacent-violators; weights ``w``, at least 1):
+    the trail's utilisation curve, without letting one sparse bin at the collapsed end cap the whole curve (as a
+    running minimum from that end would)."""
+    blocks: list[list[float]] = []  # [mean, weight, knots]
+    for v, wt in zip(y.tolist(), np.maximum(w, 1.0).tolist(), strict=True):
+        blocks.append([v, wt, 1.0])
+        while len(blocks) > 1 and blocks[-2][0] < blocks[-1][0]:
+            (a, wa, na), (b, wb, nb) = blocks[-2], blocks[-1]
+            blocks[-2:] = [[(a * wa + b * wb) / (wa + wb), wa + wb, na + nb]]
+    return np.concatenate([np.full(int(n), m) for m, _, n in blocks])
 
 
 def _lateral_util(t: dict) -> np.ndarray:
@@ -335,27 +369,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "grip_study", help="simulated data (reused)")
     ap.add_argument("--warning-only", action="store_true",
                     help="fit: keep the shipped curves and hold, re-calibrate the warning only")
+    ap.add_argument("--evidence-only", action="store_true",
+                    help="fit: keep the shipped friction curves and hold, re-calibrate the trail's utilisation curve "
+                         "and the warning")
     a = ap.parse_args(argv)
-    if a.warning_only and a.what != "fit":
-        ap.error("--warning-only goes with fit")
-    seed = a.seed if a.seed is not None else (1901 if a.what == "fit" else 1902)
+    if (a.warning_only or a.evidence_only) and a.what != "fit":
+        ap.error("--warning-only and --evidence-only go with fit")
+    if a.warning_only and a.evidence_only:
+        ap.error("--warning-only and --evidence-only: choose one")
+    seed = a.seed if a.seed is not None else (FIT_SEED if a.what == "fit" else ACCEPT_SEED)
     runs = load(simulate(a.work, seed))
     if a.what == "fit":
-        p = _fit_warning(runs, grip.load_params()) if a.warning_only else fit(runs, seed)
-        if a.warning_only:
-            p = replace(p, source=f"{p.source.split('; warning:')[0]}; warning: tools/grip_study.py fit "
-                                  f"--warning-only --seed {seed}")
+        if a.warning_only or a.evidence_only:
+            p0 = grip.load_params()
+            p = _fit_warning(runs, p0) if a.warning_only else fit_evidence(runs, seed, p0)
+            how = "warning" if a.warning_only else "utilisation curve and warning"
+            p = replace(p, source=f"{p0.source.split('; warning:')[0].split('; utilisation')[0]}; {how}: "
+                                  f"tools/grip_study.py fit --{'warning' if a.warning_only else 'evidence'}-only "
+                                  f"--seed {seed}")
+        else:
+            p = fit(runs, seed)
         path = ROOT / "virtsensor" / grip.PARAMS_FILE
         path.write_text(json.dumps(p.to_json(), indent=1) + "\n")
         print(f"calibrated on {len(runs)} runs -> {path}", file=sys.stderr)
         return 0
     res = measure(runs)
     (ROOT / "docs").mkdir(exist_ok=True)
-    (ROOT / "docs" / "grip_study.json").write_text(json.dumps({"seed": seed, **res}, indent=1) + "\n")
+    stem = "grip_study" if seed == ACCEPT_SEED else f"grip_study_{seed}"  # (another seed: its own files beside)
+    (ROOT / "docs" / f"{stem}.json").write_text(json.dumps({"seed": seed, **res}, indent=1) + "\n")
     md = _md(res, seed)
-    (ROOT / "docs" / "grip_study.md").write_text(md)
+    (ROOT / "docs" / f"{stem}.md").write_text(md)
     print(md)
-    _figure(runs)
+    if seed == ACCEPT_SEED:
+        _figure(runs)
     return 0
 
 
