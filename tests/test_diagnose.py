@@ -123,6 +123,46 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     assert OnnxModel.load(tmp_path / "e.onnx").predict(X[:3]).shape == (3, 2)
 
 
+@pytest.mark.parametrize("scaler", ["robust", "standard", "minmax"])
+def test_an_input_sensor_error_is_undone_in_the_scaler(scaler, tmp_path):
+    """An estimator whose inputs carry an offset and a gain, corrected in its scaler, predicts from the faulty
+    signals exactly what the uncorrected one predicts from the right ones (value, lag, rate and accel
+    features alike), and still exports to ONNX."""
+    import warnings
+
+    from virtsensor.diagnose.calibrate import Estimator, undo_sensor_errors
+    from virtsensor.features import SPECS
+    from virtsensor.learning.training import PAPER_PARAMS, make_pipeline
+    from virtsensor.model.export import export_pipeline
+
+    spec = SPECS["history"]
+    rng = np.random.default_rng(3)
+    t = np.arange(400) * cat.TABLE_TICK_S
+    table = {s: np.sin(2 * np.pi * rng.uniform(0.1, 1.0) * t + rng.uniform(0, 6)) for s in spec.signals}
+    X = spec.transform(table)
+    ok = np.isfinite(X).all(axis=1)
+    Y = np.column_stack([X[ok, 0] + X[ok, -1], X[ok, 1] ** 2])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pipe = make_pipeline({**PAPER_PARAMS, "scaler": scaler, "max_iter": 20}, random_state=0).fit(X[ok], Y)
+    est = Estimator(pipe, {"features": "history"}, "fp", int(ok.sum()))
+    errs = [("ay_mps2", 0.3, 1.1), ("steer_torque_nm", -0.8, 1.0), ("yaw_rate_radps", 0.0, 0.92)]
+    faulty = dict(table)
+    for s, o, g in errs:
+        faulty[s] = g * table[s] + o
+    fixed = undo_sensor_errors(est, errs)
+    Xf = spec.transform(faulty)
+    assert np.abs(fixed.pipeline.predict(Xf[ok]) - pipe.predict(X[ok])).max() < 1e-9
+    assert np.abs(est.pipeline.predict(Xf[ok]) - pipe.predict(X[ok])).max() > 1e-3  # the fault mattered
+    assert est.pipeline is pipe and fixed.recipe["inputs_corrected"]["ay_mps2"] == {"offset": 0.3, "gain": 1.1}
+    if scaler == "robust":  # the recipes' scaler: the corrected estimator exports like any other
+        card = export_pipeline(fixed.pipeline, X.shape[1], tmp_path / "c.onnx", parity_X=Xf[ok][:50],
+                               card_extra={"inputs": list(spec.names)})
+        assert card["parity_max_abs_nm"] < 1e-3
+    with pytest.raises(ValueError, match="sat_fl_nm"):
+        undo_sensor_errors(est, [("sat_fl_nm", 0.0, 1.0)])
+
+
 def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shifts=None, backend="loky"):
     """Stands in for :func:`virtsensor.diagnose.resim.simulate_hypotheses`: a car whose every signal
     reads 0 whatever the hypothesis (same return layout: ``out[h][r][s]``)."""
@@ -141,6 +181,45 @@ def _still_car(runs, hyps, base, mu, names, *, n_jobs=1, keep_streams=None, shif
             per_run.append(items)
         out.append(per_run)
     return out
+
+
+def test_held_out_evidence_needs_an_effect_every_run_shares():
+    """Four runs of a car that reads 0, white noise on ay: a 0.3 m/s^2 offset on every run has decisive evidence
+    on the runs held out; the same offset on one run only, decisive in sample (a BIC gain far above 10), has none
+    there (the value fitted on the other runs does not fit the one held out, and makes the others worse); nor
+    has pure noise, which contradicts no run either."""
+    from pathlib import Path
+
+    from virtsensor.diagnose import identify as idn
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    n, names = 400, ("ay_mps2", "yaw_rate_radps")
+    cand = next(c for c in idn.candidates() if c.key == "sensor_offset[ay_mps2]")
+
+    def evidence(offsets, seed=0):
+        rng = np.random.default_rng(seed)
+        runs = [MeasuredRun(f"r{i}", Path(f"r{i}.csv"), {"time_s": np.arange(n) * 0.05, "ay_mps2": o + 0.2 * rng.normal(
+            size=n), "yaw_rate_radps": 0.01 * rng.normal(size=n)}, [Segment(0, n)]) for i, o in enumerate(offsets)]
+        data = idn.Data(runs, names)
+        assert data.n_folds == len(runs) and set(np.unique(data.fold["ay_mps2"])) == set(range(len(runs)))
+        bg = [[{"pred": {k: np.zeros(n) for k in names}}] for _ in runs]
+        rss0 = data.rss(bg)
+        fit = idn._exact_fit(data, bg, cand, rss0)
+        idn._score(fit, data.m2ll(rss0), rss0, 1.0, sum(data.n.values()))
+        return fit, idn.held_out_evidence(data, fit, bg, {}, 1.0)
+
+    fit, ev = evidence([0.3] * 4)
+    assert fit.significant and ev["evidence"] > 100 and min(ev["per_fold"]) > 10, ev
+    assert all(v == pytest.approx(0.3, abs=0.05) for v in ev["values"]) and ev["contradicted_by"] == [], ev
+    fit, ev = evidence([0.0, 0.0, 0.0, 0.3])
+    assert fit.bic_gain > 50 and ev["evidence"] < idn.HELD_OUT_DECISIVE and ev["contradicted_by"], (fit.bic_gain, ev)
+    ev = evidence([0.0] * 4, seed=1)[1]
+    assert ev["evidence"] < idn.HELD_OUT_DECISIVE and ev["contradicted_by"] == [], ev  # noise: ~1 lost per run
+    # with fewer runs than folds need, each run's halves are the folds
+    runs = [MeasuredRun("r", Path("r.csv"), {"time_s": np.arange(n) * 0.05, "ay_mps2": np.zeros(n),
+                                             "yaw_rate_radps": np.zeros(n)}, [Segment(0, n)])]
+    data = idn.Data(runs, names)
+    assert data.n_folds == 2 and np.bincount(data.fold["ay_mps2"]).tolist() == [data.n["ay_mps2"] // 2] * 2
 
 
 @pytest.mark.parametrize(("rho", "n"), [(0.0, 300), (0.8, 600)])

@@ -139,7 +139,15 @@ def _run_conditions(idn, runs: Sequence[MeasuredRun]) -> list[dict[str, Any]]:
 def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recipe: str, seed: int,
                 max_iter: int | None, ensemble: int, n_jobs: int, log: Callable[[str], None]) -> tuple[Any, Any]:
     """``(before, after)``: the estimator trained on the nominal simulator (``before`` if given) and the
-    one trained on the simulator calibrated with the named cause (``before`` itself when none is named)."""
+    calibrated one (``before`` itself when no cause is named).
+
+    The calibrated estimator undoes what can be undone where it happens: an offset or a gain of an input
+    sensor is inverted at the estimator's input (:func:`~virtsensor.diagnose.calibrate.undo_sensor_errors`),
+    so that the estimator sees the signal the simulator's sensor gives; every other cause (a physical one, a
+    delay, which cannot be undone in real time) needs the estimator retrained on the simulator calibrated with
+    it. A day with only input offsets and gains keeps the nominal network, its inputs corrected (no retraining:
+    the same network, so the gain is the correction's alone); otherwise the network retrained on the simulator
+    with the other causes, its inputs corrected for the offsets and gains."""
     from sim.effects import with_effect
     from virtsensor.diagnose import calibrate
 
@@ -150,15 +158,37 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
     causes = idn.causes if idn.unexplained is None else []
     if not causes:
         return before, before
-    cal = dict(base)
-    for f in causes:
-        c = f.candidate
-        log(f"calibrating the simulator ({c.key} = {f.estimate:.4g})")
-        cal = with_effect(cal, c.cause, f.estimate, c.signal)
-    log("retraining on the calibrated simulator")
-    after = calibrate.train(cal, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
-                            ensemble=ensemble)
+    at_input = [f for f in causes if f.candidate.cause in UNDONE_AT_INPUT]
+    retrain = [f for f in causes if f.candidate.cause not in UNDONE_AT_INPUT]
+    after = before
+    if retrain:
+        cal = dict(base)
+        for f in retrain:
+            c = f.candidate
+            log(f"calibrating the simulator ({c.key} = {f.estimate:.4g})")
+            cal = with_effect(cal, c.cause, f.estimate, c.signal)
+        log("retraining on the calibrated simulator")
+        after = calibrate.train(cal, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
+                                ensemble=ensemble)
+        after.recipe["retrained_with"] = {f.candidate.key: f.estimate for f in retrain}
+    if at_input:
+        errors = [_sensor_error(f) for f in at_input]
+        log("undoing at the estimator's input: " + ", ".join(f.candidate.key for f in at_input))
+        after = calibrate.undo_sensor_errors(after, errors)
     return before, after
+
+
+#: sensor causes the calibrated estimator undoes at its input instead of learning them (:func:`_estimators`)
+UNDONE_AT_INPUT = ("sensor_offset", "sensor_gain")
+
+
+def _sensor_error(fit) -> tuple[str, float, float]:
+    """``(signal, offset, gain)`` of a named sensor offset or gain, as :func:`calibrate.undo_sensor_errors`
+    takes it."""
+    c = fit.candidate
+    if c.cause == "sensor_offset":
+        return str(c.signal), float(fit.estimate), 1.0
+    return str(c.signal), 0.0, float(fit.estimate)
 
 
 def _scores(before: Any, after: Any, runs: Sequence[MeasuredRun], holdout: Sequence[MeasuredRun], idn, names,
@@ -169,7 +199,9 @@ def _scores(before: Any, after: Any, runs: Sequence[MeasuredRun], holdout: Seque
 
     result: dict[str, Any] = {}
     result["estimator"] = {"preset": preset, "recipe": before.recipe, "seed": seed,
-                           "train_samples_before": before.samples, "train_samples_after": after.samples}
+                           "train_samples_before": before.samples, "train_samples_after": after.samples,
+                           "retrained_with": after.recipe.get("retrained_with", {}),
+                           "inputs_corrected": after.recipe.get("inputs_corrected", {})}
     # the estimator on measured data vs on its own simulation (the diagnosis runs, re-simulated)
     result["estimator_on_diagnosis_runs"] = {
         "measured": calibrate.score(before, runs),

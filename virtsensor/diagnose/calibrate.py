@@ -175,3 +175,47 @@ def paired_gain(before: Estimator, after: Estimator, runs: Sequence[MeasuredRun]
     mean = float(np.mean(d)) if len(d) else 0.0
     return {"mae_gain_nm": mean, "relative": mean / float(np.mean(ea)) if len(ea) and np.mean(ea) > 0 else 0.0,
             "ci95_nm": [lo, hi], "better": bool(lo > 0.0), "blocks": int(nb)}
+
+
+def undo_sensor_errors(est: Estimator, errors: Sequence[tuple[str, float, float]]) -> Estimator:
+    """``est`` with identified sensor errors of its inputs undone at its input, folded into its scaler.
+
+    ``errors``: ``(signal, offset, gain)`` per faulty input, in the sensor model of :mod:`sim.sensors`
+    (``measured = gain * right + offset``, the signal's unit). The estimator then computes its features
+    from ``(measured - offset) / gain``: a ``value`` or ``lag`` feature of the signal becomes
+    ``(x - offset) / gain``, a ``rate`` or ``accel`` one ``x / gain`` (every feature is linear in its signal,
+    :mod:`virtsensor.features`), which the scaler's centre and scale absorb exactly. The network is
+    untouched, so the result exports to ONNX and runs in the daemon like any other estimator. A delay cannot
+    be undone at the input in real time (it would need the future): it is not one of these.
+    """
+    import copy
+
+    from sklearn.preprocessing import MinMaxScaler, RobustScaler, StandardScaler
+
+    by_signal = {s: (float(o), float(g)) for s, o, g in errors}
+    for s, (_, g) in by_signal.items():
+        if s not in cat.INPUTS or not g > 0.0:
+            raise ValueError(f"cannot undo a sensor error of {s!r} with gain {g} at the input")
+    feats = SPECS[est.recipe["features"]].features
+    off = np.array([by_signal.get(f.signal, (0.0, 1.0))[0] if f.op in ("value", "lag") else 0.0 for f in feats])
+    gain = np.array([by_signal.get(f.signal, (0.0, 1.0))[1] for f in feats])
+    pipe = copy.deepcopy(est.pipeline)
+    scaler = pipe.steps[0][1]
+    if isinstance(scaler, MinMaxScaler):  # x * k + m, with x -> (x - off) / gain
+        k = np.asarray(scaler.scale_, float)
+        scaler.scale_, scaler.min_ = k / gain, np.asarray(scaler.min_, float) - off * k / gain
+    elif isinstance(scaler, (RobustScaler, StandardScaler)):  # (x - c) / s, with x -> (x - off) / gain
+        robust = isinstance(scaler, RobustScaler)
+        c_attr = "center_" if robust else "mean_"
+        c = getattr(scaler, c_attr)
+        s = scaler.scale_
+        setattr(scaler, c_attr, off + gain * (np.zeros(len(feats)) if c is None else np.asarray(c, float)))
+        scaler.scale_ = gain * (np.ones(len(feats)) if s is None else np.asarray(s, float))
+        if robust:
+            scaler.with_centering = scaler.with_scaling = True
+        else:
+            scaler.with_mean = scaler.with_std = True
+    else:
+        raise TypeError(f"cannot fold an input correction into {type(scaler).__name__}")
+    recipe = {**est.recipe, "inputs_corrected": {s: {"offset": o, "gain": g} for s, (o, g) in by_signal.items()}}
+    return Estimator(pipe, recipe, est.fingerprint, est.samples)

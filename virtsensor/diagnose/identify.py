@@ -43,9 +43,13 @@ The answer, in stages:
    the first whose explanation leaves no signal in excess (:func:`_first_cause`);
 3. a second stage fits every sensor effect and the re-simulated candidates that
    stood on their own over the car with the first cause; a second cause is named
-   if it passes the same tests and reaches half the smallest realistic size of its
-   effect (:data:`SECOND_SIZE`); it is looked for only when the first cause leaves a
-   signal's residual beyond the re-simulation's own error (:data:`SECOND_EXCESS`);
+   if it passes the same tests, reaches half the smallest realistic size of its
+   effect (:data:`SECOND_SIZE`) and has its own evidence on data its value was not
+   fitted on (:func:`held_out_evidence`: each run held out in turn, the value fitted
+   on the others must fit it better than the first cause alone, decisively in sum,
+   and make no run decisively worse).
+   When the first cause and its second still leave a signal in excess, the next
+   best-supported candidates are tried as the first of two (:func:`_pair`);
 4. ``unexplained`` instead of a cause (or of ``none``) when the named cause's signal
    groups (:data:`GROUPS`) disagree on its value (an effect outside the catalogue fits
    some signals at the others' expense, :func:`_consistency`), or when the explanation
@@ -155,6 +159,7 @@ class Fit:
     group_spread: float = 0.0         # largest distance of a signal group's own estimate from the estimate
     groups: dict[str, Any] = field(default_factory=dict)  # per signal group: its own estimate (sim-based fits)
     consistent: bool = True
+    held_out: dict[str, Any] = field(default_factory=dict)  # second stage: evidence on held-out runs
 
     def as_dict(self) -> dict[str, Any]:
         c = self.candidate
@@ -164,7 +169,7 @@ class Fit:
             "variance_explained": self.variance_explained, "significant": self.significant,
             "per_signal_variance_explained": self.per_signal, "evaluations": len(self.points),
             "half_width_statistical": self.half_stat, "group_spread": self.group_spread, "groups": self.groups,
-            "consistent": self.consistent,
+            "consistent": self.consistent, "held_out": self.held_out,
         }
 
 
@@ -181,6 +186,36 @@ class Data:
         self.n = {k: len(v) for k, v in self.meas.items()}
         self.floor = {n: max(cat.SIGNALS[n].resolution, 1e-9) ** 2 / 12.0 for n in names}
         self.shifts: dict[str, float] = {}
+        self.fold, self.n_folds = self._folds()
+
+    def _folds(self) -> tuple[dict[str, np.ndarray], int]:
+        """Per signal, the fold of each compared row for held-out evidence (:func:`held_out_evidence`): its run
+        when there are :data:`MIN_FOLDS` runs or more (a catalogue effect is the same on every run of the day),
+        else the first or second half of its run's rows (each run's halves, in time)."""
+        by_run = len(self.runs) >= MIN_FOLDS
+        out = {}
+        for n in self.names:
+            parts = []
+            for r, ms in enumerate(self.masks[n]):
+                k = int(sum(int(m.sum()) for m in ms))
+                parts.append(np.full(k, r) if by_run else 2 * r + (np.arange(k) >= k // 2))
+            out[n] = np.concatenate(parts).astype(int) if parts else np.zeros(0, int)
+        return out, (len(self.runs) if by_run else 2 * len(self.runs))
+
+    def fold_rss(self, name: str, pred: np.ndarray) -> np.ndarray:
+        """Per fold: the residual sum of squares of ``name`` predicted ``pred`` (on the compared rows)."""
+        e = self.meas[name] - pred
+        return np.bincount(self.fold[name], weights=e * e, minlength=self.n_folds)
+
+    def fold_m2ll(self, rss: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Per fold: -2 log L of the signals of ``rss`` (per-fold residual sums of squares), each signal's
+        variance profiled out within the fold."""
+        out = np.zeros(self.n_folds)
+        for k, r in rss.items():
+            n = np.bincount(self.fold[k], minlength=self.n_folds).astype(float)
+            ok = n > 0
+            out[ok] += n[ok] * np.log(r[ok] / n[ok] + self.floor[k])
+        return out
 
     def exclude(self, runs: Sequence[int]) -> None:
         """Leave runs ``runs`` out of every comparison (no compared rows)."""
@@ -341,8 +376,9 @@ def _parabola(x: np.ndarray, f: np.ndarray) -> tuple[float, float]:
 class _Search:
     """A safeguarded parabolic line search in (possibly log-) parameter space."""
 
-    def __init__(self, cand: Candidate):
+    def __init__(self, cand: Candidate, start: float | None = None):
         self.cand = cand
+        self.start = start  # a value screened too (the second stage: the candidate's first-stage estimate)
         self.pts: dict[float, float] = {}  # u -> -2logL
         self.rss: dict[float, dict[str, float]] = {}  # u -> per-signal RSS
         lo, hi = cand.bounds
@@ -361,6 +397,10 @@ class _Search:
         for d in (-self.cand.step, self.cand.step):
             u = float(np.clip(u0 + d, self.ulo, self.uhi))
             if abs(u - u0) > 1e-12:
+                out.append(self.value(u))
+        if self.start is not None:
+            u = float(np.clip(self.u(self.start), self.ulo, self.uhi))
+            if min(abs(u - u0), *(abs(u - self.u(v)) for v in out)) > 0.1 * abs(self.cand.step):
                 out.append(self.value(u))
         return out
 
@@ -509,9 +549,14 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
         causes = [chosen] if chosen.significant else []
         chosen = chosen if chosen.significant else None
     excess_first = residual_excess(data, data.rss(best_sims), expected_rms(data, best_sims, base))
-    if chosen is not None and max(excess_first.values(), default=0.0) > SECOND_EXCESS:
+    if chosen is not None:
         second, best_sims = _second_stage(data, sim, first, chosen, cands, best_sims, feff, log)
         causes += [f for f in second if f.significant][:1]
+        if _worst_excess(data, best_sims, base) > EXCESS_LIMIT:
+            pair = _pair(data, sim, first, chosen, cands, feff, base, log)
+            if pair is not None:
+                chosen, second, best_sims = pair
+                causes = [chosen, *[f for f in second if f.significant][:1]]
     rss_best = data.rss(best_sims)
     idn = Identification(first.fits, chosen, first.rss0, dict(data.n), feff, nominal, best_sims, sim.count, data.names,
                          data.shifts, causes, second, per_run, sim.day, None, rss_best,
@@ -594,6 +639,37 @@ def _first_cause(data: Data, first: Stage, base: Mapping[str, Any]) -> Fit | Non
     return sig[0] if sig else None
 
 
+#: when the first cause and its second leave a signal in excess, the best-supported significant candidates
+#: tried as the first of two causes instead (:func:`_pair`, the first cause counted)
+PAIR_TRIED = 3
+
+
+def _worst_excess(data: Data, sims: Any, base: Mapping[str, Any]) -> float:
+    """The largest :func:`residual_excess` an explanation (its simulations ``sims``) leaves."""
+    return max(residual_excess(data, data.rss(sims), expected_rms(data, sims, base)).values(), default=0.0)
+
+
+def _pair(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequence[Candidate], feff: float,
+          base: Mapping[str, Any], log) -> tuple[Fit, list[Fit], Any] | None:
+    """Two causes where the first cause found is not the first of two: a day with two effects may leave a signal
+    in excess whatever one cause is named, and the best-supported single cause may be a stand-in for both (an
+    offset of the speed soaking up a payload's slower acceleration). The next best-supported significant
+    candidates (:data:`PAIR_TRIED` with the first cause) are each taken as the first of two, with their own
+    second stage (:func:`_second_stage`, its held-out evidence); of the pairs with a second cause that leave no
+    signal beyond :data:`EXCESS_LIMIT`, the one with the smallest misfit: ``(first, second-stage fits,
+    simulations)``. None when no pair does (the day is then judged as it was)."""
+    best: tuple[float, Fit, list[Fit], Any] | None = None
+    for f in [x for x in first.fits if x.significant and x is not chosen][:PAIR_TRIED - 1]:
+        second, sims = _second_stage(data, sim, first, f, cands, _sims_for(f, first.background, first.sims_of, data),
+                                     feff, log)
+        if not any(x.significant for x in second) or _worst_excess(data, sims, base) > EXCESS_LIMIT:
+            continue
+        m = data.m2ll(data.rss(sims))
+        if best is None or m < best[0]:
+            best = (m, f, second, sims)
+    return best[1:] if best is not None else None
+
+
 def _joint_pass(data: Data, sim: Sim, conds: Sequence[Any], first: Stage, chosen: Fit, chosen_sims: Any,
                 log) -> tuple[Fit, list[dict[str, Any]]]:
     """One more pass of the joint fit of the day's cause and the per-run nuisance values: the runs' values
@@ -659,7 +735,7 @@ def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, lo
         s.add(s.cand.nominal, f0, rss0)
     fits = [_exact_fit(data, background, c, rss0) for c in cands
             if not c.needs_sim and _excited(data, background, c)]
-    ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP]
+    ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP if feff is None else SECOND_TOP]
     _refine(data, ranked, sims_of, sim, log, REFINE_ROUNDS if feff is None else SECOND_ROUNDS)
     fits.extend(_search_fit(data, s, sims_of, background) for s in searches.values())
     stage = Stage(fits, background, rss0, f0, sims_of)
@@ -676,11 +752,18 @@ def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, lo
 #: candidates of the second stage: the first stage's best-supported ones (besides the named cause); its
 #: refinement rounds
 SECOND_TOP = 4
-SECOND_ROUNDS = 1
-#: a second cause is looked for only when the first leaves a signal's residual above the re-simulation's own
-#: error on a control day by more than this factor (:func:`residual_excess`): within it, what remains is the
-#: first cause's own error and the re-simulation's, which a small second effect would otherwise soak up
-SECOND_EXCESS = 1.5
+SECOND_ROUNDS = 2
+#: runs needed to hold one run out at a time in :func:`held_out_evidence` (fewer: each run's halves)
+MIN_FOLDS = 3
+#: the evidence a second cause needs on held-out folds (:func:`held_out_evidence`, -2 log L in effective
+#: samples): decisive, as a BIC gain
+HELD_OUT_DECISIVE = BIC_DECISIVE
+#: a held-out fold contradicts a second cause when the value fitted on the others makes its fit worse by more
+#: than this (-2 log L in effective samples: chi-square(1) 99 %). A catalogue effect is the same on every run
+#: of the day: a run that does not excite it loses about 1 (one parameter's cost), not more; a stand-in for
+#: something else (the first cause's or the re-simulation's own error, which depends on the manoeuvre and the
+#: speed) fits some runs at another's expense
+HELD_OUT_CONTRADICTS = 6.63
 #: a second cause must differ from nominal by at least this share of the smallest realistic size of its
 #: effect (the lower end of the catalogue's hidden range): the first cause's own error (within its stated
 #: accuracy) leaves residuals that a small second effect would otherwise soak up
@@ -697,7 +780,7 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
     others = [f for f in first.fits if f.candidate.key != c1.key and (c1.signal is None or f.candidate.signal !=
                                                                        c1.signal)]
     keys = [f.candidate.key for f in others if not f.candidate.needs_sim] + \
-        [f.candidate.key for f in others if f.candidate.needs_sim and f.significant][:SECOND_TOP]
+        [f.candidate.key for f in others if f.candidate.needs_sim and _stood(f)][:SECOND_TOP]
     pool = [c for c in cands if c.key in keys]
     if not pool:
         return [], best_sims
@@ -708,13 +791,60 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
     val = chosen.sim_value if chosen.sim_value is not None else chosen.estimate
     sim.background = saved + ((c1.cause, val, c1.signal),)
     try:
-        st = _stage(data, sim, pool, None if any(c.needs_sim for c in pool) else best_sims, log, feff=feff)
+        # each re-simulated candidate screened at its first-stage estimate too (a search from nominal alone,
+        # in two rounds, stopped short of a steering friction three times nominal)
+        start = {f.candidate.key: f.estimate for f in others}
+        searches = {c.key: _Search(c, start.get(c.key)) for c in pool if c.needs_sim}
+        st = _stage(data, sim, pool, None if searches else best_sims, log, feff=feff, searches=searches)
     finally:
         sim.background = saved
     for f in st.fits:
         f.significant = f.significant and abs(f.estimate - f.candidate.nominal) >= SECOND_SIZE * _smallest(f.candidate)
+        if f.significant:
+            f.held_out = held_out_evidence(data, f, st.background, st.sims_of, feff)
+            f.significant = f.held_out["evidence"] > HELD_OUT_DECISIVE and not f.held_out["contradicted_by"]
     pick = next((f for f in st.fits if f.significant), None)
     return st.fits, _sims_for(pick, st.background, st.sims_of, data) if pick else st.background
+
+
+def _stood(f: Fit) -> bool:
+    """Whether a first-stage fit stood on its own enough to be tried again over the first cause: decisive
+    evidence and a deviation from nominal beyond the effect's floor. Its signal groups need not agree, nor its
+    interval exclude nominal: with the first effect unaccounted for, a second one's groups disagree (a steering
+    friction's estimate from the steering torques is right, the car's motion, which a pressure change moves,
+    pulls it elsewhere)."""
+    return bool(f.bic_gain > BIC_DECISIVE and abs(f.estimate - f.candidate.nominal) > f.candidate.floor)
+
+
+def held_out_evidence(data: Data, fit: Fit, background: Any, sims_of: Mapping[tuple[str, float], Any],
+                      feff: float) -> dict[str, Any]:
+    """The candidate's evidence on data its value was not fitted on: for each fold (:attr:`Data.fold`, a run),
+    the value that fits the other folds best (of the values evaluated: the search's points for a re-simulated
+    candidate, a grid from -0.5 to 2.5 times the estimate's deviation for one fitted exactly), and the drop of
+    -2 log L it brings on the fold held out, against ``background`` (each signal's variance profiled out within
+    the fold). ``evidence``: their sum in effective samples (``feff``); a candidate that soaks up noise, or a
+    structure of some runs only, gains nothing on the runs held out, or loses. ``contradicted_by``: the folds
+    it makes decisively worse (:data:`HELD_OUT_CONTRADICTS`)."""
+    c = fit.candidate
+    if c.needs_sim:
+        vals = sorted({v for (k, v) in sims_of if k == c.key})
+        rows = [data.fold_m2ll({k: data.fold_rss(k, data.stack(sm, k)) for k in data.names})
+                for sm in [background, *[sims_of[(c.key, v)] for v in vals]]]
+    else:
+        sig = str(c.signal)
+        grid = np.clip(c.nominal + (fit.estimate - c.nominal) * np.linspace(-0.5, 2.5, 31), *c.bounds)
+        vals = sorted(set(grid.tolist()) - {c.nominal})
+        rows = [data.fold_m2ll({sig: data.fold_rss(sig, data.stack(background, sig))})]
+        rows += [data.fold_m2ll({sig: data.fold_rss(sig, data.stack(background, sig, _sensor_prediction(data, c, v)))})
+                 for v in vals]
+    vals = [c.nominal, *vals]
+    m = np.array(rows)  # (value, fold)
+    total = m.sum(axis=1)
+    picks = [int(np.argmin(total - m[:, f])) for f in range(data.n_folds)]
+    gains = [float(feff * (m[0, f] - m[j, f])) for f, j in enumerate(picks)]
+    return {"evidence": float(sum(gains)), "per_fold": [round(g, 2) for g in gains],
+            "values": [vals[j] for j in picks], "folds": data.n_folds,
+            "contradicted_by": [f for f, g in enumerate(gains) if g < -HELD_OUT_CONTRADICTS]}
 
 
 def _smallest(c: Candidate) -> float:

@@ -76,6 +76,12 @@ def markdown(res: Mapping[str, Any]) -> str:
                 f"- On the diagnosis runs, nominal estimator: MAE {on['measured']['mae_nm']:.2f} Nm on the measured "
                 f"data against {on['simulated']['mae_nm']:.2f} Nm on their re-simulation "
                 f"(R2 {on['measured']['r2']:.3f} against {on['simulated']['r2']:.3f})."]
+        how = [f"retrained on the simulator with {', '.join(est['retrained_with'])}"] \
+            if est.get("retrained_with") else []
+        how += [f"input {k} corrected ((measured - {v['offset']:.4g}) / {v['gain']:.4g})"
+                for k, v in est.get("inputs_corrected", {}).items()]
+        if how:
+            out.append("- Calibrated estimator: " + "; ".join(how) + ".")
         if res.get("mae_before_nm") is not None:
             out.append(f"- On the held-out measured runs: MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f}"
                        f" Nm, R2 {res['r2_before']:.3f} -> {res['r2_after']:.3f} (before -> after calibration).")
