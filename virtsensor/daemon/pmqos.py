@@ -73,13 +73,6 @@ class CpuLatencyRequest:
         if fd is not None:
             os.close(fd)
 
-    def __enter__(self) -> CpuLatencyRequest:
-        self.acquire()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.release()
-
 
 def current_limit_us() -> int | None:
     """The CPU-latency bound now in force on this machine (the strictest request, microseconds), or None where

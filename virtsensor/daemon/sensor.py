@@ -67,7 +67,9 @@ from virtsensor.features import FeatureBuilder
 __all__ = ["VirtualSensor", "STAGES"]
 
 #: Stage names a ``stage_hook`` sees: per input frame ``decode`` (DLC, CRC, E2E, decode, store); per tick
-#: ``feature_vector``, ``inference``, ``encode`` (SAT_FRONT) and ``send`` (SAT_FRONT).
+#: ``plausibility`` (the redundancy checks), ``validity`` (input status and health bitmap), ``feature_vector``,
+#: ``inference``, ``envelope`` (the card's envelope test; only with an envelope and finite features), ``encode``
+#: (SAT_FRONT), ``grip`` (the VS_Grip estimate and its encoding) and ``send`` (SAT_FRONT).
 STAGES = ("decode", "plausibility", "validity", "feature_vector", "inference", "envelope", "encode", "grip", "send")
 
 #: the daemon's own frames (a sync id may not be one of them)
