@@ -227,10 +227,6 @@ class Data:
                                         for seg, m in zip(r.segments, ms, strict=True)]) for n in self.names}
         self.n = {k: len(v) for k, v in self.meas.items()}
 
-    def shift(self, name: str) -> float:
-        """Reading age (s) of ``name``'s CAN message (see :func:`virtsensor.diagnose.resim.align`)."""
-        return self.shifts.get(str(cat.SIGNALS[name].message), 0.0)
-
     def stack(self, sims: Sequence[Sequence[Mapping[str, Any]]], name: str,
               override: Any = None) -> np.ndarray:
         """Predicted ``name`` on the compared rows (``override(item, run, seg)`` replaces the prediction)."""
@@ -348,7 +344,9 @@ def _sensor_prediction(data: Data, cand: Candidate, value: float):
         return lambda item, r, g: item["pred"][s] + value
     if cand.cause == "sensor_gain":
         return lambda item, r, g: item["pred"][s] * value
-    return lambda item, r, g: _sample(item["t"], item["streams"][s], _times(data, r, g), s, data.shift(s) + value)
+    msg = str(cat.SIGNALS[s].message)
+    return lambda item, r, g: _sample(item["t"], item["streams"][s], _times(data, r, g), s,
+                                      item.get("shifts", data.shifts).get(msg, 0.0) + value)
 
 
 def _times(data: Data, r: int, s: int) -> np.ndarray:
@@ -872,30 +870,59 @@ class Sim:
     background: tuple[tuple[str, float, str | None], ...] = ()
     shifts: dict[str, float] = field(default_factory=dict)
     count: int = 0
+    data: Data | None = None  # set: the messages' reading ages are profiled out of each whole-day hypothesis
 
     def run(self, hyps: Sequence[Hypothesis], keep: Sequence[bool] | None = None) -> list[Any]:
-        """``simulate_hypotheses`` of ``hyps`` on top of the background, counted."""
+        """``simulate_hypotheses`` of ``hyps`` on top of the background, counted. With :attr:`data` set, each
+        hypothesis of the whole day (every run, the day's conditions) whose streams are kept is read at its own
+        messages' reading ages (:func:`realign`); the others at :attr:`shifts`."""
         full = [Hypothesis(h.cause, h.value, h.signal, self.background + h.also, h.runs, h.only) for h in hyps]
         self.count += len(full)
-        return simulate_hypotheses(self.runs, full, self.base, self.day, self.names, n_jobs=self.n_jobs,
+        outs = simulate_hypotheses(self.runs, full, self.base, self.day, self.names, n_jobs=self.n_jobs,
                                    keep_streams=keep, shifts=self.shifts, backend=self.backend)
+        if self.data is not None:
+            for h, out, k in zip(full, outs, keep or [False] * len(full), strict=True):
+                if k and h.only is None and not h.runs:
+                    realign(self.data, out)
+        return outs
+
+
+def realign(data: Data, out: Any, shifts: Mapping[str, float] | None = None) -> dict[str, float]:
+    """Read a hypothesis' re-simulation ``out`` (streams kept) at the messages' reading ages that fit it best
+    (:func:`virtsensor.diagnose.resim.align` on the compared rows), or at ``shifts`` when given: each item's
+    ``pred`` is predicted again and its ``shifts`` set. Returns the ages.
+
+    The ages are nuisance parameters of the day, profiled out of each hypothesis rather than fixed on the
+    nominal car: one age per message for every run, they absorb a constant lag, not one that changes with the
+    speed. Fixed on the nominal car, they absorbed part of a relaxation length's lag (sigma / v) and counted it
+    against the hypothesis that explains it (development seed 917, a relaxation length 0.45 times nominal: the
+    true value worse than the nominal car by 3,500 in -2 log L with the nominal car's ages, better by 4,500 with
+    its own; a control day, seed 915, still against a factor 0.45 by 4,700 with the ages profiled)."""
+    if shifts is None:
+        shifts = align(data.runs, out, data.names, data.masks)
+    for r, per_run in enumerate(out):
+        for g, item in enumerate(per_run):
+            if item and "streams" in item:
+                item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), data.names, shifts)
+                item["shifts"] = dict(shifts)
+    return dict(shifts)
 
 
 def _simulate_nominal(data: Data, sim: Sim, log, extra: Sequence[Hypothesis] = ()) -> tuple[Any, list[Any]]:
     """Re-simulate ``data.runs`` with the nominal car (and ``extra`` hypotheses in the same batch), set
     ``data.shifts`` (the messages' reading ages, from the nominal car) and each item's ``pred`` (the compared
-    signals on the table's ticks); return the nominal re-simulation and the extra ones."""
-    runs, names = data.runs, data.names
+    signals on the table's ticks: a whole-day hypothesis at its own ages, a per-run one at the nominal car's,
+    :func:`realign`); return the nominal re-simulation and the extra ones."""
+    runs = data.runs
     log(f"re-simulating {len(runs)} run(s) with the nominal car" + (f" and {len(extra)} hypotheses" if extra else ""))
+    sim.data = None  # the nominal car's ages first: the per-run hypotheses are read at them
     outs = sim.run([NOMINAL, *extra], [True] * (1 + len(extra)))
+    sim.data = data
     nominal = outs[0]
-    data.shifts = align(runs, nominal, names)
+    data.shifts = realign(data, nominal)
     sim.shifts = data.shifts
-    for out in outs:
-        for r, per_run in enumerate(out):
-            for g, item in enumerate(per_run):
-                if item:
-                    item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, data.shifts)
+    for h, out in zip(extra, outs[1:], strict=True):
+        realign(data, out, data.shifts if h.only is not None or h.runs else None)
     return nominal, outs[1:]
 
 

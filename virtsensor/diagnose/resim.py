@@ -187,13 +187,18 @@ def predicted(t: np.ndarray, streams: Mapping[str, np.ndarray], times: np.ndarra
 
 
 def align(runs: Sequence[MeasuredRun], nominal: Sequence[Sequence[Mapping[str, Any]]],
-          names: Sequence[str]) -> dict[str, float]:
+          names: Sequence[str], masks: Mapping[str, Sequence[Sequence[np.ndarray]]] | None = None
+          ) -> dict[str, float]:
     """Each CAN message's reading age (s): when a receiver samples a held frame at a
     tick, the value it reads is up to one cycle old, by a phase that depends on the
-    bus schedule and is unknown for measured data. It is estimated per message, once,
-    on the nominal re-simulation (all the message's signals together), within
-    +-1 cycle: far less than the sensor delays the diagnosis looks for, and common
-    to every hypothesis."""
+    bus schedule and is unknown for measured data. It is estimated per message, for the
+    whole day (one age for every run, whatever its speed), on a re-simulation ``nominal``
+    (all the message's signals together), within +-1 cycle: far less than the sensor delays
+    the diagnosis looks for. ``masks``: the rows compared per signal, run and segment
+    (default: :func:`segment_mask`). The diagnosis profiles the ages out of every
+    hypothesis of the whole day (re-estimated on each one's re-simulation): ages fixed on the
+    nominal car absorb part of a physical lag (a relaxation length's, sigma / v) and then
+    count against the hypothesis that explains it."""
     out: dict[str, float] = {}
     by_msg: dict[str, list[str]] = {}
     for n in names:
@@ -207,12 +212,13 @@ def align(runs: Sequence[MeasuredRun], nominal: Sequence[Sequence[Mapping[str, A
             for r, run in enumerate(runs):
                 for s, seg in enumerate(run.segments):
                     item = nominal[r][s]
+                    if not item:
+                        continue
                     y = run.table[n][seg.start:seg.stop]
                     times = np.arange(seg.n) / cat.TABLE_RATE_HZ
-                    m = segment_mask(run, s, n)
-                    for i, g in enumerate(grid):
-                        e = y[m] - np.interp(times[m] - g, item["t"], item["streams"][n])
-                        per[i] += float(np.sum(e * e))
+                    m = masks[n][r][s] if masks is not None else segment_mask(run, s, n)
+                    e = y[m][None, :] - np.interp(times[m][None, :] - grid[:, None], item["t"], item["streams"][n])
+                    per += np.sum(e * e, axis=1)
             cost += per / max(per[np.argmin(np.abs(grid))], 1e-300)
         out[msg] = float(grid[int(np.argmin(cost))])
     return out
