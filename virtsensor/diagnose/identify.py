@@ -12,6 +12,10 @@ samples is worth that of fewer independent ones: the effective size is
 autocorrelation at the best fit (an AR(1) approximation). Confidence intervals
 and the information criterion use ``n_eff``.
 
+The CAN messages' reading ages (:func:`virtsensor.diagnose.resim.align`, one per message for the whole day)
+are nuisance parameters profiled out of every whole-day hypothesis (:func:`realign`): fixed on the nominal
+car, they absorbed part of a relaxation length's speed-dependent lag and counted it against the true value.
+
 Search:
 
 * sensor effects on signals that do not drive the re-simulation are applied to
