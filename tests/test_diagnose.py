@@ -642,7 +642,8 @@ def test_the_message_ages_are_profiled_out_of_each_hypothesis(tmp_path):
     forces. The CAN messages' reading ages fitted on the nominal car absorb part of it; fixed there, they made
     the true car fit worse than the nominal one. Profiled out of each hypothesis (one age per message for the
     whole day, runs at 50 and 100 km/h), the true car fits decisively better (measured: by 1,230 in effective
-    -2 log L; with the nominal car's ages, worse by 880), and the nominal car is read at its own ages."""
+    -2 log L; with the nominal car's ages, worse by 880), and the nominal car is read at its own ages; a
+    sensor effect at the nominal car's."""
     from virtsensor.diagnose.hidden import make_case
     from virtsensor.diagnose.identify import Data, Sim, _simulate_nominal
     from virtsensor.diagnose.resim import compared_signals
@@ -654,8 +655,11 @@ def test_the_message_ages_are_profiled_out_of_each_hypothesis(tmp_path):
     names = compared_signals(runs)
     data = Data(runs, names)
     sim = Sim(runs, car_parameters(), names, [{"mu": 1.0} for _ in runs], n_jobs=1)
-    nominal, (true,) = _simulate_nominal(data, sim, lambda msg: None, [Hypothesis("relaxation_length", 0.45)])
+    nominal, (true, delay) = _simulate_nominal(data, sim, lambda msg: None, [
+        Hypothesis("relaxation_length", 0.45), Hypothesis("sensor_delay", 0.05, "vx_mps")])
     assert nominal[0][0]["shifts"] == data.shifts
+    # a sensor delay is its message's age under another name: it keeps the nominal car's ages
+    assert all(item["shifts"] == data.shifts for run in delay for item in run)
     f_nominal = data.m2ll(data.rss(nominal))
     f_true = data.m2ll(data.rss(true))
     rho = data.rho(true)
