@@ -123,6 +123,29 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     assert OnnxModel.load(tmp_path / "e.onnx").predict(X[:3]).shape == (3, 2)
 
 
+def test_the_calibrated_estimator_is_trained_like_the_nominal_one():
+    """Like for like: the calibrated estimator is retrained with the nominal one's recipe, campaign, seed,
+    epochs and ensemble, whatever the caller passes (a study reuses one nominal estimator across cases), so
+    a calibration that changes nothing (an effect at its nominal value) gives back the nominal network."""
+    from types import SimpleNamespace
+
+    from virtsensor.diagnose import _estimators, calibrate
+
+    base = car_parameters()
+    before = calibrate.train(base, preset="tiny", seed=3, max_iter=2, ensemble=2)
+    assert before.recipe["trained_on"] == {"recipe": "improved", "preset": "tiny", "seed": 3}
+    nothing = SimpleNamespace(candidate=SimpleNamespace(cause="vehicle_mass", signal=None, key="vehicle_mass"),
+                              estimate=EFFECTS["vehicle_mass"].nominal)
+    idn = SimpleNamespace(causes=[nothing], unexplained=None)
+    kept, after = _estimators(idn, base, before, preset="smoke", recipe="improved", seed=99, max_iter=50,
+                              ensemble=1, n_jobs=1, log=lambda m: None)
+    assert kept is before and after is not before
+    assert after.recipe["trained_on"] == before.recipe["trained_on"] and after.recipe["ensemble"] == 2
+    assert after.recipe["params"]["max_iter"] == 2 and after.samples == before.samples
+    X = np.random.default_rng(0).normal(size=(50, before.pipeline[0].n_features_in_))
+    assert np.array_equal(after.pipeline.predict(X), before.pipeline.predict(X))
+
+
 @pytest.mark.parametrize("scaler", ["robust", "standard", "minmax"])
 def test_an_input_sensor_error_is_undone_in_the_scaler(scaler, tmp_path):
     """An estimator whose inputs carry an offset and a gain, corrected in its scaler, predicts from the faulty
