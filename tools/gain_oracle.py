@@ -57,6 +57,22 @@ def wide_preset(seed: int = 0):
     return out
 
 
+def dry_preset(seed: int = 0):
+    """Each Table I manoeuvre at two speeds (a third and two thirds of its range) on the dry track only
+    (20 runs, the size of ``smoke``): a campaign matched to a dry test day at the same cost."""
+    from sim.api import Request
+    from sim.campaign import PAPER_MANOEUVRES
+    from sim.manoeuvres import MANOEUVRES
+
+    seeds = np.random.SeedSequence(seed).generate_state(2 * len(PAPER_MANOEUVRES))
+    out = []
+    for i, name in enumerate(PAPER_MANOEUVRES):
+        lo, hi = MANOEUVRES[name].speed_kmh
+        for j, f in enumerate((1 / 3, 2 / 3)):
+            out.append(Request(name, float(round(lo + f * (hi - lo), 1)), 1.0, int(seeds[2 * i + j])))
+    return out
+
+
 def _case(seed: int, cause: str, value: float, signal, tmp: Path, control: bool = False):
     from sim.effects import Hidden
     from virtsensor.diagnose.hidden import DAY_PROGRAMME, make_case
@@ -105,6 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--n-jobs", type=int, default=1)
     ap.add_argument("--no-calibrated", action="store_true")
+    ap.add_argument("--named", type=Path, help="JSON cache of what the diagnosis named per case seed: read if it "
+                    "exists, else written")
+    ap.add_argument("--save", type=Path, help="pickle each (campaign, case)'s estimators and held-out runs here")
+    ap.add_argument("--no-seed-spread", action="store_true", help="skip the nominal estimator of the next seed")
     args = ap.parse_args(argv)
 
     from sim.campaign import PRESETS
@@ -112,29 +132,35 @@ def main(argv: list[str] | None = None) -> int:
     from virtsensor.diagnose import calibrate
 
     PRESETS.setdefault("wide", wide_preset)
+    PRESETS.setdefault("dry", dry_preset)
     base = car_parameters()
     cases = [CASES[i] for i in (args.cases if args.cases is not None else range(len(CASES)))]
     with tempfile.TemporaryDirectory() as tmp:
         data = {c[0]: _case(*c, Path(tmp)) for c in cases}
         _, ctl_hold = _case(999, "", 0.0, None, Path(tmp), control=True)
-        named = {}
+        named = {int(k): (v[0], v[1]) for k, v in json.loads(args.named.read_text()).items()} \
+            if args.named is not None and args.named.exists() else {}
         for c in cases:
-            named[c[0]] = ([], 0.0) if args.no_calibrated else _named(*data[c[0]], base, args.n_jobs)
+            if c[0] not in named:
+                named[c[0]] = ([], 0.0) if args.no_calibrated else _named(*data[c[0]], base, args.n_jobs)
             print(f"case {c}: named {named[c[0]][0]} in {named[c[0]][1]:.0f} s", file=sys.stderr, flush=True)
+        if args.named is not None and not args.named.exists():
+            args.named.write_text(json.dumps(named))
         for preset in args.campaigns:
             t0 = time.perf_counter()
             nominal = calibrate.train(base, preset=preset, seed=args.seed, n_jobs=args.n_jobs,
                                       max_iter=args.max_iter, ensemble=args.ensemble)
             t_nom = time.perf_counter() - t0
-            alt = calibrate.train(base, preset=preset, seed=args.seed + 1, n_jobs=args.n_jobs,
-                                  max_iter=args.max_iter, ensemble=args.ensemble)
+            alt = None if args.no_seed_spread else calibrate.train(
+                base, preset=preset, seed=args.seed + 1, n_jobs=args.n_jobs, max_iter=args.max_iter,
+                ensemble=args.ensemble)
             floor = calibrate.score(nominal, ctl_hold)["mae_nm"]
             for c in cases:
                 hold = data[c[0]][1]
                 t1 = time.perf_counter()
                 oracle = _estimator(base, [(c[1], c[2], c[3])], nominal, args, preset, args.seed)
                 t_or = time.perf_counter() - t1
-                ests = {"nominal": nominal, "nominal_seed+1": alt, "oracle": oracle}
+                ests = {"nominal": nominal, "oracle": oracle} | ({} if alt is None else {"nominal_seed+1": alt})
                 if named[c[0]][0]:
                     ests["calibrated"] = _estimator(base, named[c[0]][0], nominal, args, preset, args.seed)
                 sc = calibrate.scores(list(ests.values()), hold)
@@ -146,6 +172,12 @@ def main(argv: list[str] | None = None) -> int:
                        "gain": {k: calibrate.paired_gain(nominal, e, hold, seed=args.seed)
                                 for k, e in ests.items() if k != "nominal"}}
                 print(json.dumps(row), flush=True)
+                if args.save is not None:
+                    import pickle
+
+                    args.save.mkdir(parents=True, exist_ok=True)
+                    with open(args.save / f"{preset}-{c[0]}.pkl", "wb") as fh:
+                        pickle.dump({"row": row, "estimators": ests, "holdout": hold}, fh)
     return 0
 
 
