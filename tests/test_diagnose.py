@@ -275,7 +275,7 @@ def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch,
             w[1:] *= np.sqrt(1 - rho**2)
             table[s] = lfilter([1.0], [1.0, -rho], w)  # e[i] = rho e[i-1] + w[i]
         table["ay_mps2"] = table["ay_mps2"] + true
-        res = idn.identify([MeasuredRun("r", Path("r.csv"), table, [Segment(0, n)])], {}, names)
+        res = idn.identify([MeasuredRun("r", Path("r.csv"), table, [Segment(0, n)])], car_parameters(), names)
         assert res.cause == "sensor_offset" and res.best.candidate.signal == "ay_mps2", seed
         assert res.n_eff_factor == pytest.approx((1 - rho) / (1 + rho), abs=0.1)
         lo, hi = res.best.ci95
