@@ -634,3 +634,43 @@ def test_a_run_the_resimulation_does_not_reproduce_is_left_out_only_as_an_outlie
     assert not_reproduced(data, sims, base, [RunConditions({"mu": (1.0, 1.0)}) for _ in range(5)]) == {}
     data, sims = day([30, 28, 32, 30, 29])  # a day-wide effect: every run off, none an outlier
     assert not_reproduced(data, sims, base, ranged) == {}
+
+
+def test_each_hypothesis_is_compared_at_its_own_reading_ages():
+    """The CAN reading ages are a nuisance of the comparison: a hypothesis whose re-simulation runs 10 ms ahead of
+    the nominal car's (a steering friction's lag taken out, say) is compared at the ages that fit it, not at the
+    nominal car's, which absorbed the difference. A hypothesis re-simulated on some runs only (a per-run friction
+    grid) keeps the day's ages; a run left out of the comparison does not move them."""
+    from pathlib import Path
+
+    from virtsensor.diagnose.identify import own_ages
+    from virtsensor.diagnose.resim import Hypothesis, predicted
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    n, names, age = 200, ("ay_mps2", "yaw_rate_radps"), 0.005
+    times = np.arange(n) * cat.TABLE_TICK_S
+    t = np.arange(0.0, times[-1] + 0.2, 0.001)
+
+    def f(x):
+        return {"ay_mps2": 4.0 * np.sin(2.1 * x) + np.sin(7.0 * x), "yaw_rate_radps": 0.2 * np.sin(2.1 * x)}
+
+    def run(i, delay=0.0):  # measured: the car read ``age`` old (plus a left-out run's own timing)
+        return MeasuredRun(f"r{i}", Path(f"r{i}.csv"), {"time_s": times, **f(times - age - delay)}, [Segment(0, n)])
+
+    runs = [run(0), run(1), run(2, delay=0.008)]
+    day = {"IMU_Motion": age + 0.01}  # the nominal car's ages: its re-simulation ran 10 ms late
+
+    def out():  # a hypothesis' re-simulation: on time; its predictions at the day's ages
+        streams = f(t)
+        return [[{"t": t, "streams": streams, "pred": predicted(t, streams, times, names, day)}] for _ in runs]
+
+    whole, some = out(), out()
+    own_ages(runs, names, [Hypothesis("steering_friction", 3.0), Hypothesis(only=(0,))], [whole, some],
+             left_out=frozenset({2}))
+    assert whole[0][0]["ages"]["IMU_Motion"] == pytest.approx(age, abs=1.3e-3)
+    for r in (0, 1):
+        e = runs[r].table["ay_mps2"] - whole[r][0]["pred"]["ay_mps2"]
+        e_day = runs[r].table["ay_mps2"] - some[r][0]["pred"]["ay_mps2"]
+        assert np.sqrt(np.mean(e * e)) < 0.2 * np.sqrt(np.mean(e_day * e_day))
+    assert "ages" not in some[0][0] and np.array_equal(some[0][0]["pred"]["ay_mps2"],
+                                                       predicted(t, f(t), times, names, day)["ay_mps2"])
