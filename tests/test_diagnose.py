@@ -674,3 +674,29 @@ def test_each_hypothesis_is_compared_at_its_own_reading_ages():
         assert np.sqrt(np.mean(e * e)) < 0.2 * np.sqrt(np.mean(e_day * e_day))
     assert "ages" not in some[0][0] and np.array_equal(some[0][0]["pred"]["ay_mps2"],
                                                        predicted(t, f(t), times, names, day)["ay_mps2"])
+
+
+@pytest.mark.parametrize(("motion_runs", "consistent"), [
+    ((0.4, 0.6, 0.8, 4.6, 0.9), True),    # the motion's view moves from run to run: the re-simulation's error
+    ((1.45, 1.5, 1.4, 1.55, 1.45), False),  # every run's motion sees no friction: a real disagreement
+])
+def test_a_group_vetoes_only_beyond_its_own_run_to_run_scatter(motion_runs, consistent):
+    """A steering friction of 3.4 Nm seen by the steering torques on every run alike; the car's motion puts it
+    near nominal (1.4) overall. When the motion's own estimate scatters from run to run (leave-one-run-out), its
+    disagreement is the re-simulation's model error on the motion, not evidence against the friction; when every
+    run agrees on it, the group vetoes."""
+    from virtsensor.diagnose import identify as idn
+
+    c = next(c for c in idn.candidates() if c.key == "steering_friction")
+    x = np.array([0.2, 1.4, 2.4, 3.4, 4.4])
+    steering = np.array([[200.0 * (v - 3.4) ** 2 for _ in range(5)] for v in x])
+    motion = np.array([[30.0 * (v - m) ** 2 for m in motion_runs] for v in x])
+    fit = idn.Fit(c, 3.4, 0.0, 2000.0, {}, ci95=(2.9, 3.9))
+    fit.groups = {g: {"points": list(zip(x.tolist(), m.sum(axis=1).tolist(), strict=True)), "folds": (x, m)}
+                  for g, m in (("steering", steering), ("motion", motion))}
+    idn._consistency(fit, 1.0)
+    assert fit.groups["motion"]["informative"] and fit.groups["steering"]["agrees"]
+    assert fit.consistent is consistent, fit.groups
+    assert "folds" not in fit.groups["motion"] and "points" not in fit.groups["motion"]
+    if consistent:  # the scatter the group's own runs show does not widen the interval again
+        assert fit.ci95[0] > c.nominal, fit.ci95
