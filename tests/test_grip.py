@@ -105,6 +105,31 @@ def test_braking_into_a_corner_warns_by_the_more_used_tyre():
     assert not run(replace(p, load_transfer=0.0))[0]
 
 
+def test_wet_corner_under_drive_warns_by_the_held_friction():
+    """A wet road measured in a corner (the trail collapsed: friction about 0.5 given and held), then a corner
+    exit under drive on it (the trail gated off): the more used tyre uses most of that road's grip but little of a
+    rated dry road's, so only the held friction's upper end (``evidence_mu_held``) sees the limit; without it the
+    same exit is silent."""
+    p = replace(load_params(), demand_weight=0.0)
+
+    def exit_warns(params: GripParams) -> tuple[bool, float]:
+        est = GripEstimator(params)
+        _steady(est, 60, 0.45 * 9.81, 0.0)  # the friction given and held
+        mu = est._mu_held
+        _steady(est, 40, 0.0, 0.03)  # 40 m straight: the warning ends, the friction stays held
+        assert not est.state.warning
+        vx, ay, torque = 20.0, 0.4 * 9.81, 60.0  # |Fx| ~ 0.2 Fz: beyond the trail's gate
+        ax = torque * p.gear_ratio / p.rolling_radius_m / p.mass_kg
+        for _ in range(10):
+            est.step(-0.02 * 2000, -0.02 * 2000, ax, ay, vx, ay / vx, 0.0, torque, vx / 0.305, vx / 0.305)
+        assert math.isnan(est.state.trail_m)
+        return est.state.warning, mu
+
+    warned, mu = exit_warns(replace(p, evidence_mu_held=1.0))
+    assert 0.4 < mu < 0.7 and warned
+    assert not exit_warns(replace(p, evidence_mu_held=0.0))[0]
+
+
 def test_steering_demand_warns_before_the_force_builds():
     """A sharp steering input at speed on a straight: the linear car asks for far more lateral acceleration than
     any rated road gives before the axle force has built up: the demand term (weighted as the fit may choose it;

@@ -19,8 +19,9 @@ ratio per unit of road friction, the 90th percentile of the friction's relative 
 estimate, of its absolute error (the interval), for each longitudinal-force gate and largest half-width, keeping
 the pair that gives the friction most often with 95 % within +-0.1 pooled and 90 % on every road (mu); then, by the
 same rule, the hold of the friction (median count, distance, least use); then the warning (threshold; the driver's
-demand: weight, look-ahead along the steering's rate, the friction it is set against), chosen on that data as the
-longest median lead with at most FALSE_BUDGET false warnings per 10 minutes below 70 % utilisation. ``fit
+demand: weight, look-ahead along the steering's rate, the friction it is set against; the held friction's share as
+evidence or not), chosen on that data as the longest median lead with at most FALSE_BUDGET false warnings per 10
+minutes below 70 % utilisation (at equal lead, the most limits warned by the time they are reached). ``fit
 --warning-only`` keeps the shipped curves and hold and re-calibrates the warning alone; ``fit --evidence-only`` the
 trail's utilisation curve and the warning (the friction curves, their gates and the hold kept). The car's own
 numbers come from the simulator's parameter file (``sim/data/car_c_segment.toml``: mass, geometry, drive, brakes,
@@ -67,6 +68,8 @@ DEMAND_WEIGHT = (0.0, 0.8, 0.9, 1.0, 1.1, 1.2)
 DEMAND_LEAD_S = (0.0, 0.1, 0.2)
 #: the friction the demand is set against: 0 the rated MU_ROAD_MAX, 1 the held estimate while held (else MU_ROAD_MAX)
 DEMAND_MU_HELD = (0.0, 1.0)
+#: the warning's evidence also counts the more used tyre's force ratio over the held friction's upper end (1) or not
+EVIDENCE_MU_HELD = (0.0, 1.0)
 #: the warning setting chosen keeps false warnings at most this (per 10 min below 70 % utilisation) on the fit data:
 #: half the acceptance limit (1), a margin for roads and drivers the calibration has not seen
 FALSE_BUDGET = 0.5
@@ -291,34 +294,37 @@ def _load_transfer(runs: list[dict]) -> float:
 
 
 def _fit_warning(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
-    """The warning with the longest median lead among those with at most FALSE_BUDGET false warnings per 10 min;
-    where none keeps that budget, the one with the fewest (then the longest lead). Only thresholds the trail's
+    """The warning with the longest median lead among those with at most FALSE_BUDGET false warnings per 10 min
+    (at equal lead, the one that warns of the most limits by the time they are reached); where none keeps that
+    budget, the one with the fewest (then the most limits warned, then the longest lead). Only thresholds the trail's
     evidence can reach (at most the trail curve's highest utilisation): above it the warning would no longer read
     the SAT at all (a collapsed trail would not warn), which is the point of the estimate."""
     p = replace(p, load_transfer=_load_transfer(runs))
     print(f"  front load transfer {p.load_transfer:.4f} N per N of front lateral force", file=sys.stderr)
     best: tuple[bool, float, float, grip.GripParams] | None = None
-    grid = ((a, b, c, d, e) for a in WARN_ON if a <= max(p.util_at_trail) for b in WARN_HORIZON_S
+    grid = ((a, b, c, d, e, h) for a in WARN_ON if a <= max(p.util_at_trail) for b in WARN_HORIZON_S
             for c in DEMAND_WEIGHT for d in (DEMAND_LEAD_S if c > 0 else (0.0,))
-            for e in (DEMAND_MU_HELD if c > 0 else (0.0,)))
-    for on, hz, dw, dl, dh in grid:
+            for e in (DEMAND_MU_HELD if c > 0 else (0.0,)) for h in EVIDENCE_MU_HELD)
+    for on, hz, dw, dl, dh, eh in grid:
         q = replace(p, warn_on=on, warn_off=round(on - 0.1, 3), warn_horizon_s=hz, demand_weight=dw,
-                    demand_lead_s=dl, demand_mu_held=dh)
+                    demand_lead_s=dl, demand_mu_held=dh, evidence_mu_held=eh)
         o = measure(runs, q)["overall"]
         false = o["false_warnings_per_10min"] or 0.0
         lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
+        warned = o["limit_warned_share"] or 0.0
         print(f"  warning on {on:.2f}, look-ahead {hz:.1f} s, demand {dw:.1f} ahead {dl:.1f} s "
-              f"against {'held' if dh else 'rated'} mu: median lead {lead:.2f} s, false {false:.2f}/10 min",
-              file=sys.stderr)
-        key = (false <= FALSE_BUDGET, lead if false <= FALSE_BUDGET else -false, lead, q)
-        if best is None or key[:3] > best[:3]:
+              f"against {'held' if dh else 'rated'} mu, held-mu evidence {eh:.0f}: median lead {lead:.2f} s, "
+              f"limits warned {warned:.2f}, false {false:.2f}/10 min", file=sys.stderr)
+        # (within the budget: the longest lead, then the most limits warned by the time they are reached)
+        key = (false <= FALSE_BUDGET, lead if false <= FALSE_BUDGET else -false, warned, lead, q)
+        if best is None or key[:4] > best[:4]:
             best = key
     if best is None:
         raise SystemExit("no warning threshold within the trail curve's range")
     if not best[0]:
         print(f"  no warning setting keeps false warnings <= {FALSE_BUDGET} per 10 min: the fewest taken",
               file=sys.stderr)
-    return best[3]
+    return best[4]
 
 
 def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
@@ -346,7 +352,7 @@ def _kind(name: str) -> str:
 
 def _md(res: dict, seed: int) -> str:
     cols = ("mu_within_0_1_share", "mu_abs_err_p90", "mu_given_share_above_0_6", "warning_lead_s_median",
-            "runs_reaching_limit", "false_warnings_per_10min")
+            "runs_reaching_limit", "limit_warned_share", "false_warnings_per_10min")
 
     def f(v: object) -> str:
         return "—" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))

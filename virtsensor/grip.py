@@ -38,7 +38,9 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   (1 until one is given), or the evidence where that is higher; clipped to [0, 1];
 * the warning's evidence also holds the floor ``n / mu_road_max``: whatever the road (the car is rated up to
   ``mu_road_max``), the axle uses at least that share of its grip, so a hard combined-slip corner on a dry road
-  (the trail gated off) is seen coming by the force it already uses;
+  (the trail gated off) is seen coming by the force it already uses; with :attr:`GripParams.evidence_mu_held`,
+  while a friction is held, the same force ratio over the held friction's upper end (the wet road's
+  combined-slip corner, seen by the share it uses of the grip measured there);
 * the warning: on when the evidence (plus, for :attr:`GripParams.mu_hold_s` after a friction was given,
   ``n / mu_ref``) reaches ``warn_on``, or, above ``warn_off``, is predicted to reach it rising at its rate for
   ``warn_horizon_s``, or when ``demand_weight`` times the driver's demand reaches it (:meth:`GripEstimator.
@@ -130,6 +132,10 @@ class GripParams:
         load_transfer: the load each front tyre gains (outer) or loses (inner) per newton of front lateral force
             (measured on the fit data from the simulator's wheel loads): the force floor and the demand are those
             of the more used tyre (0: the axle's, as older files).
+        evidence_mu_held: 1: while a friction is held, the more used tyre's force ratio over the upper end of the
+            held friction's interval is evidence of the limit too (a wet road once measured: the combined-slip
+            corner the trail cannot read is seen by the force it already uses of that road's grip); 0: not (the
+            older files' meaning).
         source: where the numbers come from (free text).
     """
 
@@ -172,6 +178,7 @@ class GripParams:
     demand_lead_s: float = 0.0
     demand_mu_held: float = 0.0
     load_transfer: float = 0.0
+    evidence_mu_held: float = 0.0
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -207,7 +214,7 @@ class GripParams:
 
 
 #: fields a parameter file may leave out (their defaults: the older files' meaning)
-_OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer")
+_OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer", "evidence_mu_held")
 
 
 def _tuples(v: Any) -> Any:
@@ -277,6 +284,7 @@ class GripEstimator:
         self._steer_l = p.steer_ratio * L
         self._dem_rate = p.demand_lead_s / self.dt  # (the demand's look-ahead per tick difference)
         self._dem_held = p.demand_mu_held > 0.0
+        self._ev_held = p.evidence_mu_held > 0.0
         self._lt = p.load_transfer
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
@@ -351,8 +359,11 @@ class GripEstimator:
         u_force = n / self.mu_ref
         if self._mu_age <= p.mu_hold_s:  # a friction given lately: the force used against it is evidence too
             ev = max(ev, u_force)
+        tyre = self._tyre_ratio(fx, fy, fz)
         if p.mu_road_max > 0.0:  # whatever the road, the more used tyre uses at least n_tyre / mu_road_max of it
-            ev = max(ev, self._tyre_ratio(fx, fy, fz) / p.mu_road_max)
+            ev = max(ev, tyre / p.mu_road_max)
+        if self._ev_held and self._held_m <= p.hold_m:  # and of a road measured lately, its held upper end's share
+            ev = max(ev, tyre / (self._mu_held + self._hw_held + p.hold_widen_per_m * self._held_m))
         ev = min(ev, 1.0)
         u = min(max(u_force, ev), 1.0)
         s.util = u

@@ -20,7 +20,8 @@ Figures (keys of :func:`grip_metrics` and of the pooled :func:`pool`):
   where the true utilisation stayed below 0.7 for :data:`FALSE_WINDOW_S` or longer within the episode, the
   lead counts from the end of the latest such stretch (so a warning that is simply kept on, or held for long
   after an earlier corner, scores as if it came on when the driving left the calm); ``warning_lead_s_median``
-  pools the runs' leads (null where no run reaches 0.95);
+  pools the runs' leads (null where no run reaches 0.95); ``limit_warned_share`` (pooled only) is the share of
+  those runs whose warning was on by that instant (a lead >= 0: the limit was not reached unwarned);
 * ``false_warnings_per_10min``: warning onsets while the true utilisation stays below 0.7 from
   :data:`FALSE_WINDOW_S` before to as long after the onset, per 10 minutes of driving below 0.7.
 
@@ -140,6 +141,7 @@ def pool(per_run: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "excited": excited,
         "runs_reaching_limit": len(leads),
         "warning_lead_s_median": float(np.median(leads)) if leads else None,
+        "limit_warned_share": float(np.mean([x >= 0.0 for x in leads])) if leads else None,
         "warning_lead_s_min": float(np.min(leads)) if leads else None,
         "false_warnings": n_false, "calm_s": calm_s,
         "false_warnings_per_10min": 600.0 * n_false / calm_s if calm_s > 0 else None,
