@@ -819,13 +819,20 @@ def _confounded_with_first(chosen: Fit, fits: Sequence[Fit]) -> None:
     and a steering friction of 4.57 Nm), over the pressure fitted alone the car's motion put the friction at 1.43
     Nm on every run alike (its leave-one-run-out half-width 1.04), the steering torques, which the pressure barely
     moves, at 4.97. The second cause's evidence on runs held out (:func:`held_out_evidence`) still stands guard
-    against a stand-in, and the groups the first cause does not act on still judge it."""
-    shared = {g for g, i in chosen.groups.items() if i.get("informative")}
+    against a stand-in, and the groups the first cause does not act on still judge it. Nor do they widen its
+    interval (:func:`_widen`): their distance is the first cause's, not the second's model error."""
+    shared = frozenset(g for g, i in chosen.groups.items() if i.get("informative"))
     for f in fits:
+        if not shared & f.groups.keys() or f.curvature <= 0:
+            continue
         for g in shared & f.groups.keys():
-            if not f.groups[g].get("agrees", True):
-                f.groups[g].update(agrees=True, confounded_with_first=True)
+            f.groups[g]["confounded_with_first"] = True
+            f.groups[g]["agrees"] = True
         f.consistent = all(i.get("agrees", True) for i in f.groups.values())
+        c = f.candidate
+        _widen(f, float(np.hypot(f.half_stat, model_error(c, f.estimate))), shared)
+        f.significant = bool(f.bic_gain > BIC_DECISIVE and abs(f.estimate - c.nominal) > c.floor
+                             and not (f.ci95[0] <= c.nominal <= f.ci95[1]))
 
 
 def _stood(f: Fit) -> bool:
@@ -1148,14 +1155,18 @@ def _consistency(f: Fit, feff: float) -> None:
         info["agrees"] = not (info["informative"] and abs(v - f.estimate) > h + half and _contradicts(c, f, v, h))
         ok = ok and info["agrees"]
     f.consistent = ok
-    # the groups' own estimates differ by the re-simulation's model error on this day: the interval counts it
-    # beyond what the group's own run-to-run scatter explains
-    spread = max((max(abs(i["estimate"] - f.estimate) - i.get("half_width_runs", 0.0), 0.0) for i in f.groups.values()
-                  if i.get("informative")), default=0.0)
+    _widen(f, half)
+
+
+def _widen(f: Fit, half: float, skip: frozenset[str] = frozenset()) -> None:
+    """The groups' own estimates differ by the re-simulation's model error on this day: the interval (of
+    statistical and model-error half-width ``half``) counts the largest distance of an informative group's estimate
+    from the fit's (the groups ``skip`` left out), in quadrature."""
+    spread = max((abs(i["estimate"] - f.estimate) for g, i in f.groups.items()
+                  if i.get("informative") and g not in skip), default=0.0)
     f.group_spread = float(spread)
-    if spread > 0:
-        w = float(np.hypot(half, spread))
-        f.ci95 = (float(f.estimate - w), float(f.estimate + w))
+    w = float(np.hypot(half, spread))
+    f.ci95 = (float(f.estimate - w), float(f.estimate + w))
 
 
 def _contradicts(c: Candidate, f: Fit, v: float, h: float) -> bool:
