@@ -698,3 +698,29 @@ def test_a_group_vetoes_only_beyond_its_own_run_to_run_scatter(motion_runs, cons
     assert fit.groups["motion"]["informative"] and fit.groups["steering"]["agrees"]
     assert fit.consistent is consistent, fit.groups
     assert "folds" not in fit.groups["motion"] and "points" not in fit.groups["motion"]
+
+
+def test_a_second_cause_is_judged_by_the_groups_the_first_did_not_fit():
+    """A tyre pressure named first, fitted on the car's motion and the SATs; a steering friction over it: the motion,
+    whose pressure absorbed part of the friction's effect, puts the friction near nominal on every run. That group
+    neither vetoes the friction nor widens its interval; the steering torques, which the pressure does not move,
+    still judge it."""
+    from virtsensor.diagnose import identify as idn
+
+    cands = {c.key: c for c in idn.candidates()}
+    first = idn.Fit(cands["tyre_pressure"], 2.68, 0.0, 1.0, {})
+    first.groups = {"motion": {"informative": True}, "tyre_moments": {"informative": True},
+                    "steering": {"informative": False}}
+    second = idn.Fit(cands["steering_friction"], 4.4, 0.0, 1.0, {}, bic_gain=1200.0)
+    second.half_stat = 0.6
+    second.groups = {"motion": {"informative": True, "estimate": 1.43, "agrees": False},
+                     "steering": {"informative": True, "estimate": 4.97, "agrees": True}}
+    alone = idn.Fit(cands["steering_friction"], 4.4, 0.0, 1.0, {}, bic_gain=1200.0)
+    alone.half_stat = 0.6
+    alone.groups = {"motion": {"informative": True, "estimate": 1.43, "agrees": False},
+                    "steering": {"informative": True, "estimate": 1.5, "agrees": False}}
+    idn._confounded_with_first(first, [second, alone])
+    assert second.consistent and second.groups["motion"]["confounded_with_first"]
+    assert second.group_spread == pytest.approx(0.57) and second.ci95[0] > cands["steering_friction"].nominal
+    assert second.significant
+    assert not alone.consistent  # a group the first cause does not act on still vetoes
