@@ -901,6 +901,7 @@ class Sim:
     shifts: dict[str, float] = field(default_factory=dict)
     count: int = 0
     left_out: frozenset[int] = frozenset()  # runs not compared (:func:`not_reproduced`)
+    bg_ages: dict[Any, dict[str, float]] = field(default_factory=dict)  # per background: its car's own ages
 
     def run(self, hyps: Sequence[Hypothesis], keep: Sequence[bool] | None = None) -> list[Any]:
         """``simulate_hypotheses`` of ``hyps`` on top of the background, counted; once the nominal car's
@@ -911,12 +912,14 @@ class Sim:
         outs = simulate_hypotheses(self.runs, full, self.base, self.day, self.names, n_jobs=self.n_jobs,
                                    keep_streams=keep, shifts=self.shifts, backend=self.backend)
         if self.shifts:
-            own_ages(self.runs, self.names, full, outs, self.left_out)
+            self.bg_ages.update(own_ages(self.runs, self.names, full, outs, self.left_out,
+                                         self.bg_ages.get(self.background, self.shifts)))
         return outs
 
 
 def own_ages(runs: Sequence[MeasuredRun], names: tuple[str, ...], hyps: Sequence[Hypothesis],
-             outs: Sequence[Any], left_out: frozenset[int] = frozenset()) -> None:
+             outs: Sequence[Any], left_out: frozenset[int] = frozenset(),
+             background: Mapping[str, float] | None = None) -> dict[Any, dict[str, float]]:
     """Each whole-day hypothesis' CAN reading ages (:func:`~virtsensor.diagnose.resim.align`, within one cycle),
     estimated on its own re-simulation, and its predictions re-sampled at them (in place; ``item["ages"]``).
 
@@ -928,22 +931,37 @@ def own_ages(runs: Sequence[MeasuredRun], names: tuple[str, ...], hyps: Sequence
     pressure made the lateral acceleration, yaw rate and SATs fit *worse* (-2 log L +365, +541, +454 and +482),
     so the car's motion "saw" a friction near nominal and vetoed it; at the true car's own ages (10 ms early,
     0 ms) the same friction made them better (-162, -134, -451). A hypothesis re-simulated on some runs only
-    (a per-run friction's grid) keeps the day's ages. Runs ``left_out`` of the comparison do not count."""
+    (a per-run friction's grid) keeps the day's ages. Runs ``left_out`` of the comparison do not count.
+
+    A sensor effect is a timing or a scale of one signal, identified against the ages: a hypothesis with one is
+    compared at the ages of the car without it (``background``: the ages of the car the stage starts from, its
+    background car's own when known). Given ages of their own, a speed-sensor delay took decisive evidence on a
+    control day. Returns the ages of each background car simulated (a hypothesis of no cause
+    of its own), by its effects, for later batches over it."""
     tick = cat.TABLE_TICK_S
-    for hyp, out in zip(hyps, outs, strict=True):
+    found: dict[Any, dict[str, float]] = {}
+    # the batch's background car first (a hypothesis of no cause of its own): the sensor effects' ages
+    for i in sorted(range(len(hyps)), key=lambda i: hyps[i].cause is not None):
+        hyp, out = hyps[i], outs[i]
         if hyp.only is not None:
             continue
         use = [r for r, per_run in enumerate(out)
                if r not in left_out and all(item and "streams" in item for item in per_run)]
         if not use:
             continue
-        ages = align([runs[r] for r in use], [out[r] for r in use], names)
+        if any(c.startswith("sensor_") for c, _, _ in hyp.effects()):
+            ages = dict(background or {})
+        else:
+            ages = align([runs[r] for r in use], [out[r] for r in use], names)
+        if hyp.cause is None:
+            found[tuple(hyp.also)] = background = ages
         for r, per_run in enumerate(out):
             for g, item in enumerate(per_run):
                 if item and "streams" in item:
                     times = np.arange(runs[r].segments[g].n) * tick
                     item["pred"] = predicted(item["t"], item["streams"], times, names, ages)
                     item["ages"] = ages
+    return found
 
 
 def _simulate_nominal(data: Data, sim: Sim, log, extra: Sequence[Hypothesis] = ()) -> tuple[Any, list[Any]]:
@@ -961,7 +979,7 @@ def _simulate_nominal(data: Data, sim: Sim, log, extra: Sequence[Hypothesis] = (
             for g, item in enumerate(per_run):
                 if item:
                     item["pred"] = predicted(item["t"], item["streams"], _times(data, r, g), names, data.shifts)
-    own_ages(runs, names, extra, outs[1:], sim.left_out)
+    own_ages(runs, names, extra, outs[1:], sim.left_out, data.shifts)
     return nominal, outs[1:]
 
 
