@@ -123,6 +123,29 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     assert OnnxModel.load(tmp_path / "e.onnx").predict(X[:3]).shape == (3, 2)
 
 
+def test_the_calibrated_estimator_is_trained_like_the_nominal_one():
+    """Like for like: the calibrated estimator is retrained with the nominal one's recipe, campaign, seed,
+    epochs and ensemble, whatever the caller passes (a study reuses one nominal estimator across cases), so
+    a calibration that changes nothing (an effect at its nominal value) gives back the nominal network."""
+    from types import SimpleNamespace
+
+    from virtsensor.diagnose import _estimators, calibrate
+
+    base = car_parameters()
+    before = calibrate.train(base, preset="tiny", seed=3, max_iter=2, ensemble=2)
+    assert before.recipe["trained_on"] == {"recipe": "improved", "preset": "tiny", "seed": 3}
+    nothing = SimpleNamespace(candidate=SimpleNamespace(cause="vehicle_mass", signal=None, key="vehicle_mass"),
+                              estimate=EFFECTS["vehicle_mass"].nominal)
+    idn = SimpleNamespace(causes=[nothing], unexplained=None)
+    kept, after = _estimators(idn, base, before, preset="smoke", recipe="improved", seed=99, max_iter=50,
+                              ensemble=1, n_jobs=1, log=lambda m: None)
+    assert kept is before and after is not before
+    assert after.recipe["trained_on"] == before.recipe["trained_on"] and after.recipe["ensemble"] == 2
+    assert after.recipe["params"]["max_iter"] == 2 and after.samples == before.samples
+    X = np.random.default_rng(0).normal(size=(50, before.pipeline[0].n_features_in_))
+    assert np.array_equal(after.pipeline.predict(X), before.pipeline.predict(X))
+
+
 @pytest.mark.parametrize("scaler", ["robust", "standard", "minmax"])
 def test_an_input_sensor_error_is_undone_in_the_scaler(scaler, tmp_path):
     """An estimator whose inputs carry an offset and a gain, corrected in its scaler, predicts from the faulty
@@ -724,3 +747,26 @@ def test_a_second_cause_is_judged_by_the_groups_the_first_did_not_fit():
     assert second.group_spread == pytest.approx(0.57) and second.ci95[0] > cands["steering_friction"].nominal
     assert second.significant
     assert not alone.consistent  # a group the first cause does not act on still vetoes
+
+
+def test_pressure_is_searched_only_where_the_tyre_model_tells_it():
+    """The MF 6.1 tyre clips the inflation pressure to its file's PRESMIN..PRESMAX: below 1.5 bar the bundled tyre
+    behaves as at 1.5, so a search down to the catalogue's 1.2 bar met a flat likelihood there and could name any
+    value in it. The search range is the catalogue's within the car's tyre files' valid range (both axles)."""
+    from sim.effects import search_bounds
+    from sim.vehicle import tyre_for
+    from virtsensor.diagnose import identify as idn
+
+    base = car_parameters()
+    tp = tyre_for(base).params
+    lo, hi = search_bounds("tyre_pressure", base)
+    assert lo == pytest.approx(max(EFFECTS["tyre_pressure"].bounds[0], tp["PRESMIN"] / 1e5))
+    assert hi == pytest.approx(min(EFFECTS["tyre_pressure"].bounds[1], tp["PRESMAX"] / 1e5))
+    assert lo > EFFECTS["tyre_pressure"].bounds[0]  # (the bundled tyre's 1.5 bar cuts the catalogue's 1.2)
+    cand = next(c for c in idn.candidates(base) if c.cause == "tyre_pressure")
+    assert cand.bounds == (lo, hi)
+    # another tyre on the front axle only (valid from 2.0 bar): the range is what both axles can represent
+    front = with_effect(base, "tyre_pressure", 2.2)
+    front = {**front, "tyres": {**front["tyres"], "file_front": "tyres/mf61_255_55R20.tir"}}
+    assert search_bounds("tyre_pressure", front)[0] == pytest.approx(tyre_for(front, "front").params["PRESMIN"] / 1e5)
+    assert search_bounds("vehicle_mass", base) == EFFECTS["vehicle_mass"].bounds
