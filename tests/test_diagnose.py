@@ -123,6 +123,29 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     assert OnnxModel.load(tmp_path / "e.onnx").predict(X[:3]).shape == (3, 2)
 
 
+def test_the_calibrated_estimator_is_trained_like_the_nominal_one():
+    """Like for like: the calibrated estimator is retrained with the nominal one's recipe, campaign, seed,
+    epochs and ensemble, whatever the caller passes (a study reuses one nominal estimator across cases), so
+    a calibration that changes nothing (an effect at its nominal value) gives back the nominal network."""
+    from types import SimpleNamespace
+
+    from virtsensor.diagnose import _estimators, calibrate
+
+    base = car_parameters()
+    before = calibrate.train(base, preset="tiny", seed=3, max_iter=2, ensemble=2)
+    assert before.recipe["trained_on"] == {"recipe": "improved", "preset": "tiny", "seed": 3}
+    nothing = SimpleNamespace(candidate=SimpleNamespace(cause="vehicle_mass", signal=None, key="vehicle_mass"),
+                              estimate=EFFECTS["vehicle_mass"].nominal)
+    idn = SimpleNamespace(causes=[nothing], unexplained=None)
+    kept, after = _estimators(idn, base, before, preset="smoke", recipe="improved", seed=99, max_iter=50,
+                              ensemble=1, n_jobs=1, log=lambda m: None)
+    assert kept is before and after is not before
+    assert after.recipe["trained_on"] == before.recipe["trained_on"] and after.recipe["ensemble"] == 2
+    assert after.recipe["params"]["max_iter"] == 2 and after.samples == before.samples
+    X = np.random.default_rng(0).normal(size=(50, before.pipeline[0].n_features_in_))
+    assert np.array_equal(after.pipeline.predict(X), before.pipeline.predict(X))
+
+
 @pytest.mark.parametrize("scaler", ["robust", "standard", "minmax"])
 def test_an_input_sensor_error_is_undone_in_the_scaler(scaler, tmp_path):
     """An estimator whose inputs carry an offset and a gain, corrected in its scaler, predicts from the faulty
@@ -252,7 +275,7 @@ def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch,
             w[1:] *= np.sqrt(1 - rho**2)
             table[s] = lfilter([1.0], [1.0, -rho], w)  # e[i] = rho e[i-1] + w[i]
         table["ay_mps2"] = table["ay_mps2"] + true
-        res = idn.identify([MeasuredRun("r", Path("r.csv"), table, [Segment(0, n)])], {}, names)
+        res = idn.identify([MeasuredRun("r", Path("r.csv"), table, [Segment(0, n)])], car_parameters(), names)
         assert res.cause == "sensor_offset" and res.best.candidate.signal == "ay_mps2", seed
         assert res.n_eff_factor == pytest.approx((1 - rho) / (1 + rho), abs=0.1)
         lo, hi = res.best.ci95
@@ -657,10 +680,123 @@ def test_the_message_ages_are_profiled_out_of_each_hypothesis(tmp_path):
     sim = Sim(runs, car_parameters(), names, [{"mu": 1.0} for _ in runs], n_jobs=1)
     nominal, (true, delay) = _simulate_nominal(data, sim, lambda msg: None, [
         Hypothesis("relaxation_length", 0.45), Hypothesis("sensor_delay", 0.05, "vx_mps")])
-    assert nominal[0][0]["shifts"] == data.shifts
+    assert nominal[0][0].get("ages", data.shifts) == data.shifts
     # a sensor delay is its message's age under another name: it keeps the nominal car's ages
-    assert all(item["shifts"] == data.shifts for run in delay for item in run)
+    assert all(item["ages"] == data.shifts for run in delay for item in run)
     f_nominal = data.m2ll(data.rss(nominal))
     f_true = data.m2ll(data.rss(true))
     rho = data.rho(true)
-    assert (1 - rho) / (1 + rho) * (f_nominal - f_true) > 10.0, (f_nominal, f_true, true[0][0]["shifts"], data.shifts)
+    assert (1 - rho) / (1 + rho) * (f_nominal - f_true) > 10.0, (f_nominal, f_true, true[0][0]["ages"], data.shifts)
+
+
+def test_each_hypothesis_is_compared_at_its_own_reading_ages():
+    """The CAN reading ages are a nuisance of the comparison: a hypothesis whose re-simulation runs 10 ms ahead of
+    the nominal car's (a steering friction's lag taken out, say) is compared at the ages that fit it, not at the
+    nominal car's, which absorbed the difference. A hypothesis re-simulated on some runs only (a per-run friction
+    grid) keeps the day's ages; a run left out of the comparison does not move them."""
+    from pathlib import Path
+
+    from virtsensor.diagnose.identify import own_ages
+    from virtsensor.diagnose.resim import Hypothesis, predicted
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    n, names, age = 200, ("ay_mps2", "yaw_rate_radps"), 0.005
+    times = np.arange(n) * cat.TABLE_TICK_S
+    t = np.arange(0.0, times[-1] + 0.2, 0.001)
+
+    def f(x):
+        return {"ay_mps2": 4.0 * np.sin(2.1 * x) + np.sin(7.0 * x), "yaw_rate_radps": 0.2 * np.sin(2.1 * x)}
+
+    def run(i, delay=0.0):  # measured: the car read ``age`` old (plus a left-out run's own timing)
+        return MeasuredRun(f"r{i}", Path(f"r{i}.csv"), {"time_s": times, **f(times - age - delay)}, [Segment(0, n)])
+
+    runs = [run(0), run(1), run(2, delay=0.008)]
+    day = {"IMU_Motion": age + 0.01}  # the nominal car's ages: its re-simulation ran 10 ms late
+
+    def out():  # a hypothesis' re-simulation: on time; its predictions at the day's ages
+        streams = f(t)
+        return [[{"t": t, "streams": streams, "pred": predicted(t, streams, times, names, day)}] for _ in runs]
+
+    whole, some = out(), out()
+    own_ages(runs, names, [Hypothesis("steering_friction", 3.0), Hypothesis(only=(0,))], [whole, some],
+             left_out=frozenset({2}))
+    assert whole[0][0]["ages"]["IMU_Motion"] == pytest.approx(age, abs=1.3e-3)
+    for r in (0, 1):
+        e = runs[r].table["ay_mps2"] - whole[r][0]["pred"]["ay_mps2"]
+        e_day = runs[r].table["ay_mps2"] - some[r][0]["pred"]["ay_mps2"]
+        assert np.sqrt(np.mean(e * e)) < 0.2 * np.sqrt(np.mean(e_day * e_day))
+    assert "ages" not in some[0][0] and np.array_equal(some[0][0]["pred"]["ay_mps2"],
+                                                       predicted(t, f(t), times, names, day)["ay_mps2"])
+
+
+@pytest.mark.parametrize(("motion_runs", "consistent"), [
+    ((0.4, 0.6, 0.8, 4.6, 0.9), True),    # the motion's view moves from run to run: the re-simulation's error
+    ((1.45, 1.5, 1.4, 1.55, 1.45), False),  # every run's motion sees no friction: a real disagreement
+])
+def test_a_group_vetoes_only_beyond_its_own_run_to_run_scatter(motion_runs, consistent):
+    """A steering friction of 3.4 Nm seen by the steering torques on every run alike; the car's motion puts it
+    near nominal (1.4) overall. When the motion's own estimate scatters from run to run (leave-one-run-out), its
+    disagreement is the re-simulation's model error on the motion, not evidence against the friction; when every
+    run agrees on it, the group vetoes."""
+    from virtsensor.diagnose import identify as idn
+
+    c = next(c for c in idn.candidates() if c.key == "steering_friction")
+    x = np.array([0.2, 1.4, 2.4, 3.4, 4.4])
+    steering = np.array([[200.0 * (v - 3.4) ** 2 for _ in range(5)] for v in x])
+    motion = np.array([[30.0 * (v - m) ** 2 for m in motion_runs] for v in x])
+    fit = idn.Fit(c, 3.4, 0.0, 2000.0, {}, ci95=(2.9, 3.9))
+    fit.groups = {g: {"points": list(zip(x.tolist(), m.sum(axis=1).tolist(), strict=True)), "folds": (x, m)}
+                  for g, m in (("steering", steering), ("motion", motion))}
+    idn._consistency(fit, 1.0)
+    assert fit.groups["motion"]["informative"] and fit.groups["steering"]["agrees"]
+    assert fit.consistent is consistent, fit.groups
+    assert "folds" not in fit.groups["motion"] and "points" not in fit.groups["motion"]
+
+
+def test_a_second_cause_is_judged_by_the_groups_the_first_did_not_fit():
+    """A tyre pressure named first, fitted on the car's motion and the SATs; a steering friction over it: the motion,
+    whose pressure absorbed part of the friction's effect, puts the friction near nominal on every run. That group
+    neither vetoes the friction nor widens its interval; the steering torques, which the pressure does not move,
+    still judge it."""
+    from virtsensor.diagnose import identify as idn
+
+    cands = {c.key: c for c in idn.candidates()}
+    first = idn.Fit(cands["tyre_pressure"], 2.68, 0.0, 1.0, {})
+    first.groups = {"motion": {"informative": True}, "tyre_moments": {"informative": True},
+                    "steering": {"informative": False}}
+    second = idn.Fit(cands["steering_friction"], 4.4, 0.0, 1.0, {}, bic_gain=1200.0)
+    second.half_stat = 0.6
+    second.groups = {"motion": {"informative": True, "estimate": 1.43, "agrees": False},
+                     "steering": {"informative": True, "estimate": 4.97, "agrees": True}}
+    alone = idn.Fit(cands["steering_friction"], 4.4, 0.0, 1.0, {}, bic_gain=1200.0)
+    alone.half_stat = 0.6
+    alone.groups = {"motion": {"informative": True, "estimate": 1.43, "agrees": False},
+                    "steering": {"informative": True, "estimate": 1.5, "agrees": False}}
+    idn._confounded_with_first(first, [second, alone])
+    assert second.consistent and second.groups["motion"]["confounded_with_first"]
+    assert second.group_spread == pytest.approx(0.57) and second.ci95[0] > cands["steering_friction"].nominal
+    assert second.significant
+    assert not alone.consistent  # a group the first cause does not act on still vetoes
+
+
+def test_pressure_is_searched_only_where_the_tyre_model_tells_it():
+    """The MF 6.1 tyre clips the inflation pressure to its file's PRESMIN..PRESMAX: below 1.5 bar the bundled tyre
+    behaves as at 1.5, so a search down to the catalogue's 1.2 bar met a flat likelihood there and could name any
+    value in it. The search range is the catalogue's within the car's tyre files' valid range (both axles)."""
+    from sim.effects import search_bounds
+    from sim.vehicle import tyre_for
+    from virtsensor.diagnose import identify as idn
+
+    base = car_parameters()
+    tp = tyre_for(base).params
+    lo, hi = search_bounds("tyre_pressure", base)
+    assert lo == pytest.approx(max(EFFECTS["tyre_pressure"].bounds[0], tp["PRESMIN"] / 1e5))
+    assert hi == pytest.approx(min(EFFECTS["tyre_pressure"].bounds[1], tp["PRESMAX"] / 1e5))
+    assert lo > EFFECTS["tyre_pressure"].bounds[0]  # (the bundled tyre's 1.5 bar cuts the catalogue's 1.2)
+    cand = next(c for c in idn.candidates(base) if c.cause == "tyre_pressure")
+    assert cand.bounds == (lo, hi)
+    # another tyre on the front axle only (valid from 2.0 bar): the range is what both axles can represent
+    front = with_effect(base, "tyre_pressure", 2.2)
+    front = {**front, "tyres": {**front["tyres"], "file_front": "tyres/mf61_255_55R20.tir"}}
+    assert search_bounds("tyre_pressure", front)[0] == pytest.approx(tyre_for(front, "front").params["PRESMIN"] / 1e5)
+    assert search_bounds("vehicle_mass", base) == EFFECTS["vehicle_mass"].bounds

@@ -52,10 +52,12 @@ def diagnose(
         conditions: each run's :class:`~virtsensor.diagnose.conditions.RunConditions` (None: none stated).
         backend: where the re-simulations run (``loky`` or ``ray``, :mod:`virtsensor.diagnose.parallel`).
         preset, recipe, seed, max_iter, ensemble: the training campaign and estimator
-            recipe used before and after the calibration (``ensemble`` networks averaged).
+            recipe of the nominal estimator (``ensemble`` networks averaged); the calibrated one is always
+            trained exactly like the nominal one (:func:`~virtsensor.diagnose.calibrate.retrain_like`).
         retrain: calibrate and retrain (False: diagnosis only).
         before: an already trained nominal :class:`~virtsensor.diagnose.calibrate.Estimator`
-            (studies reuse it across cases).
+            (studies reuse it across cases); the calibrated one is trained like it, whatever
+            ``preset``, ``seed``... say.
 
     Returns:
         ``(result, artefacts)``: the JSON-able result (what ``diagnose --json`` writes) and the
@@ -147,7 +149,9 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
     delay, which cannot be undone in real time) needs the estimator retrained on the simulator calibrated with
     it. A day with only input offsets and gains keeps the nominal network, its inputs corrected (no retraining:
     the same network, so the gain is the correction's alone); otherwise the network retrained on the simulator
-    with the other causes, its inputs corrected for the offsets and gains."""
+    with the other causes, its inputs corrected for the offsets and gains. The retraining repeats the nominal
+    estimator's own (recipe, campaign, seed, epochs, ensemble: :func:`calibrate.retrain_like`), so that the
+    difference between the two is the calibration's alone, also when ``before`` was trained elsewhere."""
     from sim.effects import with_effect
     from virtsensor.diagnose import calibrate
 
@@ -168,8 +172,7 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
             log(f"calibrating the simulator ({c.key} = {f.estimate:.4g})")
             cal = with_effect(cal, c.cause, f.estimate, c.signal)
         log("retraining on the calibrated simulator")
-        after = calibrate.train(cal, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
-                                ensemble=ensemble)
+        after = calibrate.retrain_like(before, cal, n_jobs=n_jobs)
         after.recipe["retrained_with"] = {f.candidate.key: f.estimate for f in retrain}
     if at_input:
         errors = [_sensor_error(f) for f in at_input]

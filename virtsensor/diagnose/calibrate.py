@@ -73,7 +73,19 @@ def train(params: Mapping[str, Any], *, preset: str = "smoke", recipe: str = "im
             model.fit(ds.X, ds.Y)
         members.append(model)
     rec["ensemble"] = len(members)
+    rec["trained_on"] = {"recipe": recipe, "preset": preset, "seed": int(seed)}
     return Estimator(merge_ensemble(members), rec, ds.fingerprint(), len(ds.Y))
+
+
+def retrain_like(est: Estimator, params: Mapping[str, Any], *, n_jobs: int = 1) -> Estimator:
+    """``est``'s training (:func:`train`: recipe, campaign preset, seed, epochs, ensemble size) redone on the
+    simulator ``params``: the same recipe, the same runs' randomness and the same initial weights, so that
+    the two estimators differ by the simulator alone (like for like). ``est`` must come from :func:`train`."""
+    on = est.recipe.get("trained_on")
+    if on is None:
+        raise ValueError("the estimator does not say how it was trained (not from calibrate.train)")
+    return train(params, preset=on["preset"], recipe=on["recipe"], seed=on["seed"], n_jobs=n_jobs,
+                 max_iter=int(est.recipe["params"]["max_iter"]), ensemble=int(est.recipe["ensemble"]))
 
 
 def merge_ensemble(pipelines: Sequence[Any]) -> Any:

@@ -195,10 +195,10 @@ def align(runs: Sequence[MeasuredRun], nominal: Sequence[Sequence[Mapping[str, A
     whole day (one age for every run, whatever its speed), on a re-simulation ``nominal``
     (all the message's signals together), within +-1 cycle: far less than the sensor delays
     the diagnosis looks for. ``masks``: the rows compared per signal, run and segment
-    (default: :func:`segment_mask`). The diagnosis profiles the ages out of every
-    hypothesis of the whole day (re-estimated on each one's re-simulation): ages fixed on the
-    nominal car absorb part of a physical lag (a relaxation length's, sigma / v) and then
-    count against the hypothesis that explains it."""
+    (default: :func:`segment_mask`). The diagnosis estimates them again on each whole-day
+    hypothesis of the car's physics (:func:`virtsensor.diagnose.identify.own_ages`): ages fixed
+    on the nominal car absorb part of a physical lag (a relaxation length's, sigma / v) and
+    then count against the hypothesis that explains it."""
     out: dict[str, float] = {}
     by_msg: dict[str, list[str]] = {}
     for n in names:
