@@ -118,24 +118,6 @@ EFFECTS: dict[str, Effect] = {
 }
 
 
-def search_bounds(cause: str, params: Mapping[str, Any]) -> tuple[float, float]:
-    """The range (the effect's unit) over which ``cause`` is searched on the car ``params``: the catalogue's
-    ``bounds``, narrowed for ``tyre_pressure`` to what both axles' tyre property files can represent (bar,
-    their PRESMIN..PRESMAX: the MF 6.1 model clips the pressure there, so every value beyond looks the same and
-    an estimate or interval out there would be arbitrary)."""
-    lo, hi = EFFECTS[cause].bounds
-    if cause == "tyre_pressure":
-        from sim.vehicle import tyre_for
-
-        for axle in ("front", "rear"):
-            tp = tyre_for(params, axle).params
-            lo = max(lo, float(tp.get("PRESMIN", 0.0)) / 1e5)
-            hi = min(hi, float(tp.get("PRESMAX", np.inf)) / 1e5)
-        if not lo < hi:
-            raise ValueError(f"the tyre files' valid pressure range misses {EFFECTS[cause].bounds} bar")
-    return float(lo), float(hi)
-
-
 def offset_floor(signal: str) -> float:
     """Smallest offset of ``signal`` that matters (a third of the smallest realistic one)."""
     return OFFSET_RANGE[signal][0] / 3.0

@@ -777,26 +777,3 @@ def test_a_second_cause_is_judged_by_the_groups_the_first_did_not_fit():
     assert second.group_spread == pytest.approx(0.57) and second.ci95[0] > cands["steering_friction"].nominal
     assert second.significant
     assert not alone.consistent  # a group the first cause does not act on still vetoes
-
-
-def test_pressure_is_searched_only_where_the_tyre_model_tells_it():
-    """The MF 6.1 tyre clips the inflation pressure to its file's PRESMIN..PRESMAX: below 1.5 bar the bundled tyre
-    behaves as at 1.5, so a search down to the catalogue's 1.2 bar met a flat likelihood there and could name any
-    value in it. The search range is the catalogue's within the car's tyre files' valid range (both axles)."""
-    from sim.effects import search_bounds
-    from sim.vehicle import tyre_for
-    from virtsensor.diagnose import identify as idn
-
-    base = car_parameters()
-    tp = tyre_for(base).params
-    lo, hi = search_bounds("tyre_pressure", base)
-    assert lo == pytest.approx(max(EFFECTS["tyre_pressure"].bounds[0], tp["PRESMIN"] / 1e5))
-    assert hi == pytest.approx(min(EFFECTS["tyre_pressure"].bounds[1], tp["PRESMAX"] / 1e5))
-    assert lo > EFFECTS["tyre_pressure"].bounds[0]  # (the bundled tyre's 1.5 bar cuts the catalogue's 1.2)
-    cand = next(c for c in idn.candidates(base) if c.cause == "tyre_pressure")
-    assert cand.bounds == (lo, hi)
-    # another tyre on the front axle only (valid from 2.0 bar): the range is what both axles can represent
-    front = with_effect(base, "tyre_pressure", 2.2)
-    front = {**front, "tyres": {**front["tyres"], "file_front": "tyres/mf61_255_55R20.tir"}}
-    assert search_bounds("tyre_pressure", front)[0] == pytest.approx(tyre_for(front, "front").params["PRESMIN"] / 1e5)
-    assert search_bounds("vehicle_mass", base) == EFFECTS["vehicle_mass"].bounds

@@ -67,7 +67,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from sim.effects import CAUSES, DRIVE_SIGNALS, EFFECTS, OFFSET_RANGE, SENSOR_SIGNALS, offset_floor, search_bounds
+from sim.effects import CAUSES, DRIVE_SIGNALS, EFFECTS, OFFSET_RANGE, SENSOR_SIGNALS, offset_floor
 from virtsensor import signals as cat
 from virtsensor.diagnose.resim import (
     NOMINAL,
@@ -121,16 +121,14 @@ class Candidate:
         return Hypothesis(self.cause, float(value), self.signal)
 
 
-def candidates(base: Mapping[str, Any] | None = None) -> list[Candidate]:
-    """Every candidate of the catalogue (sensor effects on each of the 12 inputs); with the car ``base``, the
-    physical ones searched over what its models can represent (:func:`sim.effects.search_bounds`)."""
+def candidates() -> list[Candidate]:
+    """Every candidate of the catalogue (sensor effects on each of the 12 inputs)."""
     out = []
     for cause in PHYSICAL:
         e = EFFECTS[cause]
         step = 0.5 * (e.hidden[0] + e.hidden[1])
         log = cause == "relaxation_length"
-        bounds = e.bounds if base is None else search_bounds(cause, base)
-        out.append(Candidate(cause, None, e.nominal, bounds, np.log(1.0 + step) if log else step, e.floor, log))
+        out.append(Candidate(cause, None, e.nominal, e.bounds, np.log(1.0 + step) if log else step, e.floor, log))
     o, g, d = EFFECTS["sensor_offset"], EFFECTS["sensor_gain"], EFFECTS["sensor_delay"]
     for s in SENSOR_SIGNALS:
         lo, hi = OFFSET_RANGE[s]
@@ -522,7 +520,7 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     sim = Sim(runs, base, names, nuisance.initial_day(conds), n_jobs=n_jobs, backend=backend)
     # road friction is a day-wide scale of known frictions: not identifiable when every run's is unknown
     known_mu = any(rc.exact("mu") is not None for rc in conds)
-    cands = [c for c in candidates(base) if known_mu or c.cause != "road_friction"]
+    cands = [c for c in candidates() if known_mu or c.cause != "road_friction"]
     per_run: list[dict[str, Any]] = []
     if any(rc.unknown() for rc in conds):
         # the nominal car and the per-run grids in one batch; then the day's cause at the identified values
