@@ -211,6 +211,17 @@ def test_metrics_lead_and_false_warnings():
     assert none["warning_lead_s"] is None and gs.pool([none])["warning_lead_s_median"] is None
 
 
+def test_pool_counts_the_limits_warned_by_the_time_they_are_reached():
+    """``limit_warned_share``: of the runs that reach the limit, those warned by then (a lead >= 0); runs that never
+    reach it do not count."""
+    t = np.arange(200) * 0.05
+    u = np.where(t < 5.0, 0.3, 0.97)
+    early, late = (gs.grip_metrics(t, u, np.full(200, 0.5), np.full(200, np.nan), t >= t0) for t0 in (4.5, 6.0))
+    calm = gs.grip_metrics(t, np.full(200, 0.3), np.full(200, 0.5), np.full(200, np.nan), np.zeros(200, bool))
+    assert gs.pool([early, late, calm])["limit_warned_share"] == pytest.approx(0.5)
+    assert gs.pool([early, early])["limit_warned_share"] == 1.0 and gs.pool([calm])["limit_warned_share"] is None
+
+
 def test_lead_metric_cannot_be_gamed_by_a_held_warning_and_always_on_is_false():
     """A warning kept on through calm driving earns no lead for it (counted from the end of the latest calm second
     within the episode); an always-on warning is a false warning in every calm run; a limit the run starts in is

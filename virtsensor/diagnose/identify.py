@@ -228,10 +228,6 @@ class Data:
         self.n = {k: len(v) for k, v in self.meas.items()}
         self.fold, self.n_folds = self._folds()  # a run left out is a fold without rows
 
-    def shift(self, name: str) -> float:
-        """Reading age (s) of ``name``'s CAN message (see :func:`virtsensor.diagnose.resim.align`)."""
-        return self.shifts.get(str(cat.SIGNALS[name].message), 0.0)
-
     def stack(self, sims: Sequence[Sequence[Mapping[str, Any]]], name: str,
               override: Any = None) -> np.ndarray:
         """Predicted ``name`` on the compared rows (``override(item, run, seg)`` replaces the prediction)."""
@@ -791,7 +787,7 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
     pool = [c for c in cands if c.key in keys]
     if not pool:
         return [], best_sims
-    log(f"second stage over {c1.key} = {chosen.estimate:.4g}: {len(keys)} candidates")
+    log(f"second stage over {c1.key} = {chosen.estimate:.4g}: {len(pool)} candidates")
     saved = sim.background
     # over the first cause at the value whose re-simulation stands for it (its estimate for exact fits);
     # re-simulated with the screening when there is one, else its simulations as they are
