@@ -118,6 +118,20 @@ EFFECTS: dict[str, Effect] = {
 }
 
 
+def responding_range(cause: str, params: Mapping[str, Any]) -> tuple[float, float]:
+    """The values of ``cause`` (its unit) that the simulator of the car ``params`` tells apart: a value beyond
+    either end re-simulates exactly as that end. MF 6.1 clips the inflation pressure to the tyre property file's
+    PRESMIN..PRESMAX, so the tyre pressure's range is its tyres' (in bar; the union of the two axles' when they
+    differ, since the pressure is set on all four). Every other cause: the whole line."""
+    if cause != "tyre_pressure":
+        return (-np.inf, np.inf)
+    from sim.vehicle import tyre_for
+
+    ps = [tyre_for(params, axle).params for axle in ("front", "rear")]
+    lo, hi = min(p["PRESMIN"] for p in ps), max(p["PRESMAX"] for p in ps)
+    return (float(lo) / 1e5 if lo > 0 else -np.inf, float(hi) / 1e5 if np.isfinite(hi) and hi > 0 else np.inf)
+
+
 def offset_floor(signal: str) -> float:
     """Smallest offset of ``signal`` that matters (a third of the smallest realistic one)."""
     return OFFSET_RANGE[signal][0] / 3.0

@@ -8,6 +8,7 @@ overrides) and give the diagnosis only the files; a control car has no effect.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -777,3 +778,37 @@ def test_a_second_cause_is_judged_by_the_groups_the_first_did_not_fit():
     assert second.group_spread == pytest.approx(0.57) and second.ci95[0] > cands["steering_friction"].nominal
     assert second.significant
     assert not alone.consistent  # a group the first cause does not act on still vetoes
+
+
+def test_an_estimate_beyond_the_range_the_simulator_responds_in_is_its_end_with_a_one_sided_interval():
+    """MF 6.1 clips the pressure to the tyre file's PRESMIN..PRESMAX (1.5..3.5 bar for the bundled tyre): below
+    1.5 bar every value re-simulates the day alike, so a parabola's vertex there (study case 25: 1.30 bar, 1.05 ..
+    1.54, for a truth of 1.55) is no estimate. The estimate becomes 1.5 and the interval runs from the search's
+    lower bound to 1.5 plus the half-width; inside the range nothing changes, and a group's own estimate in the flat
+    stretch counts as the range's end."""
+    from sim.params import load_defaults
+    from virtsensor.diagnose import identify as idn
+
+    base = next(c for c in idn.candidates() if c.key == "tyre_pressure")
+    c = replace(base, responds=idn.responding_range("tyre_pressure", load_defaults()))
+    assert c.responds == pytest.approx((1.5, 3.5))
+    rss = {"ay_mps2": 1.0}
+    low = idn.Fit(c, 1.296, 0.0, 300.0, dict(rss))
+    idn._score(low, 400.0, rss, 1.0, 10_000)
+    w = float(np.hypot(low.half_stat, idn.model_error(c, 1.5)))
+    assert low.estimate == 1.5 and low.ci95 == pytest.approx((c.bounds[0], 1.5 + w))
+    assert low.ci95[0] <= 1.55 <= low.ci95[1] and low.significant  # (nominal 2.2 lies outside)
+    inside = idn.Fit(c, 2.0, 0.0, 300.0, dict(rss))
+    idn._score(inside, 400.0, rss, 1.0, 10_000)
+    w = float(np.hypot(inside.half_stat, idn.model_error(c, 2.0)))
+    assert inside.estimate == 2.0 and inside.ci95 == pytest.approx((2.0 - w, 2.0 + w))
+    unclipped = idn.Fit(base, 1.296, 0.0, 300.0, dict(rss))  # the catalogue's candidate knows no model range
+    idn._score(unclipped, 400.0, rss, 1.0, 10_000)
+    w = float(np.hypot(unclipped.half_stat, idn.model_error(base, 1.296)))
+    assert unclipped.estimate == 1.296 and unclipped.ci95 == pytest.approx((1.296 - w, 1.296 + w))
+    x = np.array([1.2, 1.3, 1.4, 1.6, 2.2])  # a group flat below 1.5: its best value is the range's end
+    grp = idn.Fit(c, 1.5, 0.0, 300.0, dict(rss), ci95=(1.2, 1.7), half_stat=0.1)
+    y = np.array([0.0, -1.0, 0.0, 30.0, 400.0])
+    grp.groups = {"tyre_moments": {"points": list(zip(x.tolist(), y.tolist(), strict=True))}}
+    idn._consistency(grp, 1.0)
+    assert grp.groups["tyre_moments"]["estimate"] == 1.5 and grp.group_spread == 0.0

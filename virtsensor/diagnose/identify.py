@@ -61,13 +61,13 @@ The answer, in stages:
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from sim.effects import CAUSES, DRIVE_SIGNALS, EFFECTS, OFFSET_RANGE, SENSOR_SIGNALS, offset_floor
+from sim.effects import CAUSES, DRIVE_SIGNALS, EFFECTS, OFFSET_RANGE, SENSOR_SIGNALS, offset_floor, responding_range
 from virtsensor import signals as cat
 from virtsensor.diagnose.resim import (
     NOMINAL,
@@ -108,6 +108,9 @@ class Candidate:
     step: float
     floor: float
     log: bool = False  # search in ln(value)
+    #: the values the simulator tells apart (:func:`sim.effects.responding_range`): beyond them it re-simulates
+    #: the day as at the range's end
+    responds: tuple[float, float] = (-np.inf, np.inf)
 
     @property
     def key(self) -> str:
@@ -156,6 +159,7 @@ class Fit:
     significant: bool = False
     sim_value: float | None = None    # the simulated value whose re-simulation stands for the fit
     half_stat: float = float("nan")   # the interval's statistical half-width (before the model error)
+    half_width: float = float("nan")  # ... with the model error (before the groups' spread; nan: none computed)
     group_spread: float = 0.0         # largest distance of a signal group's own estimate from the estimate
     groups: dict[str, Any] = field(default_factory=dict)  # per signal group: its own estimate (sim-based fits)
     consistent: bool = True
@@ -516,7 +520,8 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     sim = Sim(runs, base, names, nuisance.initial_day(conds), n_jobs=n_jobs, backend=backend)
     # road friction is a day-wide scale of known frictions: not identifiable when every run's is unknown
     known_mu = any(rc.exact("mu") is not None for rc in conds)
-    cands = [c for c in candidates() if known_mu or c.cause != "road_friction"]
+    cands = [replace(c, responds=responding_range(c.cause, base)) for c in candidates()
+             if known_mu or c.cause != "road_friction"]
     per_run: list[dict[str, Any]] = []
     if any(rc.unknown() for rc in conds):
         # the nominal car and the per-run grids in one batch; then the day's cause at the identified values
@@ -1145,7 +1150,8 @@ def _consistency(f: Fit, feff: float) -> None:
     if not f.groups or not np.all(np.isfinite(f.ci95)):
         return
     c = f.candidate
-    half = 0.5 * (f.ci95[1] - f.ci95[0])
+    half = f.half_width if np.isfinite(f.half_width) else 0.5 * (f.ci95[1] - f.ci95[0])
+    lo_r, hi_r = c.responds
     ok = True
     ranges = {g: np.ptp([p[1] for p in i.get("points", [])]) * feff if len(i.get("points", [])) else 0.0
               for g, i in f.groups.items()}
@@ -1166,6 +1172,7 @@ def _consistency(f: Fit, feff: float) -> None:
             if curv > 0:
                 v = float(np.clip(vx, x[i - 1], x[i + 1]))
                 stat = 1.96 * np.sqrt(2.0 / (feff * curv))
+        v = min(max(v, lo_r), hi_r)  # (beyond the responding range every value is its end)
         jack = _jackknife(*folds) if folds is not None else 0.0
         h = float(np.sqrt(stat * stat + model_error(c, v) ** 2 + jack * jack))
         info.update(estimate=v, half_width=h, half_width_runs=jack)
@@ -1182,8 +1189,20 @@ def _widen(f: Fit, half: float, skip: frozenset[str] = frozenset()) -> None:
     spread = max((abs(i["estimate"] - f.estimate) for g, i in f.groups.items()
                   if i.get("informative") and g not in skip), default=0.0)
     f.group_spread = float(spread)
-    w = float(np.hypot(half, spread))
-    f.ci95 = (float(f.estimate - w), float(f.estimate + w))
+    _set_interval(f, float(np.hypot(half, spread)))
+
+
+def _set_interval(f: Fit, w: float) -> None:
+    """The fit's 95 % interval: its estimate +- ``w``, but where that reaches beyond the range the simulator
+    responds in (:attr:`Candidate.responds`), on to the search's bound on that side: every value beyond the
+    range re-simulates the day as the range's end, so none of them can be told from it (a one-sided interval).
+    An estimate beyond the range (the vertex of a parabola through a flat stretch, which no data placed there)
+    becomes the range's end first."""
+    c = f.candidate
+    lo, hi = c.responds
+    f.estimate = float(min(max(f.estimate, lo), hi))
+    a, b = f.estimate - w, f.estimate + w
+    f.ci95 = (float(c.bounds[0] if a < lo else a), float(c.bounds[1] if b > hi else b))
 
 
 def _contradicts(c: Candidate, f: Fit, v: float, h: float) -> bool:
@@ -1301,10 +1320,11 @@ def _score(f: Fit, f0: float, rss0: Mapping[str, float], feff: float, n_tot: int
     f.bic_gain = float(feff * delta - penalty)
     f.variance_explained = float(1.0 - np.exp(-delta / n_tot))
     f.per_signal = {k: float(1.0 - f.rss[k] / rss0[k]) if rss0[k] > 0 else 0.0 for k in rss0}
+    f.estimate = float(min(max(f.estimate, c.responds[0]), c.responds[1]))  # (see _set_interval)
     if f.curvature > 0:
         f.half_stat = float(1.96 * np.sqrt(2.0 / (feff * f.curvature)))
-        half = float(np.hypot(f.half_stat, model_error(c, f.estimate)))
-        f.ci95 = (float(f.estimate - half), float(f.estimate + half))
+        f.half_width = float(np.hypot(f.half_stat, model_error(c, f.estimate)))
+        _set_interval(f, f.half_width)
     else:
         f.ci95 = (float("-inf"), float("inf"))
     _consistency(f, feff)
