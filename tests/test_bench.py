@@ -102,6 +102,13 @@ def test_bench_quick_json_complete_and_sane(tiny_model, tmp_path):
     assert r["machine"]["python"] and r["machine"]["platform"] and r["machine"]["cores"] >= 1
     assert r["model"]["file"] == str(tiny_model) and len(r["model"]["sha256"]) == 64
     assert set(r["targets"]) >= {"tick_compute_p99_us", "e2e_in_process_p99_us", "max_tick_rate_hz"}
+    fc = r["feature_cost"]
+    assert set(fc["max_tick_rate_hz"]) == set(fc["tick_only_hz"]) == {
+        "all", "without_grip", "without_envelope", "without_plausibility", "without_all"}
+    assert all(v > 20 for v in (*fc["max_tick_rate_hz"].values(), *fc["tick_only_hz"].values()))
+    assert set(fc["cost_us_per_tick"]) == {"grip", "envelope", "plausibility", "all"}
+    assert fc["ticks"] == 500 and fc["rounds"] == 1  # the quick counts
+    assert "max tick rate by feature" in md.read_text()
     assert md.read_text().startswith("# virtsensor bench") and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -124,3 +131,37 @@ def test_cross_process_run_takes_any_model_path_without_a_shell(tiny_model, tmp_
         pytest.skip(reason)
     assert res is not None, reason
     assert res["n"] >= 20 and res["p50"] > 0
+
+
+def test_feature_cost_daemons_lack_exactly_what_is_switched_off(tiny_model):
+    """The feature-cost soaks measure real configurations: without grip the daemon publishes no VS_Grip (as with an
+    older DBC) but SAT_FRONT and VS_Health; without the envelope or the redundancy checks those stages answer
+    "inside" and "plausible" and nothing else changes."""
+    from virtsensor.canbus.codec import CanMatrix
+    from virtsensor.daemon.bench import FEATURES, Inputs, _never_implausible, _never_outside, _sync_rig, _without
+    from virtsensor.model.onnx import OnnxModel
+
+    model = OnnxModel.load(tiny_model)
+    full = CanMatrix.load()
+    inputs = Inputs()
+    ids = {n: full.messages[n].frame_id for n in ("SAT_FRONT", "VS_Health", "VS_Grip")}
+    for feats in ((), *((f,) for f in FEATURES), FEATURES):
+        m, hook = _without(full, feats)
+        assert ("VS_Grip" in m.messages) == ("grip" not in feats)
+        _, listener, vs, _ = _sync_rig(model, m, stage_hook=hook)
+        try:
+            for k in range(40):
+                batch, sync = inputs.tick(k)
+                for msg in (*batch, sync):
+                    vs.process(msg)
+            seen = set()
+            while (f := listener.recv(0)) is not None:
+                seen.add(f.arbitration_id)
+            assert ids["SAT_FRONT"] in seen and ids["VS_Health"] in seen
+            assert (ids["VS_Grip"] in seen) == ("grip" not in feats), feats
+            assert vs.counters["ticks"] == 40
+            assert (vs._plaus_update is _never_implausible) == ("plausibility" in feats)
+            assert (vs._outside is _never_outside) == ("envelope" in feats)
+        finally:
+            vs.stop()
+            listener.shutdown()

@@ -27,7 +27,9 @@ Figures (keys of :func:`run_bench`'s result; times in us unless the key says oth
 * ``inference_us``: onnxruntime, the scikit-learn pipeline rebuilt from the card's ``weights`` and the numpy
   forward pass on the same feature vectors (skipped with a reason when the card has no ``weights``);
 * soak: ``soak_ticks`` ticks as fast as possible; ``max_tick_rate_hz`` = ticks / wall time,
-  ``missed_ticks`` = ticks whose SAT_FRONT did not arrive or whose compute exceeded :data:`BUDGET_US`.
+  ``missed_ticks`` = ticks whose SAT_FRONT did not arrive or whose compute exceeded :data:`BUDGET_US`;
+* ``feature_cost``: the max tick rate without each optional feature of the tick (:data:`FEATURES`) and without
+  all of them, and what each costs per tick (:func:`measure_feature_cost`).
 
 Measured figures and the command that makes them: README, "Measured figures".
 """
@@ -65,9 +67,14 @@ MANOEUVRE = ("steering-pulse", 60.0, 1.0, 7)
 
 #: counts of a full run and of ``--quick``
 FULL = {"stage_ticks": 5000, "idle_ticks": 100, "e2e_ticks": 2000, "jitter_s": 10.0, "soak_ticks": 72_000,
-        "xproc_ticks": 400}
+        "xproc_ticks": 400, "cost_ticks": 10_000, "cost_rounds": 3}
 QUICK = {"stage_ticks": 200, "idle_ticks": 10, "e2e_ticks": 100, "jitter_s": 1.5, "soak_ticks": 1_000,
-         "xproc_ticks": 60}
+         "xproc_ticks": 60, "cost_ticks": 500, "cost_rounds": 1}
+#: the tick's optional features (what :func:`measure_feature_cost` switches off): the grip output (VS_Grip; off:
+#: a matrix without VS_Grip, as an older DBC, so the daemon publishes SAT_FRONT and VS_Health only), the model
+#: card's validity envelope (off: as a card that states none) and the redundancy checks (off: as a model whose
+#: inputs include no redundant pair)
+FEATURES = ("grip", "envelope", "plausibility")
 #: sleep before each tick of the after-idle stage run (s): the 20 Hz daemon's time asleep between ticks
 IDLE_S = 0.05
 
@@ -554,10 +561,11 @@ def measure_backends(model: Any, X: np.ndarray, n_max: int) -> dict[str, Any]:
 
 
 def run_soak(model: Any, matrix: Any, inputs: Inputs, n_ticks: int,
-             progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+             progress: Callable[[str], None] | None = None, stage_hook: Any = None) -> dict[str, Any]:
     """``n_ticks`` ticks as fast as possible (sync mode, this thread): compute of every tick, missed ticks,
-    RSS every 1,000 ticks, ticks/s."""
-    _, listener, vs, sat_id = _sync_rig(model, matrix)
+    RSS every 1,000 ticks, ticks/s. ``stage_hook``: passed to the daemon (see :data:`~virtsensor.daemon.sensor.
+    STAGES`; e.g. to replace a stage and measure what it costs)."""
+    _, listener, vs, sat_id = _sync_rig(model, matrix, stage_hook=stage_hook)
     compute = np.empty(n_ticks)
     rss_samples: list[tuple[int, float]] = [(0, rss_mb())]
     sat_seen = 0
@@ -615,6 +623,47 @@ def run_soak(model: Any, matrix: Any, inputs: Inputs, n_ticks: int,
             "rss_mb_range_after_first_1000": round(max(rss[1:]) - min(rss[1:]), 3) if len(rss) > 1 else 0.0,
             "e2e_errors": st.get("e2e_error", 0) + st.get("e2e_wrongsequence", 0) + st.get("e2e_repeated", 0),
             "statuses_at_end": st["statuses"]}
+
+
+def _without(matrix: Any, features: tuple[str, ...]) -> tuple[Any, Any]:
+    """``(matrix, stage_hook)`` of a daemon without ``features`` (names in :data:`FEATURES`)."""
+    from virtsensor.canbus.codec import CanMatrix
+
+    if "grip" in features:
+        matrix = CanMatrix(matrix.db, {k: v for k, v in matrix.messages.items() if k != "VS_Grip"}, matrix.source)
+    off = {"envelope": _never_outside, "plausibility": _never_implausible}
+    off = {k: fn for k, fn in off.items() if k in features}
+    return matrix, (lambda stage, fn: off.get(stage, fn)) if off else None
+
+
+def _never_outside(values: Any, rules: Any) -> bool:
+    return False
+
+
+def _never_implausible(values: Any, stale: Any) -> bool:
+    return False
+
+
+def measure_feature_cost(model: Any, matrix: Any, inputs: Inputs, n_ticks: int, rounds: int) -> dict[str, Any]:
+    """The soak's max tick rate (ticks/s, with the input frames; and of the ticks alone) of the daemon as shipped,
+    without each of :data:`FEATURES` and without all of them (the tick's work before they were added): medians
+    over ``rounds`` interleaved rounds of ``n_ticks`` ticks each, and what each feature costs per tick (us, from
+    the medians: 1/rate without it minus 1/rate with everything)."""
+    configs = {"all": (), **{f"without_{f}": (f,) for f in FEATURES}, "without_all": FEATURES}
+    rates: dict[str, list[tuple[float, float]]] = {k: [] for k in configs}
+    for _ in range(rounds):
+        for name, feats in configs.items():
+            m, hook = _without(matrix, feats)
+            s = run_soak(model, m, inputs, n_ticks, stage_hook=hook)
+            rates[name].append((s["ticks_per_s"], s["ticks_per_s_tick_only"]))
+    out: dict[str, Any] = {"ticks": n_ticks, "rounds": rounds, "max_tick_rate_hz": {}, "tick_only_hz": {}}
+    for name, v in rates.items():
+        out["max_tick_rate_hz"][name] = float(np.median([a for a, _ in v]))
+        out["tick_only_hz"][name] = float(np.median([b for _, b in v]))
+    full = out["max_tick_rate_hz"]["all"]
+    out["cost_us_per_tick"] = {k.removeprefix("without_"): round(1e6 / full - 1e6 / r, 2)
+                               for k, r in out["max_tick_rate_hz"].items() if k != "all"}
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -758,6 +807,8 @@ def _run_bench(model_path: str | os.PathLike | None, *, quick: bool, soak_ticks:
     result["rss_mb_end"] = soak["rss_mb_end"]
     result["rss_mb_process_start"] = round(rss_start, 3)
     result["soak"] = soak
+    say(f"feature cost: {counts['cost_rounds']} x {len(FEATURES) + 2} soaks of {counts['cost_ticks']} ticks")
+    result["feature_cost"] = measure_feature_cost(model, matrix, inputs, counts["cost_ticks"], counts["cost_rounds"])
     result["targets"] = targets(result)
     result["_samples"] = {"tick_compute_us": samples}
     return result
@@ -812,6 +863,17 @@ def _latency_note(r: dict[str, Any]) -> str:
     return f"daemon holding a PM QoS CPU-latency request of {req['us']} us ({idle})"
 
 
+def _cost_line(r: dict[str, Any]) -> str:
+    fc = r.get("feature_cost")
+    if not fc:
+        return "* feature cost: not measured"
+    rate, cost = fc["max_tick_rate_hz"], fc["cost_us_per_tick"]
+    return (f"* max tick rate by feature (medians of {fc['rounds']} interleaved rounds of {fc['ticks']} ticks): "
+            f"{rate['all']:.0f} ticks/s as shipped, " + ", ".join(
+                f"{rate['without_' + k]:.0f} without {k} ({cost[k]:+.1f} us per tick)" for k in FEATURES)
+            + f", {rate['without_all']:.0f} without all three ({cost['all']:+.1f} us)")
+
+
 def write_markdown(r: dict[str, Any], path: str | os.PathLike) -> None:
     m = r["machine"]
     lines = [f"# virtsensor bench{' (quick)' if r.get('quick') else ''}", "",
@@ -846,6 +908,7 @@ def write_markdown(r: dict[str, Any], path: str | os.PathLike) -> None:
               f"* max tick rate: {r['max_tick_rate_hz']:.0f} ticks/s (with {s['frames_per_tick']} input frames "
               f"decoded per tick; {r.get('max_tick_rate_hz_per_cpu_s')} per CPU second); ticks alone: "
               f"{r['max_tick_rate_hz_tick_only']:.0f} ticks/s",
+              _cost_line(r),
               f"* soak: {s['ticks']} ticks in {s['wall_s']} s, missed {s['missed_ticks']} "
               f"(no SAT_FRONT {s['missed_no_sat_front']}, over budget {s['missed_over_budget']}), RSS "
               f"{s['rss_mb_start']:.1f} -> {s['rss_mb_end']:.1f} MB (drift {s['rss_mb_drift']:+.2f} MB)", "",
