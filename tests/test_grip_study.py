@@ -49,3 +49,45 @@ def test_fit_options_are_refused_where_they_do_not_apply(argv, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert "--warning-only" in err[-1] or "--evidence-only" in err[-1]
+
+
+def test_oracle_warning_is_the_perfect_sensor_with_the_estimators_hysteresis():
+    """The bound's perfect sensor: on the tick the true utilisation reaches the threshold (the lead then is the time
+    the truth takes from there to 0.95), earlier by the look-ahead along its rate, off only after the hold below the
+    threshold less 0.1; an onset at 0.7 or above is never a false warning."""
+    t = np.arange(120) * 0.05
+    u = np.clip(0.3 + 0.35 * (t - 1.5), 0.3, 1.0)  # calm 1.5 s, then 0.35 per second: 0.7 at 2.64 s, 0.95 at 3.36 s
+    u = np.where(t < 4.5, u, 0.3)
+    w = study.oracle_warning(u, 0.7, 0.0, 0.5)
+    first = int(np.flatnonzero(w)[0])
+    assert u[first] >= 0.7 > u[first - 1]
+    m = study.gs.grip_metrics(t, u, u, np.full(len(t), np.nan), w)
+    assert m["warning_lead_s"] == pytest.approx(t[np.flatnonzero(u >= 0.95)[0]] - t[first])
+    assert m["false_warnings"] == 0
+    ahead = study.oracle_warning(u, 0.7, 0.3, 0.5)
+    assert np.flatnonzero(ahead)[0] < first and u[np.flatnonzero(ahead)[0]] >= 0.5
+    off = np.flatnonzero(~w & (t > 4.5))[0]  # below 0.6 from 4.5 s: off after the 0.5 s hold
+    assert t[off] == pytest.approx(4.5 + 0.5, abs=0.06)
+
+
+def test_rise_time_to_the_limit():
+    """From the last rise through a level to the first rise through 0.95 after the start-up (None: no limit)."""
+    t = np.arange(100) * 0.05
+    u = np.where(t < 2.0, 0.4, np.where(t < 2.5, 0.75, 0.97))
+    assert study._rise_s(t, u, 0.7) == pytest.approx(0.5)
+    assert study._rise_s(t, u, 0.5) == pytest.approx(0.5)
+    assert study._rise_s(t, u, 0.3) == pytest.approx(2.5)  # never below: from the run's start
+    assert study._rise_s(t, np.full(100, 0.5), 0.7) is None
+
+
+def test_a_warning_only_fit_keeps_the_curves_provenance():
+    """A warning-only fit names the full fit, the utilisation curve's fit it keeps and itself (not the curve's fit
+    dropped, as the warning-only fit once did); again the same; an evidence fit names itself after the full fit."""
+    full = "tools/grip_study.py fit --seed 1901: campaigns"
+    ev = study._source(full, False, 1901)
+    assert ev == full + "; utilisation curve and warning: tools/grip_study.py fit --evidence-only --seed 1901"
+    w = study._source(ev, True, 1901)
+    assert w == (full + "; utilisation curve: tools/grip_study.py fit --evidence-only --seed 1901; "
+                 "warning: tools/grip_study.py fit --warning-only --seed 1901")
+    assert study._source(w, True, 1901) == w
+    assert study._source(full, True, 1901) == full + "; warning: tools/grip_study.py fit --warning-only --seed 1901"

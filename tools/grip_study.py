@@ -4,6 +4,7 @@
     python tools/grip_study.py fit --seed 1901      # re-calibrate virtsensor/grip_car.json (~10 min)
     python tools/grip_study.py fit --warning-only   # re-calibrate its warning only (the curves and hold kept)
     python tools/grip_study.py fit --evidence-only  # the trail's utilisation curve and the warning (the rest kept)
+    python tools/grip_study.py bound --seed 1902    # how much lead any warning could have: docs/grip_bound_1902.md
 
 ``accept`` (the default) simulates the ``paper`` campaign (Table I: every manoeuvre, mu 0.2 to 1.0) and the
 ``circuits`` campaign (random circuits, mu 0.25 to 1.0) with ``--seed`` (default 1902: neither the models' training
@@ -27,6 +28,12 @@ trail's utilisation curve and the warning (the friction curves, their gates and 
 numbers come from the simulator's parameter file (``sim/data/car_c_segment.toml``: mass, geometry, drive, brakes,
 air drag, steering ratio) and the catalogue's rolling radius; the linear car's understeer gradient is measured on
 the fit data.
+
+``bound`` measures, per manoeuvre family and road, why limits are reached unwarned or late: the shipped estimate's
+median lead, share warned in time and false warnings beside those of perfect utilisation sensors (the true
+utilisation with the estimator's hysteresis and hold, warning at 0.7 or 0.8, without and with a 0.2 s look-ahead
+along its rate) and the time the truth takes from 0.5 and from 0.7 to the limit, written to
+``docs/grip_bound_<seed>.md``: what no warning from the 12 signals can beat.
 
 The campaigns are simulated as ``virtsensor campaign`` makes them by default: since the TPMS work each run's four
 tyre pressures are drawn (1.6-3.0 bar set, a leaking wheel in a quarter of the runs). The shipped curves were fit
@@ -70,6 +77,11 @@ DEMAND_LEAD_S = (0.0, 0.1, 0.2)
 DEMAND_MU_HELD = (0.0, 1.0)
 #: the warning's evidence also counts the more used tyre's force ratio over the held friction's upper end (1) or not
 EVIDENCE_MU_HELD = (0.0, 1.0)
+#: the front wheels' longitudinal slip taken as the limit (the warning's evidence is |kappa| / kappa_limit): a torque
+#: or brake step saturates the driven front tyres within one 20 Hz tick, and their slip is the only one of the 12
+#: signals that tells a road's limit from a drive force the road carries (below 0.7 utilisation |kappa| stays under
+#: 0.03 in 999 of 1000 samples of the fit data, 1901)
+KAPPA_LIMIT = (0.1, 0.07, 0.05)
 #: the warning setting chosen keeps false warnings at most this (per 10 min below 70 % utilisation) on the fit data:
 #: half the acceptance limit (1), a margin for roads and drivers the calibration has not seen
 FALSE_BUDGET = 0.5
@@ -302,18 +314,19 @@ def _fit_warning(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
     p = replace(p, load_transfer=_load_transfer(runs))
     print(f"  front load transfer {p.load_transfer:.4f} N per N of front lateral force", file=sys.stderr)
     best: tuple[bool, float, float, grip.GripParams] | None = None
-    grid = ((a, b, c, d, e, h) for a in WARN_ON if a <= max(p.util_at_trail) for b in WARN_HORIZON_S
+    grid = ((a, b, c, d, e, h, k) for a in WARN_ON if a <= max(p.util_at_trail) for b in WARN_HORIZON_S
             for c in DEMAND_WEIGHT for d in (DEMAND_LEAD_S if c > 0 else (0.0,))
-            for e in (DEMAND_MU_HELD if c > 0 else (0.0,)) for h in EVIDENCE_MU_HELD)
-    for on, hz, dw, dl, dh, eh in grid:
+            for e in (DEMAND_MU_HELD if c > 0 else (0.0,)) for h in EVIDENCE_MU_HELD for k in KAPPA_LIMIT)
+    for on, hz, dw, dl, dh, eh, kl in grid:
         q = replace(p, warn_on=on, warn_off=round(on - 0.1, 3), warn_horizon_s=hz, demand_weight=dw,
-                    demand_lead_s=dl, demand_mu_held=dh, evidence_mu_held=eh)
+                    demand_lead_s=dl, demand_mu_held=dh, evidence_mu_held=eh, kappa_limit=kl)
         o = measure(runs, q)["overall"]
         false = o["false_warnings_per_10min"] or 0.0
         lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
         warned = o["limit_warned_share"] or 0.0
         print(f"  warning on {on:.2f}, look-ahead {hz:.1f} s, demand {dw:.1f} ahead {dl:.1f} s "
-              f"against {'held' if dh else 'rated'} mu, held-mu evidence {eh:.0f}: median lead {lead:.2f} s, "
+              f"against {'held' if dh else 'rated'} mu, held-mu evidence {eh:.0f}, wheel slip limit {kl:.2f}: "
+              f"median lead {lead:.2f} s, "
               f"limits warned {warned:.2f}, false {false:.2f}/10 min", file=sys.stderr)
         # (within the budget: the longest lead, then the most limits warned by the time they are reached)
         key = (false <= FALSE_BUDGET, lead if false <= FALSE_BUDGET else -false, warned, lead, q)
@@ -345,6 +358,118 @@ def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
     return out
 
 
+#: the perfect sensors of the bound: the true utilisation warning at these thresholds (hysteresis 0.1 and the
+#: shipped hold, as the estimator's warning), without and with a look-ahead along its rate (s)
+BOUND_ON = (0.7, 0.8)
+BOUND_HORIZON_S = (0.0, 0.2)
+
+
+def oracle_warning(u: np.ndarray, on: float, horizon_s: float, hold_s: float, dt: float = 0.05,
+                   filter_s: float = 0.1) -> np.ndarray:
+    """A causal warning from a perfect utilisation sensor ``u`` (the truth, per 20 Hz tick): on when ``u`` (or, from
+    0.2 below ``on``, ``u`` plus ``horizon_s`` times its rising rate, low-passed as the estimator's) reaches ``on``;
+    off after ``hold_s`` below ``on - 0.1`` (the estimator's hysteresis and hold). What no estimate from the 12 signals
+    can beat at that threshold: the bound of :func:`bound`."""
+    a = 1.0 - np.exp(-dt / filter_s)
+    w = np.zeros(len(u), dtype=bool)
+    xs = np.minimum(np.asarray(u, float), 1.0).tolist()
+    warn, below, rate, prev = False, 0.0, 0.0, xs[0] if xs else 0.0
+    for i, x in enumerate(xs):
+        rate += a * ((x - prev) / dt - rate)
+        prev = x
+        ahead = x + max(rate, 0.0) * horizon_s if x >= on - 0.2 else x
+        if ahead >= on:
+            warn, below = True, 0.0
+        elif warn and x < on - 0.1:
+            below += dt
+            warn = below < hold_s
+        else:
+            below = 0.0
+        w[i] = warn
+    return w
+
+
+def _rise_s(t: np.ndarray, u: np.ndarray, level: float) -> float | None:
+    """The time from the true utilisation's last rise through ``level`` to its first rise through 0.95 after the
+    start-up (None where the run reaches no limit; counted from the run's start if it never was below)."""
+    above = u >= gs.LIMIT_UTIL
+    hit = np.flatnonzero(above & ~np.concatenate(([True], above[:-1])) & (t >= t[0] + gs.STARTUP_S))
+    if not len(hit):
+        return None
+    i = int(hit[0])
+    below = np.flatnonzero(u[:i] < level)
+    return float(t[i] - t[below[-1] + 1]) if len(below) else float(t[i] - t[0])
+
+
+def bound(runs: list[dict], p: grip.GripParams | None = None) -> dict:
+    """Why limits are reached unwarned or late, per manoeuvre family and road: the estimate's median lead and
+    share warned in time against perfect utilisation sensors (:func:`oracle_warning` on the truth, thresholds
+    :data:`BOUND_ON`, look-aheads :data:`BOUND_HORIZON_S`, their false warnings per 10 min) and the time the truth
+    takes from 0.5 and from 0.7 to the limit (the lead a sensor warning there could have at most, causally)."""
+    p = p if p is not None else grip.load_params()
+    keys = [f"oracle_{on:g}_ahead_{h:g}" for on in BOUND_ON for h in BOUND_HORIZON_S]
+    rows = []
+    for r in runs:
+        t, u = np.asarray(r["table"]["time_s"], float), gs.true_front_util(r["table"])
+        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p)
+        if res is None:
+            continue
+        row = {"kind": _kind(r["name"]), "mu": float(r["table"]["road_mu"][0]), "estimate": res[0],
+               "rise_0_5": _rise_s(t, u, 0.5), "rise_0_7": _rise_s(t, u, 0.7)}
+        for k, (on, h) in zip(keys, ((on, h) for on in BOUND_ON for h in BOUND_HORIZON_S), strict=True):
+            row[k] = gs.grip_metrics(t, u, u, np.full(len(t), np.nan), oracle_warning(u, on, h, p.warn_hold_s))
+        rows.append(row)
+
+    def summary(sel: list[dict]) -> dict:
+        out: dict = {"estimate": gs.pool([x["estimate"] for x in sel])}
+        out.update({k: gs.pool([x[k] for x in sel]) for k in keys})
+        for k in ("rise_0_5", "rise_0_7"):
+            v = [x[k] for x in sel if x[k] is not None]
+            out[k] = {"median_s": float(np.median(v)) if v else None,
+                      "runs_0_3_s_or_more": int(np.sum(np.array(v) >= 0.3))}
+        return out
+
+    groups = {"overall": rows}
+    groups.update({k: [x for x in rows if x["kind"] == k] for k in sorted({x["kind"] for x in rows})})
+    groups.update({f"mu {m:g}": [x for x in rows if x["mu"] == m] for m in sorted({x["mu"] for x in rows})})
+    return {k: summary(v) for k, v in groups.items()}
+
+
+#: what the bound's table says, above it in the acceptance study's Markdown
+BOUND_NOTE = ("How much lead any warning could have on these runs (:func:`bound`): the estimate beside perfect "
+              "utilisation sensors (the truth, with the estimator's hysteresis and hold, warning at 0.7 or 0.8, "
+              "without and with a 0.2 s look-ahead along its rate) and the time the truth takes from its last rise "
+              "through 0.5 and through 0.7 to the limit (median; runs with 0.3 s or more). A median lead of 0.3 s "
+              "needs half the runs warned 0.3 s ahead; a look-ahead along the rate buys lead only with false warnings, "
+              "even on the truth.")
+
+
+def _bound_md(res: dict, seed: int, note: str = "") -> str:
+    """The bound's table (only the groups with a run reaching the limit), under ``note`` if given."""
+    keys = [f"oracle_{on:g}_ahead_{h:g}" for on in BOUND_ON for h in BOUND_HORIZON_S]
+
+    def f(v: object, fmt: str = ".2f") -> str:
+        return "—" if v is None else format(v, fmt)
+
+    head = ["group", "limits", "estimate lead", "warned", "false/10 min"]
+    head += [f"truth >= {k.split('_')[1]}{' +' + k.split('_')[3] + ' s rate' if k.split('_')[3] != '0' else ''}: "
+             "lead / false" for k in keys]
+    head += ["0.5 -> limit (runs >= 0.3 s)", "0.7 -> limit (runs >= 0.3 s)"]
+    lines = [f"Warning lead bound on seed {seed}: `python tools/grip_study.py bound --seed {seed}`", ""]
+    lines += [note.replace(":func:`bound`", "`bound`"), ""] if note else []
+    lines += ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for name, o in res.items():
+        e = o["estimate"]
+        if not e["runs_reaching_limit"]:
+            continue
+        cells = [name, str(e["runs_reaching_limit"]), f(e["warning_lead_s_median"]), f(e["limit_warned_share"]),
+                 f(e["false_warnings_per_10min"])]
+        cells += [f"{f(o[k]['warning_lead_s_median'])} / {f(o[k]['false_warnings_per_10min'])}" for k in keys]
+        cells += [f"{f(o[k]['median_s'])} ({o[k]['runs_0_3_s_or_more']})" for k in ("rise_0_5", "rise_0_7")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def _kind(name: str) -> str:
     """A run's kind: its manoeuvre (the name up to the speed), or ``circuit`` for every random circuit's lap."""
     return "circuit" if name.startswith("circuit") else name.split("_")[0]
@@ -368,9 +493,21 @@ def _md(res: dict, seed: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _source(before: str, warning_only: bool, seed: int) -> str:
+    """The calibration's provenance after a partial fit: the full fit's, the utilisation curve's (kept by a
+    warning-only fit), then this one's."""
+    base, _, rest = before.partition("; ")
+    curve = next((x for x in rest.split("; ") if x.startswith("utilisation curve")), "")
+    curve = curve.replace("utilisation curve and warning:", "utilisation curve:")
+    cmd = f"tools/grip_study.py fit --{'warning' if warning_only else 'evidence'}-only --seed {seed}"
+    parts = [base] + ([curve, f"warning: {cmd}"] if warning_only and curve else
+                      [f"{'warning' if warning_only else 'utilisation curve and warning'}: {cmd}"])
+    return "; ".join(parts)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", nargs="?", default="accept", choices=("accept", "fit"))
+    ap.add_argument("what", nargs="?", default="accept", choices=("accept", "fit", "bound"))
     ap.add_argument("--seed", type=int, default=None, help="campaign seed (accept: 1902, fit: 1901)")
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "grip_study", help="simulated data (reused)")
     ap.add_argument("--warning-only", action="store_true",
@@ -389,21 +526,24 @@ def main(argv: list[str] | None = None) -> int:
         if a.warning_only or a.evidence_only:
             p0 = grip.load_params()
             p = _fit_warning(runs, p0) if a.warning_only else fit_evidence(runs, seed, p0)
-            how = "warning" if a.warning_only else "utilisation curve and warning"
-            p = replace(p, source=f"{p0.source.split('; warning:')[0].split('; utilisation')[0]}; {how}: "
-                                  f"tools/grip_study.py fit --{'warning' if a.warning_only else 'evidence'}-only "
-                                  f"--seed {seed}")
+            p = replace(p, source=_source(p0.source, a.warning_only, seed))
         else:
             p = fit(runs, seed)
         path = ROOT / "virtsensor" / grip.PARAMS_FILE
         path.write_text(json.dumps(p.to_json(), indent=1) + "\n")
         print(f"calibrated on {len(runs)} runs -> {path}", file=sys.stderr)
         return 0
-    res = measure(runs)
     (ROOT / "docs").mkdir(exist_ok=True)
+    if a.what == "bound":
+        md = _bound_md(bound(runs), seed)
+        (ROOT / "docs" / f"grip_bound_{seed}.md").write_text(md)
+        print(md)
+        return 0
+    res = measure(runs)
+    lim = bound(runs)
     stem = "grip_study" if seed == ACCEPT_SEED else f"grip_study_{seed}"  # (another seed: its own files beside)
-    (ROOT / "docs" / f"{stem}.json").write_text(json.dumps({"seed": seed, **res}, indent=1) + "\n")
-    md = _md(res, seed)
+    (ROOT / "docs" / f"{stem}.json").write_text(json.dumps({"seed": seed, **res, "bound": lim}, indent=1) + "\n")
+    md = _md(res, seed) + "\n" + _bound_md(lim, seed, BOUND_NOTE)
     (ROOT / "docs" / f"{stem}.md").write_text(md)
     print(md)
     if seed == ACCEPT_SEED:
