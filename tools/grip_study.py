@@ -80,7 +80,8 @@ EVIDENCE_MU_HELD = (0.0, 1.0)
 #: the front wheels' longitudinal slip taken as the limit (the warning's evidence is |kappa| / kappa_limit): a torque
 #: or brake step saturates the driven front tyres within one 20 Hz tick, and their slip is the only one of the 12
 #: signals that tells a road's limit from a drive force the road carries (below 0.7 utilisation |kappa| stays under
-#: 0.03 in 999 of 1000 samples of the fit data, 1901)
+#: 0.03 in 999 of 1000 samples of the fit data, 1901; the slip is read against the front axle's own speed, in the
+#: direction of the longitudinal force, from the speed where the signals' resolution allows, see GripEstimator._slip)
 KAPPA_LIMIT = (0.1, 0.07, 0.05)
 #: the warning setting chosen keeps false warnings at most this (per 10 min below 70 % utilisation) on the fit data:
 #: half the acceptance limit (1), a margin for roads and drivers the calibration has not seen

@@ -33,7 +33,9 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
 * the limit's own evidence, whatever the road: the trail-to-lateral-utilisation curve (the brush model's
   monotone curve measured on the car's own tyres, :attr:`GripParams.util_at_trail`, see
   ``tools/grip_study.py``) where the trail is read, and the front wheels' longitudinal slip over
-  ``kappa_limit`` (a spinning or locking driven wheel is at the limit);
+  ``kappa_limit`` (a spinning or locking driven wheel is at the limit; the slip against the front axle's own
+  speed in a turn, in the direction of the longitudinal force, beyond what the signals' resolution can carry:
+  :meth:`GripEstimator._slip`);
 * the utilisation ``u``: ``n / mu_ref``, with ``mu_ref`` the upper end of the latest given friction's interval
   (1 until one is given), or the evidence where that is higher; clipped to [0, 1];
 * the warning's evidence also holds the floor ``n / mu_road_max``: whatever the road (the car is rated up to
@@ -71,6 +73,7 @@ from typing import Any
 import numpy as np
 
 from virtsensor.errors import UserError
+from virtsensor.signals import SIGNALS
 
 __all__ = ["GRIP_INPUTS", "GripParams", "GripEstimator", "GripState", "estimate_run", "load_params", "PARAMS_FILE"]
 
@@ -108,7 +111,8 @@ class GripParams:
             (the brush model's trail is that of pure side slip; drive or brake torque moves it).
         steer_ratio, understeer_s2pm2: the linear car (steering ratio; understeer gradient K, s^2/m^2): the
             lateral acceleration the steering asks for, ``vx^2 delta / (L (1 + K vx^2))``.
-        kappa_limit: front longitudinal slip (wheel speeds against ``vx``) taken as the longitudinal limit.
+        kappa_limit: front longitudinal slip (wheel speeds against the front axle's speed, see
+            :meth:`GripEstimator._slip`) taken as the longitudinal limit.
         rel_err_max: largest calibrated relative friction error (at the trail) with which it is given.
         halfwidth_max: largest interval half-width with which the friction is given.
         mu_max: the friction estimate is clipped to [0.05, mu_max].
@@ -286,6 +290,9 @@ class GripEstimator:
         self._dem_held = p.demand_mu_held > 0.0
         self._ev_held = p.evidence_mu_held > 0.0
         self._lt = p.load_transfer
+        #: the most the CAN resolutions put on the front axle's speed difference w r - v (m/s): half a step each
+        self._slip_q = 0.5 * (p.rolling_radius_m * SIGNALS["wheel_speed_fl_radps"].resolution
+                              + SIGNALS["vx_mps"].resolution)
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
@@ -352,9 +359,7 @@ class GripEstimator:
             hw = self._hw_held + p.hold_widen_per_m * self._held_m  # (the road met since may differ)
             if hw <= p.halfwidth_max:
                 s.mu, s.halfwidth = self._mu_held, hw
-        if vx > 3.0:  # the driven front wheels spinning or locking: the longitudinal limit
-            kappa = 0.5 * (wheel_fl + wheel_fr) * p.rolling_radius_m / vx - 1.0
-            ev = max(ev, abs(kappa) / p.kappa_limit)
+        ev = max(ev, self._slip(vx, yaw_rate, steer_angle, wheel_fl + wheel_fr, fx_now))
         self._mu_age += self.dt
         u_force = n / self.mu_ref
         if self._mu_age <= p.mu_hold_s:  # a friction given lately: the force used against it is evidence too
@@ -369,6 +374,31 @@ class GripEstimator:
         s.util = u
         self._warn(ev, self._demand(vx, steer_angle, fx_now, fz))
         return s
+
+    def _slip(self, vx: float, yaw_rate: float, steer_angle: float, wheels: float, fx: float) -> float:
+        """The front wheels' longitudinal slip as evidence of the limit (a driven wheel spinning or a wheel locking),
+        ``max(|kappa| - e, 0) / kappa_limit`` where the slip is in the direction of this tick's front longitudinal
+        force ``fx`` (N; spin under drive, lock under braking: a wheel that runs ahead of the car while no torque
+        drives it, as in its spin-up oscillation when the brakes release, is no tyre at its limit), 0 otherwise or
+        where it cannot be read.
+
+        ``kappa = w r / v_w - 1`` with ``w`` the mean front wheel speed (``wheels`` is the sum of the two, rad/s) and
+        ``v_w = vx cos(d) + L r sin(d)`` the front axle's speed along its wheels (``d`` the road-wheel angle, the
+        steering angle over the steering ratio; a rigid car whose rear axle, where the ESC's ``vx`` is measured,
+        rolls along its heading): in a tight turn the front axle runs on a wider circle than the rear, ``1 / cos d``
+        faster (4 % at 0.28 rad), which is no slip. ``e = (r q_w + q_v) / (2 v_w)`` is the most the signals' CAN
+        resolutions (``q_w`` wheel speed, ``q_v`` speed, :mod:`virtsensor.signals`) can put on ``kappa``; the slip
+        is read only where that floor is below ``kappa_limit`` (moving forward)."""
+        p = self.params
+        d = steer_angle / p.steer_ratio
+        vw = vx * math.cos(d) + p.wheelbase_m * yaw_rate * math.sin(d)
+        floor = self._slip_q / vw if vw > 0.0 else math.inf
+        if floor >= p.kappa_limit:
+            return 0.0
+        kappa = 0.5 * wheels * p.rolling_radius_m / vw - 1.0
+        if kappa * fx <= 0.0:
+            return 0.0
+        return max(abs(kappa) - floor, 0.0) / p.kappa_limit
 
     def _tyre_ratio(self, fx: float, fy: float, fz: float) -> float:
         """The force ratio of the more used front tyre: the lateral load transfer ``load_transfer * |fy|`` off the
