@@ -1091,14 +1091,7 @@ def _jackknife(x: np.ndarray, m: np.ndarray) -> float:
     n = m.shape[1]
     est = []
     for i in range(n):
-        y = m.sum(axis=1) - m[:, i]
-        j = int(np.argmin(y))
-        v = float(x[j])
-        if 0 < j < len(x) - 1:
-            vx, curv = _parabola(x[j - 1:j + 2], y[j - 1:j + 2])
-            if curv > 0:
-                v = float(np.clip(vx, x[j - 1], x[j + 1]))
-        est.append(v)
+        est.append(_vertex(x, m.sum(axis=1) - m[:, i])[0])
     e = np.array(est)
     return float(1.96 * np.sqrt((n - 1) / n * np.sum((e - e.mean()) ** 2)))
 
@@ -1151,7 +1144,6 @@ def _consistency(f: Fit, feff: float) -> None:
         return
     c = f.candidate
     half = f.half_width if np.isfinite(f.half_width) else 0.5 * (f.ci95[1] - f.ci95[0])
-    lo_r, hi_r = c.responds
     ok = True
     ranges = {g: np.ptp([p[1] for p in i.get("points", [])]) * feff if len(i.get("points", [])) else 0.0
               for g, i in f.groups.items()}
@@ -1165,14 +1157,9 @@ def _consistency(f: Fit, feff: float) -> None:
         y = feff * np.array([p[1] for p in pts])
         info["evidence_share"] = float(ranges[g] / total) if total > 0 else 0.0
         info["informative"] = bool(y.max() - y.min() > GROUP_INFORMATIVE and info["evidence_share"] >= GROUP_SHARE)
-        i = int(np.argmin(y))
-        v, stat = float(x[i]), 0.0
-        if 0 < i < len(x) - 1:
-            vx, curv = _parabola(x[i - 1:i + 2], y[i - 1:i + 2] / feff)
-            if curv > 0:
-                v = float(np.clip(vx, x[i - 1], x[i + 1]))
-                stat = 1.96 * np.sqrt(2.0 / (feff * curv))
-        v = min(max(v, lo_r), hi_r)  # (beyond the responding range every value is its end)
+        v, curv = _vertex(x, y / feff)
+        stat = 1.96 * np.sqrt(2.0 / (feff * curv)) if curv > 0 else 0.0
+        v = _in_range(c, v)  # (beyond the responding range every value is its end)
         jack = _jackknife(*folds) if folds is not None else 0.0
         h = float(np.sqrt(stat * stat + model_error(c, v) ** 2 + jack * jack))
         info.update(estimate=v, half_width=h, half_width_runs=jack)
@@ -1200,9 +1187,26 @@ def _set_interval(f: Fit, w: float) -> None:
     becomes the range's end first."""
     c = f.candidate
     lo, hi = c.responds
-    f.estimate = float(min(max(f.estimate, lo), hi))
+    f.estimate = _in_range(c, f.estimate)
     a, b = f.estimate - w, f.estimate + w
     f.ci95 = (float(c.bounds[0] if a < lo else a), float(c.bounds[1] if b > hi else b))
+
+
+def _in_range(c: Candidate, v: float) -> float:
+    """``v`` held within the range the simulator responds in (:attr:`Candidate.responds`)."""
+    return float(min(max(v, c.responds[0]), c.responds[1]))
+
+
+def _vertex(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """The best value of a misfit ``y`` over the sorted values ``x``: the vertex of the parabola through its lowest
+    point and that point's neighbours (held between them), with the parabola's curvature; the lowest point itself,
+    and curvature 0, at an end of ``x`` or where the three points are not convex."""
+    i = int(np.argmin(y))
+    if 0 < i < len(x) - 1:
+        vx, curv = _parabola(x[i - 1:i + 2], y[i - 1:i + 2])
+        if curv > 0:
+            return float(np.clip(vx, x[i - 1], x[i + 1])), float(curv)
+    return float(x[i]), 0.0
 
 
 def _contradicts(c: Candidate, f: Fit, v: float, h: float) -> bool:
@@ -1320,7 +1324,7 @@ def _score(f: Fit, f0: float, rss0: Mapping[str, float], feff: float, n_tot: int
     f.bic_gain = float(feff * delta - penalty)
     f.variance_explained = float(1.0 - np.exp(-delta / n_tot))
     f.per_signal = {k: float(1.0 - f.rss[k] / rss0[k]) if rss0[k] > 0 else 0.0 for k in rss0}
-    f.estimate = float(min(max(f.estimate, c.responds[0]), c.responds[1]))  # (see _set_interval)
+    f.estimate = _in_range(c, f.estimate)  # (see _set_interval)
     if f.curvature > 0:
         f.half_stat = float(1.96 * np.sqrt(2.0 / (feff * f.curvature)))
         f.half_width = float(np.hypot(f.half_stat, model_error(c, f.estimate)))
