@@ -71,6 +71,28 @@ def smoke_preset(seed: int = 0) -> list[Request]:
     return out
 
 
+#: frictions of the ``wide`` preset (dry, wet, low grip), each at every speed of every manoeuvre
+WIDE_MU = (1.0, 0.7, 0.4)
+#: speeds per manoeuvre of the ``wide`` preset, spread over its Table I range
+WIDE_SPEEDS_PER_MANOEUVRE = 3
+
+
+def wide_preset(seed: int = 0) -> list[Request]:
+    """Each Table I manoeuvre at three speeds over its range on three frictions (90 runs, about 21,000 samples):
+    between ``smoke`` and ``paper``. The diagnosis' retraining campaign: an estimator trained on it errs little
+    enough on held-out runs that what a calibration changes shows (``tools/gain_oracle.py``)."""
+    seeds = np.random.SeedSequence(seed).generate_state(WIDE_SPEEDS_PER_MANOEUVRE * len(WIDE_MU)
+                                                         * len(PAPER_MANOEUVRES))
+    out, i = [], 0
+    for name in PAPER_MANOEUVRES:
+        lo, hi = MANOEUVRES[name].speed_kmh
+        for speed in np.linspace(lo, hi, WIDE_SPEEDS_PER_MANOEUVRE):
+            for mu in WIDE_MU:
+                out.append(Request(name, float(round(speed, 1)), mu, int(seeds[i])))
+                i += 1
+    return out
+
+
 def tiny_preset(seed: int = 0) -> list[Request]:
     """Four short runs (tests, quick looks)."""
     seeds = np.random.SeedSequence(seed).generate_state(4)
@@ -135,7 +157,8 @@ def draw_pressures(requests: Sequence[Request], seed: int = 0) -> list[Request]:
 
 
 PRESETS: dict[str, Callable[[int], list[Request]]] = {
-    "paper": paper_preset, "smoke": smoke_preset, "tiny": tiny_preset, "circuits": circuits_preset,
+    "paper": paper_preset, "smoke": smoke_preset, "wide": wide_preset, "tiny": tiny_preset,
+    "circuits": circuits_preset,
 }
 
 

@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=10000, help="case i uses seed SEED + i")
     ap.add_argument("--only", type=int, nargs="+", help="run only these case numbers")
     ap.add_argument("--out", type=Path, default=Path("study"))
-    ap.add_argument("--preset", default="smoke", help="training campaign of the estimators")
+    ap.add_argument("--preset", default="wide", help="training campaign of the estimators")
     ap.add_argument("--max-iter", type=int, default=300, help="MLP epochs of the estimators")
     ap.add_argument("--ensemble", type=int, default=3, help="networks averaged per estimator")
     ap.add_argument("--n-jobs", type=int, default=2)

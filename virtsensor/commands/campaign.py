@@ -23,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from virtsensor.commands import _types as t
 
     parser.add_argument("preset", metavar="PRESET",
-                        help="paper (Table I, ~45,000 samples), smoke (20 runs) or tiny (4 runs)")
+                        help="paper (Table I, ~45,000 samples), wide (90 runs, ~21,000 samples), smoke (20 runs), "
+                             "tiny (4 runs) or circuits (32 laps of random circuits)")
     parser.add_argument("--out", required=True, metavar="DIR", type=t.output_dir(empty=True),
                         help="output directory (created; must be empty); its manifest.json is written last")
     parser.add_argument("--format", choices=FORMATS, default="csv", help="file format of each run (default csv)")

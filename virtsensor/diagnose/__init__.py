@@ -32,7 +32,7 @@ def diagnose(
     mu: float | None = None,
     conditions: Sequence[Any] | None = None,
     backend: str = "loky",
-    preset: str = "smoke",
+    preset: str = "wide",
     recipe: str = "improved",
     seed: int = 0,
     max_iter: int | None = None,

@@ -46,7 +46,7 @@ class Estimator:
     samples: int
 
 
-def train(params: Mapping[str, Any], *, preset: str = "smoke", recipe: str = "improved", seed: int = 0,
+def train(params: Mapping[str, Any], *, preset: str = "wide", recipe: str = "improved", seed: int = 0,
           n_jobs: int = 1, max_iter: int | None = None, ensemble: int = 3) -> Estimator:
     """Simulate the campaign with ``params`` and train the recipe on it.
 
