@@ -45,19 +45,24 @@ PAPER_SPEEDS_PER_MANOEUVRE = 4
 PAPER_MANOEUVRES = tuple(n for n in MANOEUVRES if n not in ("magny-cours", "circuit"))
 
 
-def paper_preset(seed: int = 0) -> list[Request]:
-    """The paper's Table I campaign (200 runs), deterministic for ``seed``."""
-    seeds = np.random.SeedSequence(seed).generate_state(len(PAPER_MANOEUVRES) * len(PAPER_MU)
-                                                         * PAPER_SPEEDS_PER_MANOEUVRE)
+def _speed_friction_grid(seed: int, speeds_per_manoeuvre: int, mus: Sequence[float]) -> list[Request]:
+    """Each Table I manoeuvre at ``speeds_per_manoeuvre`` speeds spread over its range, each on every friction of
+    ``mus``, in that order; each run's seed drawn from ``seed``."""
+    seeds = np.random.SeedSequence(seed).generate_state(len(PAPER_MANOEUVRES) * len(mus) * speeds_per_manoeuvre)
     requests = []
     i = 0
     for name in PAPER_MANOEUVRES:
         lo, hi = MANOEUVRES[name].speed_kmh
-        for speed in np.linspace(lo, hi, PAPER_SPEEDS_PER_MANOEUVRE):
-            for mu in PAPER_MU:
+        for speed in np.linspace(lo, hi, speeds_per_manoeuvre):
+            for mu in mus:
                 requests.append(Request(name, float(round(speed, 1)), mu, int(seeds[i])))
                 i += 1
     return requests
+
+
+def paper_preset(seed: int = 0) -> list[Request]:
+    """The paper's Table I campaign (200 runs), deterministic for ``seed``."""
+    return _speed_friction_grid(seed, PAPER_SPEEDS_PER_MANOEUVRE, PAPER_MU)
 
 
 def smoke_preset(seed: int = 0) -> list[Request]:
@@ -81,16 +86,7 @@ def wide_preset(seed: int = 0) -> list[Request]:
     """Each Table I manoeuvre at three speeds over its range on three frictions (90 runs, about 21,000 samples):
     between ``smoke`` and ``paper``. The diagnosis' retraining campaign: an estimator trained on it errs little
     enough on held-out runs that what a calibration changes shows (``tools/gain_oracle.py``)."""
-    seeds = np.random.SeedSequence(seed).generate_state(WIDE_SPEEDS_PER_MANOEUVRE * len(WIDE_MU)
-                                                         * len(PAPER_MANOEUVRES))
-    out, i = [], 0
-    for name in PAPER_MANOEUVRES:
-        lo, hi = MANOEUVRES[name].speed_kmh
-        for speed in np.linspace(lo, hi, WIDE_SPEEDS_PER_MANOEUVRE):
-            for mu in WIDE_MU:
-                out.append(Request(name, float(round(speed, 1)), mu, int(seeds[i])))
-                i += 1
-    return out
+    return _speed_friction_grid(seed, WIDE_SPEEDS_PER_MANOEUVRE, WIDE_MU)
 
 
 def tiny_preset(seed: int = 0) -> list[Request]:

@@ -148,3 +148,31 @@ def test_sigkill_of_the_parent_ends_its_workers_and_train_refuses_the_directory(
     assert main(["campaign", "tiny", "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "did not complete" in err or "directory is not empty" in err, err
+
+
+def test_grid_presets_cover_every_manoeuvre_speed_and_friction_once_deterministically():
+    """``paper`` and ``wide`` (the diagnosis' retraining campaign): each Table I manoeuvre at its speeds spread over
+    its range, on every friction, one run each, with distinct run seeds, the same for the same campaign seed."""
+    from sim.campaign import (
+        PAPER_MANOEUVRES,
+        PAPER_MU,
+        PAPER_SPEEDS_PER_MANOEUVRE,
+        PRESETS,
+        WIDE_MU,
+        WIDE_SPEEDS_PER_MANOEUVRE,
+    )
+    from sim.manoeuvres import MANOEUVRES
+
+    for name, n_speeds, mus in (("paper", PAPER_SPEEDS_PER_MANOEUVRE, PAPER_MU),
+                                ("wide", WIDE_SPEEDS_PER_MANOEUVRE, WIDE_MU)):
+        runs = PRESETS[name](3)
+        assert len(runs) == len(PAPER_MANOEUVRES) * n_speeds * len(mus)
+        assert runs == PRESETS[name](3) and runs != PRESETS[name](4)
+        assert len({r.seed for r in runs}) == len(runs)
+        for m in PAPER_MANOEUVRES:
+            mine = [r for r in runs if r.manoeuvre == m]
+            lo, hi = MANOEUVRES[m].speed_kmh
+            speeds = sorted({r.speed_kmh for r in mine})
+            assert len(speeds) == n_speeds and speeds[0] == pytest.approx(lo, abs=0.05)
+            assert speeds[-1] == pytest.approx(hi, abs=0.05)
+            assert sorted((r.speed_kmh, r.mu) for r in mine) == sorted((v, mu) for v in speeds for mu in mus)
