@@ -147,6 +147,35 @@ def test_the_calibrated_estimator_is_trained_like_the_nominal_one():
     assert np.array_equal(after.pipeline.predict(X), before.pipeline.predict(X))
 
 
+def test_a_road_friction_is_a_condition_of_the_day_and_the_estimator_is_not_retrained_for_it():
+    """A day-wide road friction calibrates the re-simulations, not the car: the estimator, whose campaign spans a
+    range of roads, stays the nominal one (no training: the nominal estimator's campaign is never simulated), the
+    log says why, and with a physical cause beside it only that cause is retrained for."""
+    from types import SimpleNamespace
+
+    from virtsensor.diagnose import DAY_CONDITIONS, _estimators, calibrate
+
+    assert DAY_CONDITIONS == ("road_friction",)
+    base = car_parameters()
+    before = calibrate.train(base, preset="tiny", seed=3, max_iter=2, ensemble=1)
+
+    def fit(cause, value):
+        return SimpleNamespace(candidate=SimpleNamespace(cause=cause, signal=None, key=cause), estimate=value)
+
+    said: list[str] = []
+    idn = SimpleNamespace(causes=[fit("road_friction", 0.8)], unexplained=None)
+    kept, after = _estimators(idn, base, before, preset="tiny", recipe="improved", seed=3, max_iter=2, ensemble=1,
+                              n_jobs=1, log=said.append)
+    assert kept is before and after is before
+    assert any("road_friction = 0.8 is a condition of the day" in m for m in said)
+    assert not any("retraining" in m for m in said)
+    idn = SimpleNamespace(causes=[fit("road_friction", 0.8), fit("vehicle_mass", EFFECTS["vehicle_mass"].nominal)],
+                          unexplained=None)
+    _, after = _estimators(idn, base, before, preset="tiny", recipe="improved", seed=3, max_iter=2, ensemble=1,
+                           n_jobs=1, log=lambda m: None)
+    assert after is not before and list(after.recipe["retrained_with"]) == ["vehicle_mass"]
+
+
 @pytest.mark.parametrize("scaler", ["robust", "standard", "minmax"])
 def test_an_input_sensor_error_is_undone_in_the_scaler(scaler, tmp_path):
     """An estimator whose inputs carry an offset and a gain, corrected in its scaler, predicts from the faulty

@@ -145,11 +145,13 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
 
     The calibrated estimator undoes what can be undone where it happens: an offset or a gain of an input
     sensor is inverted at the estimator's input (:func:`~virtsensor.diagnose.calibrate.undo_sensor_errors`),
-    so that the estimator sees the signal the simulator's sensor gives; every other cause (a physical one, a
-    delay, which cannot be undone in real time) needs the estimator retrained on the simulator calibrated with
-    it. A day with only input offsets and gains keeps the nominal network, its inputs corrected (no retraining:
-    the same network, so the gain is the correction's alone); otherwise the network retrained on the simulator
-    with the other causes, its inputs corrected for the offsets and gains. The retraining repeats the nominal
+    so that the estimator sees the signal the simulator's sensor gives; a condition of the test day (the road's
+    friction, :data:`DAY_CONDITIONS`) is no property of the car, and the estimator, trained over a range of roads
+    already, is not retrained for it; every other cause (a physical one, a delay, which cannot be undone in real
+    time) needs the estimator retrained on the simulator calibrated with it. A day with only input offsets and
+    gains (and day conditions) keeps the nominal network, its inputs corrected (no retraining: the same network,
+    so the gain is the correction's alone); otherwise the network retrained on the simulator with the other
+    causes, its inputs corrected for the offsets and gains. The retraining repeats the nominal
     estimator's own (recipe, campaign, seed, epochs, ensemble: :func:`calibrate.retrain_like`), so that the
     difference between the two is the calibration's alone, also when ``before`` was trained elsewhere."""
     from sim.effects import with_effect
@@ -163,7 +165,10 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
     if not causes:
         return before, before
     at_input = [f for f in causes if f.candidate.cause in UNDONE_AT_INPUT]
-    retrain = [f for f in causes if f.candidate.cause not in UNDONE_AT_INPUT]
+    retrain = [f for f in causes if f.candidate.cause not in UNDONE_AT_INPUT + DAY_CONDITIONS]
+    for f in causes:
+        if f.candidate.cause in DAY_CONDITIONS:
+            log(f"{f.candidate.key} = {f.estimate:.4g} is a condition of the day, not of the car: not retrained for")
     after = before
     if retrain:
         cal = dict(base)
@@ -183,6 +188,10 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
 
 #: sensor causes the calibrated estimator undoes at its input instead of learning them (:func:`_estimators`)
 UNDONE_AT_INPUT = ("sensor_offset", "sensor_gain")
+#: causes that are conditions of the test day, not properties of the car: the re-simulations take them, the
+#: estimator (whose campaign spans frictions 0.4 to 1 or wider) is not retrained for them (:func:`_estimators`).
+#: Retraining for a day-wide friction of 0.8 would scale every road of the campaign by 0.8 and drop the dry ones.
+DAY_CONDITIONS = ("road_friction",)
 
 
 def _sensor_error(fit) -> tuple[str, float, float]:
@@ -204,7 +213,10 @@ def _scores(before: Any, after: Any, runs: Sequence[MeasuredRun], holdout: Seque
     result["estimator"] = {"preset": preset, "recipe": before.recipe, "seed": seed,
                            "train_samples_before": before.samples, "train_samples_after": after.samples,
                            "retrained_with": after.recipe.get("retrained_with", {}),
-                           "inputs_corrected": after.recipe.get("inputs_corrected", {})}
+                           "inputs_corrected": after.recipe.get("inputs_corrected", {}),
+                           "day_conditions": {f.candidate.key: f.estimate for f in
+                                              (idn.causes if idn.unexplained is None else [])
+                                              if f.candidate.cause in DAY_CONDITIONS}}
     # the estimator on measured data vs on its own simulation (the diagnosis runs, re-simulated)
     result["estimator_on_diagnosis_runs"] = {
         "measured": calibrate.score(before, runs),

@@ -82,6 +82,9 @@ def markdown(res: Mapping[str, Any]) -> str:
                 for k, v in est.get("inputs_corrected", {}).items()]
         if how:
             out.append("- Calibrated estimator: " + "; ".join(how) + ".")
+        for k, v in est.get("day_conditions", {}).items():
+            out.append(f"- Not retrained for {k} = {v:.4g}: a condition of the test day, not of the car (the "
+                       "estimator's campaign spans a range of roads).")
         if res.get("mae_before_nm") is not None:
             out.append(f"- On the held-out measured runs: MAE {res['mae_before_nm']:.2f} -> {res['mae_after_nm']:.2f}"
                        f" Nm, R2 {res['r2_before']:.3f} -> {res['r2_after']:.3f} (before -> after calibration).")
