@@ -189,8 +189,9 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
 #: sensor causes the calibrated estimator undoes at its input instead of learning them (:func:`_estimators`)
 UNDONE_AT_INPUT = ("sensor_offset", "sensor_gain")
 #: causes that are conditions of the test day, not properties of the car: the re-simulations take them, the
-#: estimator (whose campaign spans frictions 0.4 to 1 or wider) is not retrained for them (:func:`_estimators`).
-#: Retraining for a day-wide friction of 0.8 would scale every road of the campaign by 0.8 and drop the dry ones.
+#: estimator (whose campaign spans a range of frictions: 0.4 to 1 for ``wide``) is not retrained for them
+#: (:func:`_estimators`). Retraining for a day-wide friction of 0.8 would scale every road of the campaign by 0.8
+#: and drop the dry ones.
 DAY_CONDITIONS = ("road_friction",)
 
 
