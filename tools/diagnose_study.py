@@ -204,10 +204,9 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, Any]:
     by = {k: [r for r in rows if r["kind"] == k] for k in ("single", "mixed", "two", "foreign", "control")}
     singles = by["single"] + by["mixed"]
     named = [f for r in rows if r["kind"] in ("single", "mixed", "two") for f in r["found"] if f["named"]]
-    gains = [(r["mae_before_nm"] - r["mae_after_nm"]) / r["mae_before_nm"] for r in rows
-             if r["kind"] in ("single", "mixed", "two") and r.get("mae_before_nm") and r.get("mae_after_nm")]
     effect_rows = [r for r in rows if r["kind"] in ("single", "mixed", "two") and r.get("mae_before_nm")
                    and r.get("mae_after_nm")]
+    gains = [(r["mae_before_nm"] - r["mae_after_nm"]) / r["mae_before_nm"] for r in effect_rows]
     calibrated = [(r["mae_before_nm"] - r["mae_calibrated_nm"]) / r["mae_before_nm"] for r in effect_rows
                   if r.get("mae_calibrated_nm")]
     # where there is something to gain: the nominal estimator errs beyond its error on every control day
@@ -254,8 +253,9 @@ def summary(rows: list[dict[str, Any]]) -> str:
            if f["gain_quartiles"] else "")
         + f"; of the calibrated estimator, kept or not: {100 * f['median_gain_calibrated']:.1f} %; kept estimator "
         f"worse than nominal: {f['worse']} cases",
-        f"- the same median over the {f['harmed']} cases whose nominal estimator errs more than on any control day "
-        f"(held-out MAE above {f['control_mae_max']:.2f} Nm): {100 * f['median_gain_harmed']:.1f} %",
+        *([f"- the same median over the {f['harmed']} cases whose nominal estimator errs more than on any control day "
+           f"(held-out MAE above {f['control_mae_max']:.2f} Nm): {100 * f['median_gain_harmed']:.1f} %"]
+          if f["control_mae_max"] == f["control_mae_max"] else []),  # (no control day run: no such median)
         f"- median diagnosis time per case (identification, retraining, scoring): {f['median_seconds']:.0f} s", "",
         "| case | kind | hidden | answer | estimate (95 % interval) | covered | MAE before | MAE after | kept | s |",
         "|---|---|---|---|---|---|---|---|---|---|",

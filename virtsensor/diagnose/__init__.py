@@ -95,7 +95,7 @@ def _identification_result(idn, runs: Sequence[MeasuredRun], holdout: Sequence[M
     best = idn.best if idn.unexplained is None else None
     return {
         "cause": idn.cause,
-        "causes": [_cause_entry(f) for f in (idn.causes if idn.unexplained is None else [])],
+        "causes": [_cause_entry(f) for f in _named(idn)],
         "unexplained": idn.unexplained,
         "run_conditions": _run_conditions(idn, runs),
         "signal": best.candidate.signal if best else None,
@@ -161,7 +161,7 @@ def _estimators(idn, base: Mapping[str, Any], before: Any, *, preset: str, recip
         log(f"training the estimator on the nominal simulator ({preset} campaign, {recipe} recipe)")
         before = calibrate.train(base, preset=preset, recipe=recipe, seed=seed, n_jobs=n_jobs, max_iter=max_iter,
                                  ensemble=ensemble)
-    causes = idn.causes if idn.unexplained is None else []
+    causes = _named(idn)
     if not causes:
         return before, before
     at_input = [f for f in causes if f.candidate.cause in UNDONE_AT_INPUT]
@@ -195,6 +195,11 @@ UNDONE_AT_INPUT = ("sensor_offset", "sensor_gain")
 DAY_CONDITIONS = ("road_friction",)
 
 
+def _named(idn) -> list[Any]:
+    """The causes the identification names (none when the day is ``unexplained``: nothing is calibrated then)."""
+    return list(idn.causes) if idn.unexplained is None else []
+
+
 def _sensor_error(fit) -> tuple[str, float, float]:
     """``(signal, offset, gain)`` of a named sensor offset or gain, as :func:`calibrate.undo_sensor_errors`
     takes it."""
@@ -215,8 +220,7 @@ def _scores(before: Any, after: Any, runs: Sequence[MeasuredRun], holdout: Seque
                            "train_samples_before": before.samples, "train_samples_after": after.samples,
                            "retrained_with": after.recipe.get("retrained_with", {}),
                            "inputs_corrected": after.recipe.get("inputs_corrected", {}),
-                           "day_conditions": {f.candidate.key: f.estimate for f in
-                                              (idn.causes if idn.unexplained is None else [])
+                           "day_conditions": {f.candidate.key: f.estimate for f in _named(idn)
                                               if f.candidate.cause in DAY_CONDITIONS}}
     # the estimator on measured data vs on its own simulation (the diagnosis runs, re-simulated)
     result["estimator_on_diagnosis_runs"] = {
