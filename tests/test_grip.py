@@ -232,7 +232,7 @@ def test_friction_is_held_while_excited_and_only_so_far():
     drive(5, 150.0)  # |Fx| ~ 0.6 Fz: the trail is not read
     s = est.state
     assert math.isnan(s.trail_m) and s.force_ratio >= p.hold_min_use * mu
-    assert s.mu == pytest.approx(mu, rel=0.1) and hw < s.halfwidth <= p.halfwidth_max
+    assert s.mu == pytest.approx(mu, rel=0.1) and hw < s.halfwidth <= hw + p.hold_widen_per_m * p.hold_m
     drive(5, 5.0)  # gentle: the axle uses little of the road
     assert math.isnan(est.state.mu)
     drive(int(p.hold_m / (20.0 * 0.05)) + 1, 5.0)
@@ -243,6 +243,32 @@ def test_friction_is_held_while_excited_and_only_so_far():
     for _ in range(5):
         unheld.step(-30.0, -30.0, 3.0, 1.0, 20.0, 0.05, 0.0, 150.0, 20.0 / 0.305, 20.0 / 0.305)
     assert math.isfinite(unheld.state.force_ratio) and math.isnan(unheld.state.mu)
+
+
+def test_the_published_interval_is_its_own_curve_and_the_gate_the_pooled_one():
+    """With ``interval_at_trail`` the published half-width is read from it (given and held, widened as held), while
+    whether the friction is given, the held friction and the utilisation still read the pooled error
+    (``abs_err90_at_trail``); without it (older files) the two are the same curve. A curve of the wrong shape is
+    refused."""
+    p = replace(load_params(), interval_at_trail=())
+    wide = replace(p, interval_at_trail=tuple((0.5,) * len(p.trail_m) for _ in p.mu_bands))
+    a, b = GripEstimator(p), GripEstimator(wide)
+    for est in (a, b):
+        _steady(est, 60, 0.4 * 9.81, 0.0)
+    assert math.isfinite(a.state.mu) and a.state.mu == b.state.mu and a.state.util == b.state.util
+    assert 0 < a.state.halfwidth <= p.halfwidth_max and b.state.halfwidth == 0.5
+    ax = 150.0 * p.gear_ratio / p.rolling_radius_m / p.mass_kg
+    for est in (a, b):  # hard drive: the trail is gated off, the friction held
+        for _ in range(5):
+            est.step(-30.0, -30.0, ax, 1.0, 20.0, 0.05, 0.0, 150.0, 20.0 / 0.305, 20.0 / 0.305)
+    assert math.isnan(b.state.trail_m) and a.state.mu == b.state.mu
+    widen = b.state.halfwidth - 0.5
+    assert 0 < widen <= p.hold_widen_per_m * p.hold_m
+    assert a.state.halfwidth - widen == pytest.approx(a._hw_held)
+    doc = wide.to_json()
+    assert GripParams.from_json(doc) == wide
+    with pytest.raises(UserError, match="interval_at_trail"):
+        GripParams.from_json({**doc, "interval_at_trail": doc["interval_at_trail"][:-1]})
 
 
 def test_non_finite_input_gives_nan_and_restarts():
@@ -273,6 +299,23 @@ def test_metrics_lead_and_false_warnings():
     assert late["warning_lead_s"] == pytest.approx(-1.0) and late["mu_within_0_1_share"] is None
     none = gs.grip_metrics(t, np.full(200, 0.3), np.full(200, 0.5), np.full(200, np.nan), np.zeros(200, bool))
     assert none["warning_lead_s"] is None and gs.pool([none])["warning_lead_s_median"] is None
+    assert m["mu_interval_cover_share"] is None  # (no half-widths given: not scored)
+
+
+def test_the_interval_coverage_counts_the_given_samples_whose_interval_holds_the_truth():
+    """``mu_interval_cover_share``: of the given samples, those with ``|mu - truth| <= halfwidth``; pooled over the
+    samples (not the runs); null where no run gave half-widths."""
+    t = np.arange(100) * 0.05
+    u = np.full(100, 0.5)
+    mu = np.where(t >= 2.0, 0.6, np.nan)  # 60 given, 0.1 above the truth 0.5
+    hw = np.where(t >= 3.0, 0.15, 0.05)  # the first 20 given too narrow, the last 40 wide enough
+    m = gs.grip_metrics(t, u, np.full(100, 0.5), mu, np.zeros(100, bool), hw)
+    assert m["mu_interval_cover_share"] == pytest.approx(40 / 60)
+    tight = gs.grip_metrics(t, u, np.full(100, 0.5), mu, np.zeros(100, bool), np.full(100, 0.01))
+    assert tight["mu_interval_cover_share"] == 0.0
+    assert gs.pool([m, tight])["mu_interval_cover_share"] == pytest.approx(40 / 120)
+    assert gs.pool([m, gs.grip_metrics(t, u, np.full(100, 0.5), mu, np.zeros(100, bool))])[
+        "mu_interval_cover_share"] is None
 
 
 def test_pool_counts_the_limits_warned_by_the_time_they_are_reached():
@@ -518,7 +561,7 @@ def test_score_reports_grip_per_run_and_overall(model, run_frames, tmp_path):
     write_run_file(run, tmp_path / "fh.blf")  # a CAN log carries no grip truth
     res = score_runs(model, load_runs([tmp_path / "fh.csv", tmp_path / "fh.blf"]))
     keys = {"mu_within_0_1_share", "mu_abs_err_p90", "mu_given_share_above_0_6", "warning_lead_s_median",
-            "false_warnings_per_10min"}
+            "false_warnings_per_10min", "mu_interval_cover_share"}
     g = res["overall"]["grip"]
     assert keys <= set(g) and g["runs"] == 1 and g["mu_given"] > 0
     assert keys <= set(res["runs"][0]["grip"]) and res["runs"][1]["grip"] is None

@@ -80,14 +80,48 @@ def test_rise_time_to_the_limit():
     assert study._rise_s(t, np.full(100, 0.5), 0.7) is None
 
 
-def test_a_warning_only_fit_keeps_the_curves_provenance():
+def test_a_partial_fit_keeps_the_provenance_of_the_parts_it_does_not_fit():
     """A warning-only fit names the full fit, the utilisation curve's fit it keeps and itself (not the curve's fit
-    dropped, as the warning-only fit once did); again the same; an evidence fit names itself after the full fit."""
+    dropped, as the warning-only fit once did); again the same; an evidence fit names itself for the curve and the
+    warning; an interval fit adds itself and is kept by a later warning fit (the older "curve and warning" form
+    read)."""
     full = "tools/grip_study.py fit --seed 1901: campaigns"
-    ev = study._source(full, False, 1901)
-    assert ev == full + "; utilisation curve and warning: tools/grip_study.py fit --evidence-only --seed 1901"
-    w = study._source(ev, True, 1901)
-    assert w == (full + "; utilisation curve: tools/grip_study.py fit --evidence-only --seed 1901; "
-                 "warning: tools/grip_study.py fit --warning-only --seed 1901")
-    assert study._source(w, True, 1901) == w
-    assert study._source(full, True, 1901) == full + "; warning: tools/grip_study.py fit --warning-only --seed 1901"
+    evc = "tools/grip_study.py fit --evidence-only --seed 1901"
+    wc = "tools/grip_study.py fit --warning-only --seed 1901"
+    ev = study._source(full, ("utilisation curve", "warning"), "--evidence-only", 1901)
+    assert ev == f"{full}; utilisation curve: {evc}; warning: {evc}"
+    w = study._source(ev, ("warning",), "--warning-only", 1901)
+    assert w == f"{full}; utilisation curve: {evc}; warning: {wc}"
+    assert study._source(w, ("warning",), "--warning-only", 1901) == w
+    assert study._source(full, ("warning",), "--warning-only", 1901) == f"{full}; warning: {wc}"
+    old_form = f"{full}; utilisation curve and warning: {evc}"
+    iv = study._source(old_form, ("interval",), "--interval-only", 1901)
+    ic = "tools/grip_study.py fit --interval-only --seed 1901"
+    assert iv == f"{full}; utilisation curve: {evc}; warning: {evc}; interval: {ic}"
+    assert study._source(iv, ("warning",), "--warning-only", 1901) == (
+        f"{full}; utilisation curve: {evc}; warning: {wc}; interval: {ic}")
+
+def test_the_published_interval_is_the_worst_roads_not_the_pooled_one():
+    """Per band and trail knot the 90th percentile of the error on the worst road: a small hard road is not
+    drowned by a large easy one (the pooled percentile is), a road with fewer than 20 samples at a knot does not
+    count there, and the curve never narrows at a longer trail."""
+    rng = np.random.default_rng(3)
+    k = np.asarray(study.TRAIL_KNOTS)
+    t_easy, t_hard = np.repeat(k[4:8], 500), np.repeat(k[4:8], 60)
+    err_easy, err_hard = rng.uniform(0, 0.02, len(t_easy)), rng.uniform(0, 0.3, len(t_hard))
+    est = np.full(len(t_easy) + len(t_hard), 0.5)  # (one band: 0.35 .. 0.6)
+    T = np.concatenate([t_easy, t_hard])
+    MU = est - np.concatenate([err_easy, err_hard])
+    grp = np.array(["circuits 0.45"] * len(t_easy) + ["paper 0.5"] * len(t_hard), dtype=object)
+    T = np.append(T, k[10] * np.ones(5))  # (5 samples of a third road at a longer trail: too few to count)
+    est, MU, grp = np.append(est, [0.5] * 5), np.append(MU, [0.5 - 0.9] * 5), np.append(grp, ["paper 1"] * 5)
+    iv = study._worst_road_interval(T, est, MU, grp)
+    band = iv[1]
+    for j in range(4, 8):
+        hard = np.quantile(err_hard[t_hard == k[j]], 0.9)
+        assert band[j] >= hard - 1e-4
+        pooled = np.quantile(np.concatenate([err_easy, err_hard])[T[:-5] == k[j]], 0.9)
+        assert band[j] > pooled + 0.15
+    assert np.all(np.diff(band) >= 0)
+    assert max(band) < 0.9  # (the third road's 5 samples did not count)
+    assert iv[0] == tuple([1.0] * len(k))  # (a band with no samples: never given)

@@ -37,6 +37,7 @@ def grip_summary(t: Sequence[float], grips: Sequence[Sequence[float]], road_mu: 
         err = np.abs(g[given, 1] - road_mu)
         out["mu_within_0_1_share"] = float(np.mean(err <= 0.1))
         out["mu_abs_err_p90"] = float(np.percentile(err, 90))
+        out["mu_interval_cover_share"] = float(np.mean(err <= g[given, 2]))
     return out
 
 
@@ -50,7 +51,7 @@ def grip_line(s: dict[str, Any]) -> str:
         txt += f", median {s['mu_median']:.2f}"
         if s["road_mu"] is not None:
             txt += (f" against the road's {s['road_mu']:g} (within +-0.1 on {100 * s['mu_within_0_1_share']:.0f} % "
-                    f"of them)")
+                    f"of them, inside its interval on {100 * s['mu_interval_cover_share']:.0f} %)")
     return txt
 
 

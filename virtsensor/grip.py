@@ -20,13 +20,16 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`);
 * the road friction ``mu = n / k(t)``, with ``k`` the calibrated force ratio per unit of friction at that
   trail (:attr:`GripParams.use_at_trail`; the axle's ``n / mu`` is below the utilisation of its more used
-  tyre), and the half-width of its 90 % interval, the calibrated 90th percentile of the absolute error at that
-  trail for estimates in that band (:attr:`GripParams.abs_err90_at_trail`); it is given only where the trail
+  tyre), and the half-width of its 90 % interval, the 90th percentile of the absolute error at that trail for
+  estimates in that band on the calibration's worst road (:attr:`GripParams.interval_at_trail`: it holds the
+  truth on every road, not only pooled over a mix of mostly easy samples); it is given only where the trail
   is read (``|Fy| >= min_force_ratio Fz`` and ``|Fx| <= max_long_ratio Fz``: the brush trail is that of pure
   side slip), while the force changes slowly (:attr:`GripParams.max_force_rate`), with a calibrated relative
-  error at most ``rel_err_max`` and a half-width at most :attr:`GripParams.halfwidth_max` (else nan: unknown);
+  error at most ``rel_err_max``, a pooled error (:attr:`GripParams.abs_err90_at_trail`) at most
+  :attr:`GripParams.halfwidth_max` and a published half-width at most :attr:`GripParams.interval_max` (else
+  nan: unknown);
 * the road's friction holds while the car drives on: the median of the latest ``hold_count`` given estimates
-  (robust to a stray one) is given on for ``hold_m`` metres after the latest, with its half-width grown by
+  (robust to a stray one) is given on for ``hold_m`` metres after the latest, with its half-widths grown by
   ``hold_widen_per_m`` per metre (the road met since may differ), but only while the tyres are excited, the
   axle force ratio at least ``hold_min_use`` times the held friction (straight driving and gentle corners stay
   unknown); a change of road within that distance is its failure mode (see the README);
@@ -36,8 +39,8 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   ``kappa_limit`` (a spinning or locking driven wheel is at the limit; the slip against the front axle's own
   speed in a turn, in the direction of the longitudinal force, beyond what the signals' resolution can carry:
   :meth:`GripEstimator._slip`);
-* the utilisation ``u``: ``n / mu_ref``, with ``mu_ref`` the upper end of the latest given friction's interval
-  (1 until one is given), or the evidence where that is higher; clipped to [0, 1];
+* the utilisation ``u``: ``n / mu_ref``, with ``mu_ref`` the latest given friction plus its pooled error (1
+  until one is given), or the evidence where that is higher; clipped to [0, 1];
 * the warning's evidence also holds the floor ``n / mu_road_max``: whatever the road (the car is rated up to
   ``mu_road_max``), the axle uses at least that share of its grip, so a hard combined-slip corner on a dry road
   (the trail gated off) is seen coming by the force it already uses; with :attr:`GripParams.evidence_mu_held`,
@@ -103,8 +106,16 @@ class GripParams:
         use_at_trail: the axle force ratio per unit of road friction, ``n / mu``, at each trail knot.
         rel_err90_at_trail: the 90th percentile of |mu error| / mu at each trail knot (calibration).
         mu_bands: ascending upper edges of the bands of the friction estimate (the last one holds the rest).
-        abs_err90_at_trail: per band, the 90th percentile of |mu error| at each trail knot: the interval's
-            half-width (the error is partly a noise floor, partly proportional to mu: a band each).
+        abs_err90_at_trail: per band, the 90th percentile of |mu error| at each trail knot, pooled over the
+            calibration's samples: the gate ``halfwidth_max`` reads it (the error is partly a noise floor, partly
+            proportional to mu: a band each).
+        interval_at_trail: per band, the published interval's half-width at each trail knot: the 90th percentile of
+            |mu error| on the calibration's worst road (each campaign and road friction on its own), so that the
+            interval holds the true friction in 9 of 10 samples on every road, not only pooled over a mix that
+            is mostly easy (empty: ``abs_err90_at_trail``, the older files' meaning).
+        interval_max: the friction is given only where the published half-width is at most this (an interval wider
+            than that says the trail cannot tell the road there: unknown, not a guess; inf: no such limit, the
+            older files' meaning).
         max_force_rate: the friction is given only while the axle force ratio changes slower than this (1/s):
             in a fast transient the force from the accelerations and the SAT are not in step.
         max_long_ratio: the trail is read only while the axle's longitudinal force is at most this times its load
@@ -183,6 +194,8 @@ class GripParams:
     demand_mu_held: float = 0.0
     load_transfer: float = 0.0
     evidence_mu_held: float = 0.0
+    interval_at_trail: tuple[tuple[float, ...], ...] = ()
+    interval_max: float = math.inf
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -192,6 +205,9 @@ class GripParams:
         if not self.mu_bands or len(self.abs_err90_at_trail) != len(self.mu_bands) or any(
                 len(c) != k for c in self.abs_err90_at_trail):
             raise ValueError("grip params: one abs_err90_at_trail curve per mu band, a value per trail knot")
+        if self.interval_at_trail and (len(self.interval_at_trail) != len(self.mu_bands) or any(
+                len(c) != k for c in self.interval_at_trail)):
+            raise ValueError("grip params: interval_at_trail needs a curve per mu band, a value per trail knot")
         if min(self.use_at_trail) <= 0:
             raise ValueError("grip params: use_at_trail must be > 0")
         if any(b <= a for a, b in zip(self.trail_m, self.trail_m[1:], strict=False)):
@@ -214,11 +230,16 @@ class GripParams:
             raise UserError(f"{where}: not usable grip parameters ({exc})") from None
 
     def to_json(self) -> dict[str, Any]:
-        return json.loads(json.dumps(asdict(self)))  # (tuples -> lists)
+        """The parameters as a JSON object (strict JSON: an unlimited ``interval_max`` is left out, its default)."""
+        doc = asdict(self)
+        if math.isinf(doc["interval_max"]):
+            del doc["interval_max"]
+        return json.loads(json.dumps(doc, allow_nan=False))  # (tuples -> lists)
 
 
 #: fields a parameter file may leave out (their defaults: the older files' meaning)
-_OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer", "evidence_mu_held")
+_OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer", "evidence_mu_held", "interval_at_trail",
+             "interval_max")
 
 
 def _tuples(v: Any) -> Any:
@@ -297,6 +318,7 @@ class GripEstimator:
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
         self._bands, self._abs = tuple(p.mu_bands), tuple(tuple(c) for c in p.abs_err90_at_trail)
+        self._pub = tuple(tuple(c) for c in p.interval_at_trail) if p.interval_at_trail else self._abs
         self.state = GripState()
         self.reset()
 
@@ -316,6 +338,7 @@ class GripEstimator:
             self._mu_age = math.inf
             #: the latest given friction, its half-width and the distance travelled since (m)
             self._mu_held, self._hw_held, self._held_m = math.inf, math.inf, math.inf
+            self._hwp_held = math.inf  # (the published half-width of the latest given)
             self._recent: deque[float] = deque(maxlen=max(int(self.params.hold_count), 1))
             self._fresh = MEDIAN_EVERY  # (given estimates since the held median was last taken)
 
@@ -356,9 +379,9 @@ class GripEstimator:
             s.trail_m = s.mu = s.halfwidth = math.nan
         self._held_m += vx * self.dt
         if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
-            hw = self._hw_held + p.hold_widen_per_m * self._held_m  # (the road met since may differ)
-            if hw <= p.halfwidth_max:
-                s.mu, s.halfwidth = self._mu_held, hw
+            widen = p.hold_widen_per_m * self._held_m  # (the road met since may differ)
+            if self._hw_held + widen <= p.halfwidth_max:
+                s.mu, s.halfwidth = self._mu_held, self._hwp_held + widen
         ev = max(ev, self._slip(vx, yaw_rate, steer_angle, wheel_fl + wheel_fr, fx_now))
         self._mu_age += self.dt
         u_force = n / self.mu_ref
@@ -438,17 +461,19 @@ class GripEstimator:
         mu = n / (c[i] + w * (c[i + 1] - c[i]))
         c = self._err
         rel = c[i] + w * (c[i + 1] - c[i])
-        b = bisect.bisect_left(self._bands, mu)
-        c = self._abs[min(b, len(self._abs) - 1)]
+        b = min(bisect.bisect_left(self._bands, mu), len(self._abs) - 1)
+        c = self._abs[b]
         hw = c[i] + w * (c[i + 1] - c[i])
-        if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max:
-            s.mu, s.halfwidth = mu, hw
-            self.mu_ref = mu + hw  # (the upper end: a utilisation never overstated by the interval)
+        c = self._pub[b]
+        hwp = c[i] + w * (c[i + 1] - c[i])
+        if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max and hwp <= p.interval_max:
+            s.mu, s.halfwidth = mu, hwp
+            self.mu_ref = mu + hw  # (the upper end of the pooled error: a utilisation not overstated by it)
             self._mu_age = 0.0
             r = self._recent
             r.append(mu)
             self._fresh += 1
-            self._hw_held, self._held_m = hw, 0.0
+            self._hw_held, self._hwp_held, self._held_m = hw, s.halfwidth, 0.0
             if len(r) == r.maxlen and self._fresh >= MEDIAN_EVERY:  # hold the median of the latest given (robust
                 self._mu_held, self._fresh = sorted(r)[len(r) // 2], 0  # to a stray one; sorted every few ticks)
                 self.mu_ref = self._mu_held + hw

@@ -10,6 +10,8 @@ Figures (keys of :func:`grip_metrics` and of the pooled :func:`pool`):
 
 * ``mu_within_0_1_share``: of the samples where the friction is given, the share within +-0.1 of the true mu;
 * ``mu_abs_err_p90``: the 90th percentile of the friction's absolute error where given;
+* ``mu_interval_cover_share``: of the samples where the friction is given, the share whose published interval
+  (``mu +- halfwidth``, meant to hold the truth in 9 of 10 samples) holds the true mu (null without half-widths);
 * ``mu_given_share_above_0_6``: of the samples whose true front utilisation exceeds 0.6, the share where the
   friction is given;
 * ``warning_lead_s``: for a run whose true front utilisation rises through 0.95 (from below, after its first
@@ -105,10 +107,12 @@ def _false_warnings(time_s: np.ndarray, util: np.ndarray, warning: np.ndarray) -
 
 
 def grip_metrics(time_s: np.ndarray, util_true: np.ndarray, mu_true: np.ndarray, mu_est: np.ndarray,
-                 warning: np.ndarray) -> dict[str, Any]:
-    """One run's grip figures (see the module docstring), plus the counts :func:`pool` needs."""
+                 warning: np.ndarray, halfwidth: np.ndarray | None = None) -> dict[str, Any]:
+    """One run's grip figures (see the module docstring), plus the counts :func:`pool` needs. ``halfwidth``: the
+    published interval's half-width per sample (None: the coverage is not scored)."""
     given = np.isfinite(mu_est)
     err = np.abs(mu_est[given] - mu_true[given])
+    covered = None if halfwidth is None else err <= np.asarray(halfwidth, float)[given]
     excited = util_true > EXCITED_UTIL
     lead = _lead(time_s, util_true, warning)
     n_false, calm_s = _false_warnings(time_s, util_true, warning)
@@ -116,19 +120,22 @@ def grip_metrics(time_s: np.ndarray, util_true: np.ndarray, mu_true: np.ndarray,
         "n": int(len(time_s)), "mu_given": int(given.sum()),
         "mu_within_0_1_share": float(np.mean(err <= MU_TOLERANCE)) if len(err) else None,
         "mu_abs_err_p90": float(np.percentile(err, 90)) if len(err) else None,
+        "mu_interval_cover_share": float(np.mean(covered)) if covered is not None and len(err) else None,
         "mu_given_share_above_0_6": float(given[excited].mean()) if excited.any() else None,
         "excited": int(excited.sum()), "excited_given": int((given & excited).sum()),
         "reaches_limit": lead is not None, "warning_lead_s": lead,
         "warning_lead_s_median": lead,
         "false_warnings": n_false, "calm_s": calm_s,
         "false_warnings_per_10min": 600.0 * n_false / calm_s if calm_s > 0 else None,
-        "_err": err,
+        "_err": err, "_covered": covered,
     }
 
 
 def pool(per_run: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """All runs' grip figures together (shares over the pooled samples, the median lead over the runs)."""
     err = np.concatenate([r["_err"] for r in per_run]) if per_run else np.zeros(0)
+    cov: list[np.ndarray] = [c for r in per_run if (c := r.get("_covered")) is not None]
+    covered: np.ndarray | None = np.concatenate(cov) if cov and len(cov) == len(per_run) else None
     excited = sum(r["excited"] for r in per_run)
     leads = [r["warning_lead_s"] for r in per_run if r["warning_lead_s"] is not None]
     n_false = sum(r["false_warnings"] for r in per_run)
@@ -137,6 +144,7 @@ def pool(per_run: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "runs": len(per_run), "n": sum(r["n"] for r in per_run), "mu_given": int(len(err)),
         "mu_within_0_1_share": float(np.mean(err <= MU_TOLERANCE)) if len(err) else None,
         "mu_abs_err_p90": float(np.percentile(err, 90)) if len(err) else None,
+        "mu_interval_cover_share": float(np.mean(covered)) if covered is not None and len(covered) else None,
         "mu_given_share_above_0_6": sum(r["excited_given"] for r in per_run) / excited if excited else None,
         "excited": excited,
         "runs_reaching_limit": len(leads),
@@ -160,7 +168,8 @@ def grip_of_run(table: Mapping[str, Any], sat_fl: np.ndarray, sat_fr: np.ndarray
         return None
     est = estimate_run(table, sat_fl, sat_fr, params)
     t = np.asarray(table["time_s"], float)
-    m = grip_metrics(t, true_front_util(table), np.asarray(table["road_mu"], float), est["mu"], est["warning"])
+    m = grip_metrics(t, true_front_util(table), np.asarray(table["road_mu"], float), est["mu"], est["warning"],
+                     est["halfwidth"])
     return m, est
 
 
@@ -218,7 +227,8 @@ def grip_markdown(result: Mapping[str, Any] | None) -> str:
         return "—" if v is None else format(v, fmt)
 
     return (f"Grip ({o['runs']} runs with the truth): mu within +-0.1 {f(o['mu_within_0_1_share'], '.3f')} of "
-            f"{o['mu_given']} samples given, p90 |error| {f(o['mu_abs_err_p90'], '.3f')}; given in "
+            f"{o['mu_given']} samples given, p90 |error| {f(o['mu_abs_err_p90'], '.3f')}, interval holds the truth in "
+            f"{f(o.get('mu_interval_cover_share'), '.3f')}; given in "
             f"{f(o['mu_given_share_above_0_6'], '.3f')} of samples above 0.6 utilisation; warning lead median "
             f"{f(o['warning_lead_s_median'], '.2f')} s over {o['runs_reaching_limit']} runs reaching 0.95; "
             f"{f(o['false_warnings_per_10min'], '.2f')} false warnings per 10 min below 0.7.\n")
