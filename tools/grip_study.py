@@ -376,8 +376,10 @@ def _load_transfer(runs: list[dict]) -> float:
     return round(num / den, 4)
 
 
-def _fit_warning(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
+def _fit_warning(runs: list[dict], p: grip.GripParams, false_on: str = "all") -> grip.GripParams:
     """The warning with the longest median lead among those with at most FALSE_BUDGET false warnings per 10 min
+    (``false_on``: counted on every run, ``all``, or on the acceptance's own driving, ``acceptance``: the random steers
+    and the circuit laps, :func:`acceptance_runs`)
     (at equal lead, the one that warns of the most limits by the time they are reached); where none keeps that
     budget, the one with the fewest (then the most limits warned, then the longest lead). Only thresholds the trail's
     evidence can reach (at most the trail curve's highest utilisation): above it the warning would no longer read
@@ -391,8 +393,9 @@ def _fit_warning(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
     for on, hz, dw, dl, dh, eh, kl in grid:
         q = replace(p, warn_on=on, warn_off=round(on - 0.1, 3), warn_horizon_s=hz, demand_weight=dw,
                     demand_lead_s=dl, demand_mu_held=dh, evidence_mu_held=eh, kappa_limit=kl)
-        o = measure(runs, q)["overall"]
-        false = o["false_warnings_per_10min"] or 0.0
+        res = measure(runs, q)
+        o = res["overall"]
+        false = (res["acceptance"] if false_on == "acceptance" else o)["false_warnings_per_10min"] or 0.0
         lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
         warned = o["limit_warned_share"] or 0.0
         print(f"  warning on {on:.2f}, look-ahead {hz:.1f} s, demand {dw:.1f} ahead {dl:.1f} s "
@@ -418,7 +421,8 @@ def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
         res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p)
         if res is not None:
             per.append((r, res[0]))
-    out = {"overall": gs.pool([m for _, m in per])}
+    out = {"overall": gs.pool([m for _, m in per]),
+           "acceptance": gs.pool([m for r, m in per if acceptance_runs(r)])}
     for s in sorted({r["set"] for r, _ in per}):
         out[s] = gs.pool([m for r, m in per if r["set"] == s])
     mus = sorted({float(r["table"]["road_mu"][0]) for r, _ in per})
@@ -544,6 +548,11 @@ def _bound_md(res: dict, seed: int, note: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+def acceptance_runs(run: dict) -> bool:
+    """Whether a run is of the driving the false-warning acceptance names: a random steer or a circuit lap."""
+    return run["set"] == "circuits" or _kind(run["name"]) == "random-steer"
+
+
 def _kind(name: str) -> str:
     """A run's kind: its manoeuvre (the name up to the speed), or ``circuit`` for every random circuit's lap."""
     return "circuit" if name.startswith("circuit") else name.split("_")[0]
@@ -559,7 +568,8 @@ def _md(res: dict, seed: int) -> str:
 
     lines = [f"Grip estimate on fresh seeds ({seed}): `python tools/grip_study.py --seed {seed}`", "",
              "| set | runs | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
-    rows = [("overall", res["overall"]), ("paper", res.get("paper")), ("circuits", res.get("circuits"))]
+    rows = [("overall", res["overall"]), ("paper", res.get("paper")), ("circuits", res.get("circuits")),
+            ("random steers and circuits (the false-warning acceptance's driving)", res.get("acceptance"))]
     rows += [(f"mu {k}", v) for k, v in res["by_mu"].items()]
     rows += [(f"{k.split()[0]} mu {k.split()[1]}", v) for k, v in res.get("by_set_mu", {}).items()]
     rows += [(k, v) for k, v in res.get("by_kind", {}).items()]
@@ -595,6 +605,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "grip_study", help="simulated data (reused)")
     ap.add_argument("--warning-only", action="store_true",
                     help="fit: keep the shipped curves and hold, re-calibrate the warning only")
+    ap.add_argument("--false-on", choices=("all", "acceptance"), default="all",
+                    help="fit --warning-only: count the false-warning budget on every run (default) or on the random "
+                         "steers and circuit laps only, the driving the acceptance names")
     ap.add_argument("--interval-only", action="store_true",
                     help="fit: keep everything else, re-calibrate the published friction interval (worst road)")
     ap.add_argument("--evidence-only", action="store_true",
@@ -606,6 +619,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--warning-only, --evidence-only and --interval-only go with fit")
     if len(partial) > 1:
         ap.error("--warning-only, --evidence-only, --interval-only: choose one")
+    if a.false_on != "all" and not a.warning_only:
+        ap.error("--false-on goes with fit --warning-only")
     seed = a.seed if a.seed is not None else (FIT_SEED if a.what == "fit" else ACCEPT_SEED)
     runs = load(simulate(a.work, seed))
     if a.what == "fit":
@@ -614,7 +629,7 @@ def main(argv: list[str] | None = None) -> int:
             p = replace(fit_interval(runs, p0), source=_source(p0.source, ("interval",), "--interval-only", seed))
         elif a.warning_only or a.evidence_only:
             p0 = grip.load_params()
-            p = _fit_warning(runs, p0) if a.warning_only else fit_evidence(runs, seed, p0)
+            p = _fit_warning(runs, p0, a.false_on) if a.warning_only else fit_evidence(runs, seed, p0)
             parts = ("warning",) if a.warning_only else ("utilisation curve", "warning")
             flag = "--warning-only" if a.warning_only else "--evidence-only"
             p = replace(p, source=_source(p0.source, parts, flag, seed))
