@@ -176,6 +176,24 @@ def test_a_road_friction_is_a_condition_of_the_day_and_the_estimator_is_not_retr
     assert after is not before and list(after.recipe["retrained_with"]) == ["vehicle_mass"]
 
 
+def test_the_report_says_which_condition_of_the_day_the_estimator_was_not_retrained_for():
+    """The estimator section names the day's conditions left out of the retraining (a road friction) beside what
+    was retrained for, and says nothing of them on a day without one."""
+    from virtsensor.diagnose.report import _estimator_lines
+
+    fit = {"mae_nm": 3.0, "r2": 0.9}
+    res = {"estimator": {"preset": "wide", "recipe": {"features": "improved"}, "seed": 0,
+                         "retrained_with": ["vehicle_mass"], "day_conditions": {"road_friction": 0.7361}},
+           "estimator_on_diagnosis_runs": {"measured": fit, "simulated": fit}, "mae_before_nm": None,
+           "gain_note": "no held-out runs"}
+    text = "\n".join(_estimator_lines(res))
+    assert "retrained on the simulator with vehicle_mass" in text
+    assert "Not retrained for road_friction = 0.7361: a condition of the test day, not of the car" in text
+    res["estimator"] = {**res["estimator"], "day_conditions": {}}
+    assert "Not retrained" not in "\n".join(_estimator_lines(res))
+    assert _estimator_lines({"estimator": None}) == []
+
+
 @pytest.mark.parametrize("scaler", ["robust", "standard", "minmax"])
 def test_an_input_sensor_error_is_undone_in_the_scaler(scaler, tmp_path):
     """An estimator whose inputs carry an offset and a gain, corrected in its scaler, predicts from the faulty

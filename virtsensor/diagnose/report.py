@@ -67,6 +67,14 @@ def markdown(res: Mapping[str, Any]) -> str:
         for k, d in dep.items():
             out.append(f"- {k} [{d['unit']}]: " + ", ".join(
                 f"{c:.3g}: {m:+.2f} Nm" for c, m in zip(d["centre"], d["mean_residual_nm"], strict=True)))
+    out += _estimator_lines(res)
+    return "\n".join(out) + "\n"
+
+
+def _estimator_lines(res: Mapping[str, Any]) -> list[str]:
+    """The SAT estimator's section: how it was trained, what was calibrated and what was not (the day's conditions),
+    and the gain on the held-out runs (nothing without an estimator)."""
+    out: list[str] = []
     est = res.get("estimator")
     if est:
         on = res["estimator_on_diagnosis_runs"]
@@ -98,7 +106,7 @@ def markdown(res: Mapping[str, Any]) -> str:
                 out.append(f"- {res['gain_note']}")
         else:
             out.append(f"- {res.get('gain_note', 'no gain measured')}")
-    return "\n".join(out) + "\n"
+    return out
 
 
 def _cause_lines(res: Mapping[str, Any]) -> list[str]:
