@@ -3,6 +3,7 @@ on the virtual bus with SAT_FRONT's statuses under timeouts and E2E faults."""
 
 from __future__ import annotations
 
+import json
 import math
 import time
 import uuid
@@ -247,10 +248,10 @@ def test_friction_is_held_while_excited_and_only_so_far():
 
 def test_the_published_interval_is_its_own_curve_and_the_gate_the_pooled_one():
     """With ``interval_at_trail`` the published half-width is read from it (given and held, widened as held), while
-    whether the friction is given, the held friction and the utilisation still read the pooled error
-    (``abs_err90_at_trail``); without it (older files) the two are the same curve. A curve of the wrong shape is
-    refused."""
-    p = replace(load_params(), interval_at_trail=())
+    the gate, the held friction and the utilisation still read the pooled error (``abs_err90_at_trail``); without it
+    (older files) the two are the same curve. ``interval_max`` withholds a friction whose published half-width, or a
+    held one's widened, exceeds it. An unlimited ``interval_max`` stays out of strict JSON; bad values are refused."""
+    p = replace(load_params(), interval_at_trail=(), interval_max=0.5)
     wide = replace(p, interval_at_trail=tuple((0.5,) * len(p.trail_m) for _ in p.mu_bands))
     a, b = GripEstimator(p), GripEstimator(wide)
     for est in (a, b):
@@ -261,14 +262,29 @@ def test_the_published_interval_is_its_own_curve_and_the_gate_the_pooled_one():
     for est in (a, b):  # hard drive: the trail is gated off, the friction held
         for _ in range(5):
             est.step(-30.0, -30.0, ax, 1.0, 20.0, 0.05, 0.0, 150.0, 20.0 / 0.305, 20.0 / 0.305)
-    assert math.isnan(b.state.trail_m) and a.state.mu == b.state.mu
-    widen = b.state.halfwidth - 0.5
-    assert 0 < widen <= p.hold_widen_per_m * p.hold_m
+    assert math.isnan(b.state.trail_m)
+    assert math.isnan(b.state.mu)  # (held, its interval widened past interval_max: withheld, not published wider)
+    assert math.isfinite(a.state.mu) and a.state.halfwidth > a._hw_held  # (the pooled one, widened as held)
+    loose = GripEstimator(replace(wide, interval_max=0.6))
+    _steady(loose, 60, 0.4 * 9.81, 0.0)
+    for _ in range(5):
+        loose.step(-30.0, -30.0, ax, 1.0, 20.0, 0.05, 0.0, 150.0, 20.0 / 0.305, 20.0 / 0.305)
+    widen = loose.state.halfwidth - 0.5
+    assert loose.state.mu == a.state.mu and 0 < widen <= p.hold_widen_per_m * p.hold_m
     assert a.state.halfwidth - widen == pytest.approx(a._hw_held)
+    tight = GripEstimator(replace(wide, interval_max=0.49))  # (the interval wider than the limit: never given)
+    _steady(tight, 60, 0.4 * 9.81, 0.0)
+    assert math.isnan(tight.state.mu) and math.isnan(tight.state.halfwidth)
     doc = wide.to_json()
     assert GripParams.from_json(doc) == wide
+    unlimited = replace(wide, interval_max=math.inf)
+    assert "interval_max" not in unlimited.to_json() and GripParams.from_json(unlimited.to_json()) == unlimited
+    json.dumps(unlimited.to_json(), allow_nan=False)
     with pytest.raises(UserError, match="interval_at_trail"):
         GripParams.from_json({**doc, "interval_at_trail": doc["interval_at_trail"][:-1]})
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(UserError, match="interval_max"):
+            GripParams.from_json({**doc, "interval_max": bad})
 
 
 def test_non_finite_input_gives_nan_and_restarts():

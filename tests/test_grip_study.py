@@ -113,14 +113,17 @@ def test_the_published_interval_is_the_worst_roads_not_the_pooled_one():
     T = np.concatenate([t_easy, t_hard])
     MU = est - np.concatenate([err_easy, err_hard])
     grp = np.array(["circuits 0.45"] * len(t_easy) + ["paper 0.5"] * len(t_hard), dtype=object)
-    T = np.append(T, k[10] * np.ones(5))  # (5 samples of a third road at a longer trail: too few to count)
-    est, MU, grp = np.append(est, [0.5] * 5), np.append(MU, [0.5 - 0.9] * 5), np.append(grp, ["paper 1"] * 5)
+    # a third road: 40 well-read samples at a short trail, 5 far off at a longer one (too few there to count)
+    T = np.concatenate([T, np.full(40, k[4]), np.full(5, k[10])])
+    est = np.append(est, [0.5] * 45)
+    MU = np.concatenate([MU, np.full(40, 0.5), np.full(5, 0.5 - 0.9)])
+    grp = np.append(grp, ["paper 1"] * 45)
     iv = study._worst_road_interval(T, est, MU, grp)
     band = iv[1]
     for j in range(4, 8):
         hard = np.quantile(err_hard[t_hard == k[j]], 0.9)
         assert band[j] >= hard - 1e-4
-        pooled = np.quantile(np.concatenate([err_easy, err_hard])[T[:-5] == k[j]], 0.9)
+        pooled = np.quantile(np.concatenate([err_easy, err_hard])[T[:len(err_easy) + len(err_hard)] == k[j]], 0.9)
         assert band[j] > pooled + 0.15
     assert np.all(np.diff(band) >= 0)
     assert max(band) < 0.9  # (the third road's 5 samples did not count)

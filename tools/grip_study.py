@@ -18,9 +18,11 @@ matplotlib, ``figures/grip_study.png`` (another seed: ``docs/grip_study_<seed>.{
 (made non-increasing by a weighted isotonic fit over the bins, each weighted by its samples: a running minimum let
 one sparse bin at the collapsed end cap the whole curve; the trail reads the lateral slip), the median axle force
 ratio per unit of road friction, the 90th percentile of the friction's relative error and, per band of the
-estimate, of its absolute error (the interval), for each longitudinal-force gate and largest half-width, keeping
+estimate, of its absolute error (the gate's pooled interval), for each longitudinal-force gate and largest
+half-width, keeping
 the pair that gives the friction most often with 95 % within +-0.1 pooled and 90 % on every road (mu); then, by the
-same rule, the hold of the friction (median count, distance, least use); then the warning (threshold; the driver's
+same rule, the hold of the friction (median count, distance, least use); then the published interval (as
+``--interval-only`` below); then the warning (threshold; the driver's
 demand: weight, look-ahead along the steering's rate, the friction it is set against; the held friction's share as
 evidence or not), chosen on that data as the longest median lead with at most FALSE_BUDGET false warnings per 10
 minutes below 70 % utilisation (at equal lead, the most limits warned by the time they are reached). ``fit
@@ -194,7 +196,8 @@ def _fill(out: np.ndarray) -> np.ndarray:
 def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripParams:
     """The calibrated parameters from ``runs``: the curves for each longitudinal-force gate of
     :data:`MAX_LONG_RATIO`, keeping the one that gives the friction on most samples above 0.6 utilisation with
-    at least 95 % of them within +-0.1; then the warning."""
+    at least 95 % of them within +-0.1; then the hold, the published interval (:func:`fit_interval`) and the
+    warning."""
     best = None
     k_us = _understeer(runs)
     for mlr in MAX_LONG_RATIO:
@@ -284,15 +287,18 @@ def fit_interval(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
 
 def _trail_samples(runs: list[dict], p: grip.GripParams) -> tuple[np.ndarray, ...]:
     """Trail (m), friction estimate ``n / k(t)``, true road friction and road group (campaign and friction) of
-    every sample where ``p`` reads the trail while the force changes slowly (where the friction may be given)."""
+    every sample where ``p`` reads the trail while the force ratio changes slowly and the estimate is at most
+    ``mu_max`` (where the friction may be given; the steadiness as :func:`_fit_curves` reads it)."""
     tr, est, mu, grp = [], [], [], []
     for r in runs:
         e = grip.estimate_run(r["table"], r["fl"], r["fr"], p)
         steady = np.abs(np.diff(e["force_ratio"], prepend=np.nan)) <= p.max_force_rate * 0.05
         ok = steady & np.isfinite(e["trail_m"])
-        road = np.asarray(r["table"]["road_mu"], float)[ok]
-        tr.append(e["trail_m"][ok])
-        est.append(e["force_ratio"][ok] / np.interp(e["trail_m"][ok], TRAIL_KNOTS, p.use_at_trail))
+        mu_hat = e["force_ratio"][ok] / np.interp(e["trail_m"][ok], p.trail_m, p.use_at_trail)
+        keep = mu_hat <= p.mu_max
+        road = np.asarray(r["table"]["road_mu"], float)[ok][keep]
+        tr.append(e["trail_m"][ok][keep])
+        est.append(mu_hat[keep])
         mu.append(road)
         grp.append(np.array([f"{r['set']} {m:g}" for m in road], dtype=object))
     return tuple(np.concatenate(a) for a in (tr, est, mu, grp))
@@ -301,10 +307,15 @@ def _trail_samples(runs: list[dict], p: grip.GripParams) -> tuple[np.ndarray, ..
 def interval_curves(runs: list[dict], p: grip.GripParams) -> tuple[tuple[float, ...], ...]:
     """The published interval: per band of the estimate (:data:`MU_BANDS`) and trail knot, the largest over the
     fit data's roads (each campaign and road friction a road; bins of fewer than 20 samples of a road left out for
-    that road) of the 90th percentile of the friction's absolute error, never narrower at a longer trail. The pooled
+    that road) of the 90th percentile of the friction's absolute error, never narrower at a longer trail nor than the
+    pooled one (``abs_err90_at_trail``, fitted on other campaigns, may be the wider in a sparse bin). The pooled
     percentile (``abs_err90_at_trail``, the gate) is set by the mix: on seed 1902 the paper campaign's roads of
     mu 0.3 to 1.0 held the truth within it on 37-66 % of their given samples, the easy low-friction circuits on 99 %."""
-    return _worst_road_interval(*_trail_samples(runs, p))
+    if tuple(p.trail_m) != TRAIL_KNOTS or tuple(p.mu_bands) != MU_BANDS:
+        raise SystemExit("interval fit: the parameters' trail knots and mu bands are not this tool's")
+    worst = _worst_road_interval(*_trail_samples(runs, p))
+    return tuple(tuple(round(max(a, b), 4) for a, b in zip(w, pooled, strict=True))
+                 for w, pooled in zip(worst, p.abs_err90_at_trail, strict=True))
 
 
 def _worst_road_interval(T: np.ndarray, est: np.ndarray, MU: np.ndarray,
@@ -415,7 +426,9 @@ def _fit_warning(runs: list[dict], p: grip.GripParams, false_on: str = "all") ->
 
 
 def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
-    """Grip figures per run, per set (paper, circuits) and overall."""
+    """Grip figures per run, per set (paper, circuits), per road of each set (``by_set_mu``), per road and per
+    manoeuvre over both, over the false-warning acceptance's driving (``acceptance``: :func:`acceptance_runs`) and
+    overall."""
     per = []
     for r in runs:
         res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p)

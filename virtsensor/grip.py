@@ -21,7 +21,7 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
 * the road friction ``mu = n / k(t)``, with ``k`` the calibrated force ratio per unit of friction at that
   trail (:attr:`GripParams.use_at_trail`; the axle's ``n / mu`` is below the utilisation of its more used
   tyre), and the half-width of its 90 % interval, the 90th percentile of the absolute error at that trail for
-  estimates in that band on the calibration's worst road (:attr:`GripParams.interval_at_trail`: it holds the
+  estimates in that band on the calibration's worst road (:attr:`GripParams.interval_at_trail`: meant to hold the
   truth on every road, not only pooled over a mix of mostly easy samples); it is given only where the trail
   is read (``|Fy| >= min_force_ratio Fz`` and ``|Fx| <= max_long_ratio Fz``: the brush trail is that of pure
   side slip), while the force changes slowly (:attr:`GripParams.max_force_rate`), with a calibrated relative
@@ -44,7 +44,7 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
 * the warning's evidence also holds the floor ``n / mu_road_max``: whatever the road (the car is rated up to
   ``mu_road_max``), the axle uses at least that share of its grip, so a hard combined-slip corner on a dry road
   (the trail gated off) is seen coming by the force it already uses; with :attr:`GripParams.evidence_mu_held`,
-  while a friction is held, the same force ratio over the held friction's upper end (the wet road's
+  while a friction is held, the same force ratio over the held friction plus its pooled error (the wet road's
   combined-slip corner, seen by the share it uses of the grip measured there);
 * the warning: on when the evidence (plus, for :attr:`GripParams.mu_hold_s` after a friction was given,
   ``n / mu_ref``) reaches ``warn_on``, or, above ``warn_off``, is predicted to reach it rising at its rate for
@@ -110,12 +110,12 @@ class GripParams:
             calibration's samples: the gate ``halfwidth_max`` reads it (the error is partly a noise floor, partly
             proportional to mu: a band each).
         interval_at_trail: per band, the published interval's half-width at each trail knot: the 90th percentile of
-            |mu error| on the calibration's worst road (each campaign and road friction on its own), so that the
-            interval holds the true friction in 9 of 10 samples on every road, not only pooled over a mix that
-            is mostly easy (empty: ``abs_err90_at_trail``, the older files' meaning).
-        interval_max: the friction is given only where the published half-width is at most this (an interval wider
-            than that says the trail cannot tell the road there: unknown, not a guess; inf: no such limit, the
-            older files' meaning).
+            |mu error| on the calibration's worst road (each campaign and road friction on its own; never below the
+            pooled one), meant to hold the true friction in 9 of 10 samples on every road, not only pooled over a
+            mix that is mostly easy (empty: ``abs_err90_at_trail``, the older files' meaning).
+        interval_max: the friction is given, or held, only where its published half-width (a held one's widened as
+            held) is at most this: an interval wider than that says the trail cannot tell the road there (unknown,
+            not a guess; inf: no such limit, the older files' meaning).
         max_force_rate: the friction is given only while the axle force ratio changes slower than this (1/s):
             in a fast transient the force from the accelerations and the SAT are not in step.
         max_long_ratio: the trail is read only while the axle's longitudinal force is at most this times its load
@@ -125,7 +125,8 @@ class GripParams:
         kappa_limit: front longitudinal slip (wheel speeds against the front axle's speed, see
             :meth:`GripEstimator._slip`) taken as the longitudinal limit.
         rel_err_max: largest calibrated relative friction error (at the trail) with which it is given.
-        halfwidth_max: largest interval half-width with which the friction is given.
+        halfwidth_max: the friction is given (and held) only where the pooled error ``abs_err90_at_trail`` (widened
+            as held) is at most this.
         mu_max: the friction estimate is clipped to [0.05, mu_max].
         warn_on, warn_off: utilisation thresholds of the warning (hysteresis).
         warn_horizon_s: the warning looks this far ahead along the utilisation's rate of rise.
@@ -141,14 +142,14 @@ class GripParams:
             warning's evidence (0: none), and the friction the driver's demand is set against where none is held.
         demand_lead_s: the steering's lateral demand looks this far ahead along its rate (s; 0: the steady state
             of the present steering only); default 0 keeps older calibration files' meaning.
-        demand_mu_held: 1: the demand is set against the held friction's upper end while it is held (else the
+        demand_mu_held: 1: the demand is set against the held friction plus its pooled error while held (else the
             rated ``mu_road_max``); 0: always against ``mu_road_max`` (a wrong held friction then cannot raise a
             warning through the demand).
         load_transfer: the load each front tyre gains (outer) or loses (inner) per newton of front lateral force
             (measured on the fit data from the simulator's wheel loads): the force floor and the demand are those
             of the more used tyre (0: the axle's, as older files).
-        evidence_mu_held: 1: while a friction is held, the more used tyre's force ratio over the upper end of the
-            held friction's interval is evidence of the limit too (a wet road once measured: the combined-slip
+        evidence_mu_held: 1: while a friction is held, the more used tyre's force ratio over the held friction plus
+            its pooled error is evidence of the limit too (a wet road once measured: the combined-slip
             corner the trail cannot read is seen by the force it already uses of that road's grip); 0: not (the
             older files' meaning).
         source: where the numbers come from (free text).
@@ -208,6 +209,10 @@ class GripParams:
         if self.interval_at_trail and (len(self.interval_at_trail) != len(self.mu_bands) or any(
                 len(c) != k for c in self.interval_at_trail)):
             raise ValueError("grip params: interval_at_trail needs a curve per mu band, a value per trail knot")
+        if any(not 0.0 <= x < math.inf for c in self.interval_at_trail for x in c):
+            raise ValueError("grip params: interval_at_trail values must be finite and >= 0")
+        if not self.interval_max > 0.0:  # (also refuses nan)
+            raise ValueError("grip params: interval_max must be > 0 (inf: no limit)")
         if min(self.use_at_trail) <= 0:
             raise ValueError("grip params: use_at_trail must be > 0")
         if any(b <= a for a, b in zip(self.trail_m, self.trail_m[1:], strict=False)):
@@ -332,8 +337,8 @@ class GripEstimator:
         self._below = 0.0
         self.state.warning = False
         if not hasattr(self, "mu_ref"):
-            #: the friction assumed for the utilisation where the trail cannot tell: the upper end of the latest
-            #: given one's interval (1 until one is given)
+            #: the friction assumed for the utilisation where the trail cannot tell: the latest given one plus its
+            #: pooled error (1 until one is given)
             self.mu_ref = 1.0
             self._mu_age = math.inf
             #: the latest given friction, its half-width and the distance travelled since (m)
@@ -380,7 +385,7 @@ class GripEstimator:
         self._held_m += vx * self.dt
         if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
             widen = p.hold_widen_per_m * self._held_m  # (the road met since may differ)
-            if self._hw_held + widen <= p.halfwidth_max:
+            if self._hw_held + widen <= p.halfwidth_max and self._hwp_held + widen <= p.interval_max:
                 s.mu, s.halfwidth = self._mu_held, self._hwp_held + widen
         ev = max(ev, self._slip(vx, yaw_rate, steer_angle, wheel_fl + wheel_fr, fx_now))
         self._mu_age += self.dt
