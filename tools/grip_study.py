@@ -579,7 +579,8 @@ def _md(res: dict, seed: int) -> str:
     def f(v: object) -> str:
         return "—" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
 
-    lines = [f"Grip estimate on fresh seeds ({seed}): `python tools/grip_study.py --seed {seed}`", "",
+    which = "the calibration's own seed" if seed == FIT_SEED else "fresh seeds"
+    lines = [f"Grip estimate on {which} ({seed}): `python tools/grip_study.py --seed {seed}`", "",
              "| set | runs | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
     rows = [("overall", res["overall"]), ("paper", res.get("paper")), ("circuits", res.get("circuits")),
             ("random steers and circuits (the false-warning acceptance's driving)", res.get("acceptance"))]
