@@ -242,13 +242,19 @@ def _fit_hold(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
     return best[1]
 
 
+def _steady_trail(e: dict[str, np.ndarray], p: grip.GripParams) -> np.ndarray:
+    """The trail of an :func:`grip.estimate_run` result where it is read while the force ratio changes slower than
+    ``max_force_rate`` (per 20 Hz tick), nan elsewhere: the samples a calibration reads."""
+    steady = np.abs(np.diff(e["force_ratio"], prepend=np.nan)) <= p.max_force_rate * 0.05
+    return np.where(steady, e["trail_m"], np.nan)
+
+
 def _fit_curves(runs: list[dict], seed: int, p0: grip.GripParams) -> grip.GripParams:
     """The trail curves and the interval calibration for the gates of ``p0``."""
     tr, n, u, mu = [], [], [], []
     for r in runs:
         e = grip.estimate_run(r["table"], r["fl"], r["fr"], p0)
-        steady = np.abs(np.diff(e["force_ratio"], prepend=np.nan)) <= p0.max_force_rate * 0.05
-        tr.append(np.where(steady, e["trail_m"], np.nan))
+        tr.append(_steady_trail(e, p0))
         n.append(e["force_ratio"])
         u.append(_lateral_util(r["table"]))
         mu.append(np.asarray(r["table"]["road_mu"], float))
@@ -292,8 +298,7 @@ def _trail_samples(runs: list[dict], p: grip.GripParams) -> tuple[np.ndarray, ..
     tr, est, mu, grp = [], [], [], []
     for r in runs:
         e = grip.estimate_run(r["table"], r["fl"], r["fr"], p)
-        steady = np.abs(np.diff(e["force_ratio"], prepend=np.nan)) <= p.max_force_rate * 0.05
-        ok = steady & np.isfinite(e["trail_m"])
+        ok = np.isfinite(_steady_trail(e, p))
         mu_hat = e["force_ratio"][ok] / np.interp(e["trail_m"][ok], p.trail_m, p.use_at_trail)
         keep = mu_hat <= p.mu_max
         road = np.asarray(r["table"]["road_mu"], float)[ok][keep]

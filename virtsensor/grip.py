@@ -469,9 +469,8 @@ class GripEstimator:
         b = min(bisect.bisect_left(self._bands, mu), len(self._abs) - 1)
         c = self._abs[b]
         hw = c[i] + w * (c[i + 1] - c[i])
-        c = self._pub[b]
-        hwp = c[i] + w * (c[i + 1] - c[i])
-        if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max and hwp <= p.interval_max:
+        if steady and rel <= p.rel_err_max and hw <= p.halfwidth_max and mu <= p.mu_max and (
+                (hwp := self._pub[b][i] + w * (self._pub[b][i + 1] - self._pub[b][i])) <= p.interval_max):
             s.mu, s.halfwidth = mu, hwp
             self.mu_ref = mu + hw  # (the upper end of the pooled error: a utilisation not overstated by it)
             self._mu_age = 0.0
