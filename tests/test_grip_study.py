@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ _spec = importlib.util.spec_from_file_location("grip_study", ROOT / "tools" / "g
 study = importlib.util.module_from_spec(_spec)
 sys.modules["grip_study"] = study
 _spec.loader.exec_module(study)
+grip = study.grip
 
 
 def test_utilisation_curve_is_the_weighted_isotonic_fit():
@@ -42,7 +44,8 @@ def test_counts_bin_as_the_curve_does():
 
 
 @pytest.mark.parametrize("argv", [["accept", "--warning-only"], ["fit", "--warning-only", "--evidence-only"],
-                                  ["accept", "--evidence-only"]])
+                                  ["accept", "--evidence-only"], ["bound", "--evidence-gate-only"],
+                                  ["fit", "--evidence-gate-only", "--interval-only"]])
 def test_fit_options_are_refused_where_they_do_not_apply(argv, capsys):
     with pytest.raises(SystemExit) as e:
         study.main(argv)
@@ -100,6 +103,32 @@ def test_a_partial_fit_keeps_the_provenance_of_the_parts_it_does_not_fit():
     assert iv == f"{full}; utilisation curve: {evc}; warning: {evc}; interval: {ic}"
     assert study._source(iv, ("warning",), "--warning-only", 1901) == (
         f"{full}; utilisation curve: {evc}; warning: {wc}; interval: {ic}")
+    gc = "tools/grip_study.py fit --evidence-gate-only --seed 1901"
+    assert study._source(iv, ("evidence gate",), "--evidence-gate-only", 1901) == (
+        f"{full}; utilisation curve: {evc}; warning: {evc}; evidence gate: {gc}; interval: {ic}")
+
+
+def test_the_evidence_gate_is_the_longest_lead_within_the_false_warning_limit(monkeypatch):
+    """The fit of the evidence's longitudinal-force gate: the longest median lead, then the most limits warned,
+    among the gates within FALSE_BUDGET (or the calibration's own false warnings where more); the narrower gate at a
+    tie; a gate over the limit is not taken however long its lead."""
+    figures = {0.0: (0.1, 0.1, 0.7), 0.25: (0.1, 0.1, 0.8), 0.35: (0.1, 0.1, 0.8), 0.5: (3.0, 0.5, 1.0)}
+
+    def fake(limit_of: dict):
+        def measure(runs, q):
+            false, lead, warned = limit_of[q.evidence_long_ratio]
+            o = {"false_warnings_per_10min": false, "warning_lead_s_median": lead, "limit_warned_share": warned}
+            return {"overall": o, "acceptance": o}
+        return measure
+
+    p = grip.load_params()
+    monkeypatch.setattr(study, "measure", fake(figures))
+    assert study.fit_evidence_gate([], replace(p, evidence_long_ratio=0.0)).evidence_long_ratio == 0.25
+    assert study.fit_evidence_gate([], replace(p, evidence_long_ratio=0.5)).evidence_long_ratio == 0.5  # (its own)
+    monkeypatch.setattr(study, "measure", fake({**figures, 0.25: (0.6, 0.4, 0.9), 0.0: (0.7, 0.1, 0.7)}))
+    assert study.fit_evidence_gate([], replace(p, evidence_long_ratio=0.0)).evidence_long_ratio == 0.25
+    monkeypatch.setattr(study, "measure", fake({**figures, 0.25: (0.6, 0.4, 0.9)}))
+    assert study.fit_evidence_gate([], replace(p, evidence_long_ratio=0.0)).evidence_long_ratio == 0.35
 
 def test_the_published_interval_is_the_worst_roads_not_the_pooled_one():
     """Per band and trail knot the 90th percentile of the error on the worst road: a small hard road is not

@@ -5,6 +5,7 @@
     python tools/grip_study.py fit --warning-only   # re-calibrate its warning only (the curves and hold kept)
     python tools/grip_study.py fit --evidence-only  # the trail's utilisation curve and the warning (the rest kept)
     python tools/grip_study.py fit --interval-only  # the published friction interval only (the rest kept)
+    python tools/grip_study.py fit --evidence-gate-only  # how far under drive/braking the trail warns (the rest kept)
     python tools/grip_study.py bound --seed 1902    # how much lead any warning could have: docs/grip_bound_1902.md
 
 ``accept`` (the default) simulates the ``paper`` campaign (Table I: every manoeuvre, mu 0.2 to 1.0) and the
@@ -30,7 +31,9 @@ minutes below 70 % utilisation (at equal lead, the most limits warned by the tim
 trail's utilisation curve and the warning (the friction curves, their gates and the hold kept); ``fit
 --interval-only`` the published interval alone (:func:`fit_interval`: per band and trail, the 90th percentile of the
 friction's error on the worst road of the fit data, so that it holds on every road and not only pooled over a mix of
-mostly easy samples; the gates keep the pooled one; and the widest interval with which the friction is given).
+mostly easy samples; the gates keep the pooled one; and the widest interval with which the friction is given);
+``fit --evidence-gate-only`` how far beyond the friction's longitudinal-force gate the trail's utilisation curve
+still counts as the limit's evidence (:func:`fit_evidence_gate`, the last step of every warning fit).
 The car's own numbers come from the simulator's parameter file (``sim/data/car_c_segment.toml``: mass, geometry,
 drive, brakes, air drag, steering ratio) and the catalogue's rolling radius; the linear car's understeer gradient is
 measured on the fit data.
@@ -94,6 +97,10 @@ KAPPA_LIMIT = (0.1, 0.07, 0.05)
 FALSE_BUDGET = 0.5
 #: the longitudinal-force gates (|Fx| / Fz below which the trail is read) the fit chooses from
 MAX_LONG_RATIO = (0.15, 0.25, 0.3, 0.35, 0.4, 0.5)
+#: how far beyond that gate the trail's utilisation curve still counts as the limit's evidence (|Fx| / Fz; 0: not
+#: beyond it), the warning fit's last step chooses from, the narrowest first: under drive or braking the trail of a
+#: tyre near its limit collapses too, while the friction (the force over a pure side-slip curve) cannot be read there
+EVIDENCE_LONG_RATIO = (0.0, 0.25, 0.35, 0.5)
 #: the largest interval half-widths with which the friction is given, the fit chooses from (with the gate)
 HALFWIDTH_MAX = (0.1, 0.12, 0.15)
 #: the highest road friction the car is rated for (dry asphalt; the acceptance range is mu 0.2 to 1.0): whatever
@@ -427,7 +434,32 @@ def _fit_warning(runs: list[dict], p: grip.GripParams, false_on: str = "all") ->
     if not best[0]:
         print(f"  no warning setting keeps false warnings <= {FALSE_BUDGET} per 10 min: the fewest taken",
               file=sys.stderr)
-    return best[4]
+    return fit_evidence_gate(runs, best[4], false_on)
+
+
+def fit_evidence_gate(runs: list[dict], p: grip.GripParams, false_on: str = "all") -> grip.GripParams:
+    """``p`` with the evidence's longitudinal-force gate (:attr:`grip.GripParams.evidence_long_ratio`) chosen from
+    :data:`EVIDENCE_LONG_RATIO`: the longest median lead, then the most limits warned, among the gates with no more
+    false warnings per 10 min (counted as ``false_on``, see :func:`_fit_warning`) than FALSE_BUDGET or, if more, than
+    ``p`` has as it is; the narrower gate at a tie (it reads the pure side-slip curve least far from where it was
+    measured)."""
+    def score(q: grip.GripParams) -> tuple[float, float, float]:
+        res = measure(runs, q)
+        o = res["overall"]
+        false = (res["acceptance"] if false_on == "acceptance" else o)["false_warnings_per_10min"] or 0.0
+        lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
+        return false, lead, o["limit_warned_share"] or 0.0
+
+    limit = max(FALSE_BUDGET, score(p)[0])
+    best: tuple[float, float, grip.GripParams] | None = None
+    for g in EVIDENCE_LONG_RATIO:
+        q = replace(p, evidence_long_ratio=g)
+        false, lead, warned = score(q)
+        print(f"  trail as evidence up to |Fx| = {g:.2f} Fz: median lead {lead:.2f} s, limits warned {warned:.2f}, "
+              f"false {false:.2f}/10 min", file=sys.stderr)
+        if false <= limit and (best is None or (lead, warned) > best[:2]):
+            best = (lead, warned, q)
+    return best[2] if best is not None else p
 
 
 def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
@@ -599,7 +631,7 @@ def _md(res: dict, seed: int) -> str:
 
 
 #: the parts of a calibration a partial fit re-fits, in the order its provenance names them
-_PARTS = ("utilisation curve", "warning", "interval")
+_PARTS = ("utilisation curve", "warning", "evidence gate", "interval")
 
 
 def _source(before: str, fitted: tuple[str, ...], flag: str, seed: int) -> str:
@@ -629,15 +661,18 @@ def main(argv: list[str] | None = None) -> int:
                          "steers and circuit laps only, the driving the acceptance names")
     ap.add_argument("--interval-only", action="store_true",
                     help="fit: keep everything else, re-calibrate the published friction interval (worst road)")
+    ap.add_argument("--evidence-gate-only", action="store_true",
+                    help="fit: keep everything else, choose how far under drive or braking the trail's utilisation "
+                         "curve still counts as the limit's evidence")
     ap.add_argument("--evidence-only", action="store_true",
                     help="fit: keep the shipped friction curves and hold, re-calibrate the trail's utilisation curve "
                          "and the warning")
     a = ap.parse_args(argv)
-    partial = [o for o in ("warning_only", "evidence_only", "interval_only") if getattr(a, o)]
+    partial = [o for o in ("warning_only", "evidence_only", "interval_only", "evidence_gate_only") if getattr(a, o)]
     if partial and a.what != "fit":
-        ap.error("--warning-only, --evidence-only and --interval-only go with fit")
+        ap.error("--warning-only, --evidence-only, --interval-only and --evidence-gate-only go with fit")
     if len(partial) > 1:
-        ap.error("--warning-only, --evidence-only, --interval-only: choose one")
+        ap.error("--warning-only, --evidence-only, --interval-only, --evidence-gate-only: choose one")
     if a.false_on != "all" and not a.warning_only:
         ap.error("--false-on goes with fit --warning-only")
     seed = a.seed if a.seed is not None else (FIT_SEED if a.what == "fit" else ACCEPT_SEED)
@@ -646,10 +681,15 @@ def main(argv: list[str] | None = None) -> int:
         if a.interval_only:
             p0 = grip.load_params()
             p = replace(fit_interval(runs, p0), source=_source(p0.source, ("interval",), "--interval-only", seed))
+        elif a.evidence_gate_only:
+            p0 = grip.load_params()
+            p = replace(fit_evidence_gate(runs, p0),
+                        source=_source(p0.source, ("evidence gate",), "--evidence-gate-only", seed))
         elif a.warning_only or a.evidence_only:
             p0 = grip.load_params()
             p = _fit_warning(runs, p0, a.false_on) if a.warning_only else fit_evidence(runs, seed, p0)
-            parts = ("warning",) if a.warning_only else ("utilisation curve", "warning")
+            parts = ("warning", "evidence gate") if a.warning_only else ("utilisation curve", "warning",
+                                                                         "evidence gate")
             flag = "--warning-only" if a.warning_only else "--evidence-only"
             p = replace(p, source=_source(p0.source, parts, flag, seed))
         else:

@@ -35,10 +35,11 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   unknown); a change of road within that distance is its failure mode (see the README);
 * the limit's own evidence, whatever the road: the trail-to-lateral-utilisation curve (the brush model's
   monotone curve measured on the car's own tyres, :attr:`GripParams.util_at_trail`, see
-  ``tools/grip_study.py``) where the trail is read, and the front wheels' longitudinal slip over
-  ``kappa_limit`` (a spinning or locking driven wheel is at the limit; the slip against the front axle's own
-  speed in a turn, in the direction of the longitudinal force, beyond what the signals' resolution can carry:
-  :meth:`GripEstimator._slip`);
+  ``tools/grip_study.py``) where the trail is read (for this evidence also under a longitudinal force up to
+  :attr:`GripParams.evidence_long_ratio` times the load, where the friction is not read), and the front
+  wheels' longitudinal slip over ``kappa_limit`` (a spinning or locking driven wheel is at the limit; the slip
+  against the front axle's own speed in a turn, in the direction of the longitudinal force, beyond what the
+  signals' resolution can carry: :meth:`GripEstimator._slip`);
 * the utilisation ``u``: ``n / mu_ref``, with ``mu_ref`` the latest given friction plus its pooled error (1
   until one is given), or the evidence where that is higher; clipped to [0, 1];
 * the warning's evidence also holds the floor ``n / mu_road_max``: whatever the road (the car is rated up to
@@ -116,6 +117,11 @@ class GripParams:
         interval_max: the friction is given, or held, only where its published half-width (a held one's widened as
             held) is at most this: an interval wider than that says the trail cannot tell the road there (unknown,
             not a guess; inf: no such limit, the older files' meaning).
+        evidence_long_ratio: the trail's utilisation curve, the limit's evidence (not the friction), is also read
+            while the longitudinal force is up to this times the load (above ``max_long_ratio``, where the friction
+            is not read): a trail that collapses under drive or braking still says the tyres near their limit, and
+            the curve of pure side slip, which counts the lateral share only, reads such a corner no higher than it
+            is (0: no further than ``max_long_ratio``, the older files' meaning).
         max_force_rate: the friction is given only while the axle force ratio changes slower than this (1/s):
             in a fast transient the force from the accelerations and the SAT are not in step.
         max_long_ratio: the trail is read only while the axle's longitudinal force is at most this times its load
@@ -197,6 +203,7 @@ class GripParams:
     evidence_mu_held: float = 0.0
     interval_at_trail: tuple[tuple[float, ...], ...] = ()
     interval_max: float = math.inf
+    evidence_long_ratio: float = 0.0
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -244,7 +251,7 @@ class GripParams:
 
 #: fields a parameter file may leave out (their defaults: the older files' meaning)
 _OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer", "evidence_mu_held", "interval_at_trail",
-             "interval_max")
+             "interval_max", "evidence_long_ratio")
 
 
 def _tuples(v: Any) -> Any:
@@ -283,7 +290,8 @@ class GripState:
     Attributes:
         util: front-axle friction utilisation in [0, 1] (nan before the first complete tick).
         mu: road friction, or nan when unknown (not excited enough). halfwidth: its interval half-width (nan
-            with it). warning: the grip-limit warning. trail_m: the filtered axle trail (nan where not used).
+            with it). warning: the grip-limit warning. trail_m: the filtered axle trail where it is read for the
+            friction (within ``max_long_ratio``; else nan, also where it serves the evidence only).
         force_ratio: ``|F| / Fz`` of the front axle (filtered).
     """
 
@@ -382,6 +390,10 @@ class GripEstimator:
             ev = self._read_trail(n, -mz / fy, steady)
         else:
             s.trail_m = s.mu = s.halfwidth = math.nan
+            if abs(fx) <= p.evidence_long_ratio * fz and abs(fy) >= p.min_force_ratio * fz:
+                i, w = _locate(-mz / fy, self._trail)  # (combined slip: the evidence only, no friction)
+                c = self._util
+                ev = c[i] + w * (c[i + 1] - c[i])
         self._held_m += vx * self.dt
         if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
             widen = p.hold_widen_per_m * self._held_m  # (the road met since may differ)
