@@ -119,9 +119,9 @@ class GripParams:
             not a guess; inf: no such limit, the older files' meaning).
         evidence_long_ratio: the trail's utilisation curve, the limit's evidence (not the friction), is also read
             while the longitudinal force is up to this times the load (above ``max_long_ratio``, where the friction
-            is not read): a trail that collapses under drive or braking still says the tyres near their limit, and
-            the curve of pure side slip, which counts the lateral share only, reads such a corner no higher than it
-            is (0: no further than ``max_long_ratio``, the older files' meaning).
+            is not read): a trail that collapses under drive or braking still says the tyres near their limit
+            (the curve of pure side slip reads the total utilisation low there up to about 0.35, high beyond: see
+            the README; 0: no further than ``max_long_ratio``, the older files' meaning).
         max_force_rate: the friction is given only while the axle force ratio changes slower than this (1/s):
             in a fast transient the force from the accelerations and the SAT are not in step.
         max_long_ratio: the trail is read only while the axle's longitudinal force is at most this times its load
