@@ -328,6 +328,10 @@ def test_params_are_checked():
         GripParams.from_json({**doc, "util_at_trail": doc["util_at_trail"][::-1] + [0.0]})
     with pytest.raises(UserError):
         GripParams.from_json({k: v for k, v in doc.items() if k != "mass_kg"})
+    for bad in (-0.1, "nan", 1e999):
+        with pytest.raises(UserError, match="evidence_long_ratio"):
+            GripParams.from_json({**doc, "evidence_long_ratio": float(bad)})
+    assert GripParams.from_json({k: v for k, v in doc.items() if k != "evidence_long_ratio"}).evidence_long_ratio == 0
     assert GripParams.from_json(doc) == load_params()
 
 

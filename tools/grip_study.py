@@ -406,7 +406,8 @@ def _fit_warning(runs: list[dict], p: grip.GripParams, false_on: str = "all") ->
     (at equal lead, the one that warns of the most limits by the time they are reached); where none keeps that
     budget, the one with the fewest (then the most limits warned, then the longest lead). Only thresholds the trail's
     evidence can reach (at most the trail curve's highest utilisation): above it the warning would no longer read
-    the SAT at all (a collapsed trail would not warn), which is the point of the estimate."""
+    the SAT at all (a collapsed trail would not warn), which is the point of the estimate. Then, with the warning
+    chosen, the evidence's longitudinal-force gate (:func:`fit_evidence_gate`, the same false-warning count)."""
     p = replace(p, load_transfer=_load_transfer(runs))
     print(f"  front load transfer {p.load_transfer:.4f} N per N of front lateral force", file=sys.stderr)
     best: tuple[bool, float, float, grip.GripParams] | None = None

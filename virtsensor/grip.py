@@ -220,6 +220,8 @@ class GripParams:
             raise ValueError("grip params: interval_at_trail values must be finite and >= 0")
         if not self.interval_max > 0.0:  # (also refuses nan)
             raise ValueError("grip params: interval_max must be > 0 (inf: no limit)")
+        if not 0.0 <= self.evidence_long_ratio < math.inf:  # (also refuses nan)
+            raise ValueError("grip params: evidence_long_ratio must be finite and >= 0")
         if min(self.use_at_trail) <= 0:
             raise ValueError("grip params: use_at_trail must be > 0")
         if any(b <= a for a, b in zip(self.trail_m, self.trail_m[1:], strict=False)):
