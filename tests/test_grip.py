@@ -106,32 +106,42 @@ def test_braking_into_a_corner_warns_by_the_more_used_tyre():
     assert not run(replace(p, load_transfer=0.0))[0]
 
 
-def test_a_collapsed_trail_under_drive_warns_within_the_evidence_gate_and_gives_no_friction():
-    """A wet corner (0.45 g) under a drive force of about 0.2 Fz, beyond the friction's gate (``max_long_ratio``): the
-    trail has collapsed, yet neither the force floor nor the demand reaches the threshold. With the trail read as
-    evidence up to 0.25 Fz the warning comes; without (0, the older files' meaning) it does not; beyond the
-    evidence gate (0.4 Fz) the gate changes nothing. The friction stays unknown in every case (not read under drive)."""
+def test_a_collapsed_trail_under_drive_or_braking_warns_within_the_evidence_gate_and_gives_no_friction():
+    """A wet corner (0.45 g) under a drive force of about 0.2 Fz, beyond the friction's gate (``max_long_ratio``), its
+    trail short (6 mm): neither the force floor nor the demand reaches the threshold. With the trail read as evidence
+    up to 0.25 Fz the utilisation is the trail curve's value there and the warning comes; without (0, the older
+    files' meaning) it does not; under braking the same; beyond the evidence gate (0.4 Fz), or with too little
+    lateral force to divide by, the gate changes nothing. The friction and its trail stay unknown throughout."""
     p = replace(load_params(), demand_weight=0.0, max_long_ratio=0.15)
+    trail = 0.006
+    curve = float(np.interp(trail, p.trail_m, p.util_at_trail))
+    assert curve >= p.warn_on and curve < max(p.util_at_trail)  # (on the curve's slope, not its flat top)
 
-    def run(params: GripParams, torque: float) -> GripEstimator:
+    def run(params: GripParams, torque: float, ax_brake: float = 0.0, g: float = 0.45) -> GripEstimator:
         est = GripEstimator(params)
-        vx, ay = 20.0, 0.45 * 9.81
+        vx, ay = 20.0, g * 9.81
         fy = p.mass_kg * p.front_load_fraction * ay
-        ax = torque * p.gear_ratio / p.rolling_radius_m / p.mass_kg
+        ax = torque * p.gear_ratio / p.rolling_radius_m / p.mass_kg + ax_brake
         for _ in range(40):
-            est.step(-0.0005 * fy, -0.0005 * fy, ax, ay, vx, ay / vx, 0.05, torque, vx / 0.305, vx / 0.305)
+            est.step(-0.5 * trail * fy, -0.5 * trail * fy, ax, ay, vx, ay / vx, 0.05, torque, vx / 0.305,
+                     vx / 0.305)
         return est
 
-    on = run(replace(p, evidence_long_ratio=0.25), 57.0)
-    s = on.state
-    assert p.max_long_ratio < abs(on._fx) / on._fz <= 0.25
-    assert s.warning and s.util >= p.warn_on
-    assert math.isnan(s.mu) and math.isnan(s.trail_m)
-    assert on._tyre_ratio(on._fx, on._fy, on._fz) / p.mu_road_max < p.warn_on  # (not the force floor)
-    assert not run(replace(p, evidence_long_ratio=0.0), 57.0).state.warning
-    far = run(replace(p, evidence_long_ratio=0.25), 110.0)  # (beyond the gate the gate changes nothing)
+    gate, none = replace(p, evidence_long_ratio=0.25), replace(p, evidence_long_ratio=0.0)
+    for kw in ({"torque": 57.0}, {"torque": 0.0, "ax_brake": -1.5}):  # drive; braking
+        on = run(gate, **kw)
+        s = on.state
+        assert p.max_long_ratio < abs(on._fx) / on._fz <= 0.25
+        assert s.util == pytest.approx(curve, abs=1e-6) and s.warning
+        assert math.isnan(s.mu) and math.isnan(s.trail_m)
+        assert on._tyre_ratio(on._fx, on._fy, on._fz) / p.mu_road_max < p.warn_on  # (not the force floor)
+        assert not run(none, **kw).state.warning
+    far = run(gate, 110.0)  # (beyond the gate the gate changes nothing)
     assert abs(far._fx) / far._fz > 0.25
-    assert far.state.util == run(replace(p, evidence_long_ratio=0.0), 110.0).state.util
+    assert far.state.util == run(none, 110.0).state.util
+    weak = run(gate, 15.0, g=0.05)  # (|Fy| below min_force_ratio Fz: no trail to read)
+    assert abs(weak._fy) < p.min_force_ratio * weak._fz and abs(weak._fx) <= 0.25 * weak._fz
+    assert weak.state.util == run(none, 15.0, g=0.05).state.util and not weak.state.warning
 
 
 def test_torque_step_on_a_slippery_road_warns_on_the_tick_the_wheels_spin():

@@ -51,7 +51,7 @@ def test_fit_options_are_refused_where_they_do_not_apply(argv, capsys):
         study.main(argv)
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert "--warning-only" in err[-1] or "--evidence-only" in err[-1]
+    assert all(f in err[-1] for f in argv if f.startswith("--"))  # (the message names each option given)
 
 
 def test_oracle_warning_is_the_perfect_sensor_with_the_estimators_hysteresis():
@@ -109,26 +109,60 @@ def test_a_partial_fit_keeps_the_provenance_of_the_parts_it_does_not_fit():
 
 
 def test_the_evidence_gate_is_the_longest_lead_within_the_false_warning_limit(monkeypatch):
-    """The fit of the evidence's longitudinal-force gate: the longest median lead, then the most limits warned,
-    among the gates within FALSE_BUDGET (or the calibration's own false warnings where more); the narrower gate at a
-    tie; a gate over the limit is not taken however long its lead."""
+    """The fit of the evidence's longitudinal-force gate: the longest median lead first, then the most limits warned,
+    among the gates within FALSE_BUDGET (or the warning's own false warnings without the gate, where more: a wide
+    gate already in the calibration cannot justify itself); the narrower gate at a tie; a gate over the limit is not
+    taken however long its lead; none qualifying keeps the calibration as it is."""
     figures = {0.0: (0.1, 0.1, 0.7), 0.25: (0.1, 0.1, 0.8), 0.35: (0.1, 0.1, 0.8), 0.5: (3.0, 0.5, 1.0)}
 
-    def fake(limit_of: dict):
+    def use(table: dict) -> None:
         def measure(runs, q):
-            false, lead, warned = limit_of[q.evidence_long_ratio]
+            false, lead, warned = table[q.evidence_long_ratio]
             o = {"false_warnings_per_10min": false, "warning_lead_s_median": lead, "limit_warned_share": warned}
             return {"overall": o, "acceptance": o}
-        return measure
+        monkeypatch.setattr(study, "measure", measure)
 
-    p = grip.load_params()
-    monkeypatch.setattr(study, "measure", fake(figures))
-    assert study.fit_evidence_gate([], replace(p, evidence_long_ratio=0.0)).evidence_long_ratio == 0.25
-    assert study.fit_evidence_gate([], replace(p, evidence_long_ratio=0.5)).evidence_long_ratio == 0.5  # (its own)
-    monkeypatch.setattr(study, "measure", fake({**figures, 0.25: (0.6, 0.4, 0.9), 0.0: (0.7, 0.1, 0.7)}))
-    assert study.fit_evidence_gate([], replace(p, evidence_long_ratio=0.0)).evidence_long_ratio == 0.25
-    monkeypatch.setattr(study, "measure", fake({**figures, 0.25: (0.6, 0.4, 0.9)}))
-    assert study.fit_evidence_gate([], replace(p, evidence_long_ratio=0.0)).evidence_long_ratio == 0.35
+    def gate(start: float) -> float:
+        return study.fit_evidence_gate([], replace(grip.load_params(), evidence_long_ratio=start)).evidence_long_ratio
+
+    use(figures)
+    assert gate(0.0) == 0.25  # (more warned at the same lead; 0.35 ties it: the narrower)
+    assert gate(0.5) == 0.25  # (the wide gate's own false warnings do not raise the limit)
+    use({**figures, 0.25: (0.6, 0.4, 0.9), 0.0: (0.7, 0.1, 0.7)})
+    assert gate(0.0) == 0.25  # (over the budget, but within the warning's own 0.7 without the gate)
+    use({**figures, 0.25: (0.6, 0.4, 0.9)})
+    assert gate(0.0) == 0.35
+    use({**figures, 0.25: (0.1, 0.3, 0.75), 0.35: (0.1, 0.2, 0.9)})
+    assert gate(0.0) == 0.25  # (the longer lead before the more warned)
+    use({0.0: (0.1, 0.1, 0.7), **{g: (0.9, 0.5, 1.0) for g in (0.25, 0.35, 0.5)}})
+    assert gate(0.0) == 0.0
+    use({g: (0.9, 0.1, 0.7) for g in (0.0, 0.25, 0.35, 0.5)})  # (the limit is then the warning's own 0.9)
+    assert gate(0.5) == 0.0
+    monkeypatch.setattr(study, "EVIDENCE_LONG_RATIO", (0.25,))  # (a grid without 0, every gate over the limit)
+    use({0.0: (0.1, 0.1, 0.7), 0.25: (0.9, 0.5, 1.0)})
+    assert gate(0.35) == 0.35
+
+
+def test_the_warning_fit_ends_with_the_evidence_gate(monkeypatch):
+    """Every warning fit chooses the evidence gate last, with the warning it chose and the same false-warning count."""
+    seen = []
+    monkeypatch.setattr(study, "_load_transfer", lambda runs: 0.3)
+    monkeypatch.setattr(study, "measure", lambda runs, q: {o: {"false_warnings_per_10min": 0.1,
+                                                               "warning_lead_s_median": 0.1, "limit_warned_share": 0.5}
+                                                           for o in ("overall", "acceptance")})
+    monkeypatch.setattr(study, "WARN_ON", (0.75,))
+    monkeypatch.setattr(study, "DEMAND_WEIGHT", (0.0,))
+    monkeypatch.setattr(study, "EVIDENCE_MU_HELD", (0.0,))
+    monkeypatch.setattr(study, "KAPPA_LIMIT", (0.05,))
+
+    def gate(runs, p, false_on="all"):
+        seen.append((p.warn_on, false_on))
+        return replace(p, evidence_long_ratio=0.35)
+
+    monkeypatch.setattr(study, "fit_evidence_gate", gate)
+    p = study._fit_warning([], grip.load_params(), "acceptance")
+    assert seen == [(0.75, "acceptance")] and p.evidence_long_ratio == 0.35
+
 
 def test_the_published_interval_is_the_worst_roads_not_the_pooled_one():
     """Per band and trail knot the 90th percentile of the error on the worst road: a small hard road is not

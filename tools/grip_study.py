@@ -2,8 +2,8 @@
 
     python tools/grip_study.py                      # measure the shipped calibration on fresh seeds (~15 min)
     python tools/grip_study.py fit --seed 1901      # re-calibrate virtsensor/grip_car.json (~10 min)
-    python tools/grip_study.py fit --warning-only   # re-calibrate its warning only (the curves and hold kept)
-    python tools/grip_study.py fit --evidence-only  # the trail's utilisation curve and the warning (the rest kept)
+    python tools/grip_study.py fit --warning-only   # re-calibrate its warning and evidence gate (curves, hold kept)
+    python tools/grip_study.py fit --evidence-only  # the trail's utilisation curve, the warning and its gate
     python tools/grip_study.py fit --interval-only  # the published friction interval only (the rest kept)
     python tools/grip_study.py fit --evidence-gate-only  # how far under drive/braking the trail warns (the rest kept)
     python tools/grip_study.py bound --seed 1902    # how much lead any warning could have: docs/grip_bound_1902.md
@@ -27,8 +27,9 @@ same rule, the hold of the friction (median count, distance, least use); then th
 demand: weight, look-ahead along the steering's rate, the friction it is set against; the held friction's share as
 evidence or not), chosen on that data as the longest median lead with at most FALSE_BUDGET false warnings per 10
 minutes below 70 % utilisation (at equal lead, the most limits warned by the time they are reached). ``fit
---warning-only`` keeps the shipped curves and hold and re-calibrates the warning alone; ``fit --evidence-only`` the
-trail's utilisation curve and the warning (the friction curves, their gates and the hold kept); ``fit
+--warning-only`` keeps the shipped curves and hold and re-calibrates the warning (and its evidence gate, below);
+``fit --evidence-only`` the trail's utilisation curve and the warning (the friction curves, their gates and the hold
+kept); ``fit
 --interval-only`` the published interval alone (:func:`fit_interval`: per band and trail, the 90th percentile of the
 friction's error on the worst road of the fit data, so that it holds on every road and not only pooled over a mix of
 mostly easy samples; the gates keep the pooled one; and the widest interval with which the friction is given);
@@ -97,9 +98,10 @@ KAPPA_LIMIT = (0.1, 0.07, 0.05)
 FALSE_BUDGET = 0.5
 #: the longitudinal-force gates (|Fx| / Fz below which the trail is read) the fit chooses from
 MAX_LONG_RATIO = (0.15, 0.25, 0.3, 0.35, 0.4, 0.5)
-#: how far beyond that gate the trail's utilisation curve still counts as the limit's evidence (|Fx| / Fz; 0: not
-#: beyond it), the warning fit's last step chooses from, the narrowest first: under drive or braking the trail of a
-#: tyre near its limit collapses too, while the friction (the force over a pure side-slip curve) cannot be read there
+#: the longitudinal-force ratios |Fx| / Fz up to which the trail's utilisation curve still counts as the limit's
+#: evidence beyond that gate (0: not beyond it), the warning fit's last step chooses from, the narrowest first: under
+#: drive or braking the trail of a tyre near its limit collapses too, while the friction (the force over a pure
+#: side-slip curve) cannot be read there
 EVIDENCE_LONG_RATIO = (0.0, 0.25, 0.35, 0.5)
 #: the largest interval half-widths with which the friction is given, the fit chooses from (with the gate)
 HALFWIDTH_MAX = (0.1, 0.12, 0.15)
@@ -440,10 +442,10 @@ def _fit_warning(runs: list[dict], p: grip.GripParams, false_on: str = "all") ->
 
 def fit_evidence_gate(runs: list[dict], p: grip.GripParams, false_on: str = "all") -> grip.GripParams:
     """``p`` with the evidence's longitudinal-force gate (:attr:`grip.GripParams.evidence_long_ratio`) chosen from
-    :data:`EVIDENCE_LONG_RATIO`: the longest median lead, then the most limits warned, among the gates with no more
-    false warnings per 10 min (counted as ``false_on``, see :func:`_fit_warning`) than FALSE_BUDGET or, if more, than
-    ``p`` has as it is; the narrower gate at a tie (it reads the pure side-slip curve least far from where it was
-    measured)."""
+    :data:`EVIDENCE_LONG_RATIO` (ascending): the longest median lead, then the most limits warned, among the gates with
+    no more false warnings per 10 min (counted as ``false_on``, see :func:`_fit_warning`) than FALSE_BUDGET or, if
+    more, than ``p``'s warning has without the gate (so a wide gate cannot justify itself); the narrower gate at a tie
+    (it reads the pure side-slip curve least far from where it was measured); ``p`` as it is if none qualifies."""
     def score(q: grip.GripParams) -> tuple[float, float, float]:
         res = measure(runs, q)
         o = res["overall"]
@@ -451,16 +453,20 @@ def fit_evidence_gate(runs: list[dict], p: grip.GripParams, false_on: str = "all
         lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
         return false, lead, o["limit_warned_share"] or 0.0
 
-    limit = max(FALSE_BUDGET, score(p)[0])
+    limit = max(FALSE_BUDGET, score(replace(p, evidence_long_ratio=0.0))[0])
     best: tuple[float, float, grip.GripParams] | None = None
-    for g in EVIDENCE_LONG_RATIO:
+    for g in sorted(EVIDENCE_LONG_RATIO):
         q = replace(p, evidence_long_ratio=g)
         false, lead, warned = score(q)
         print(f"  trail as evidence up to |Fx| = {g:.2f} Fz: median lead {lead:.2f} s, limits warned {warned:.2f}, "
               f"false {false:.2f}/10 min", file=sys.stderr)
         if false <= limit and (best is None or (lead, warned) > best[:2]):
             best = (lead, warned, q)
-    return best[2] if best is not None else p
+    if best is None:
+        print(f"  no evidence gate keeps false warnings <= {limit:.2f} per 10 min: the calibration's kept",
+              file=sys.stderr)
+        return p
+    return best[2]
 
 
 def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
@@ -656,7 +662,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=None, help="campaign seed (accept: 1902, fit: 1901)")
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "grip_study", help="simulated data (reused)")
     ap.add_argument("--warning-only", action="store_true",
-                    help="fit: keep the shipped curves and hold, re-calibrate the warning only")
+                    help="fit: keep the shipped curves and hold, re-calibrate the warning (and its evidence gate)")
     ap.add_argument("--false-on", choices=("all", "acceptance"), default="all",
                     help="fit --warning-only: count the false-warning budget on every run (default) or on the random "
                          "steers and circuit laps only, the driving the acceptance names")
@@ -667,7 +673,7 @@ def main(argv: list[str] | None = None) -> int:
                          "curve still counts as the limit's evidence")
     ap.add_argument("--evidence-only", action="store_true",
                     help="fit: keep the shipped friction curves and hold, re-calibrate the trail's utilisation curve "
-                         "and the warning")
+                         "and the warning (and its evidence gate)")
     a = ap.parse_args(argv)
     partial = [o for o in ("warning_only", "evidence_only", "interval_only", "evidence_gate_only") if getattr(a, o)]
     if partial and a.what != "fit":

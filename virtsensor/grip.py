@@ -120,12 +120,14 @@ class GripParams:
         evidence_long_ratio: the trail's utilisation curve, the limit's evidence (not the friction), is also read
             while the longitudinal force is up to this times the load (above ``max_long_ratio``, where the friction
             is not read): a trail that collapses under drive or braking still says the tyres near their limit
-            (the curve of pure side slip reads the total utilisation low there up to about 0.35, high beyond: see
-            the README; 0: no further than ``max_long_ratio``, the older files' meaning).
+            (the curve of pure side slip reads the total utilisation low there up to about 0.35, and high beyond
+            under drive: see the README). At most ``max_long_ratio`` (0, the older files' meaning): the trail counts
+            no further than where the friction is read.
         max_force_rate: the friction is given only while the axle force ratio changes slower than this (1/s):
             in a fast transient the force from the accelerations and the SAT are not in step.
-        max_long_ratio: the trail is read only while the axle's longitudinal force is at most this times its load
-            (the brush model's trail is that of pure side slip; drive or brake torque moves it).
+        max_long_ratio: the trail is read for the friction only while the axle's longitudinal force is at most this
+            times its load (the brush model's trail is that of pure side slip; drive or brake torque moves it; the
+            warning's evidence reads it further, ``evidence_long_ratio``).
         steer_ratio, understeer_s2pm2: the linear car (steering ratio; understeer gradient K, s^2/m^2): the
             lateral acceleration the steering asks for, ``vx^2 delta / (L (1 + K vx^2))``.
         kappa_limit: front longitudinal slip (wheel speeds against the front axle's speed, see
