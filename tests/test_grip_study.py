@@ -164,6 +164,23 @@ def test_the_warning_fit_ends_with_the_evidence_gate(monkeypatch):
     assert seen == [(0.75, "acceptance")] and p.evidence_long_ratio == 0.35
 
 
+def test_combined_bias_bands_the_curve_error_by_longitudinal_force_and_direction():
+    """Each sample counts in its band of |Fx| / Fz and its direction only; the figures are the curve minus the truth
+    (median, 90th percentile) and the share reading the threshold while the truth is calm; an empty band is null."""
+    rows = np.array([[0.2, 1.0, 0.8, 0.6], [0.2, 1.0, 0.7, 0.7], [0.2, 1.0, 0.6, 0.9],  # drive, 0.15-0.25
+                     [0.3, -1.0, 0.5, 0.9]])  # braking, 0.25-0.35
+    res = {(r["band"], r["direction"]): r for r in study.combined_bias(rows)}
+    d = res[("0.15-0.25", "drive")]
+    assert d["n"] == 3 and d["median"] == pytest.approx(0.0) and d["false_share"] == pytest.approx(1 / 3)
+    assert d["p90"] == pytest.approx(np.percentile([0.2, 0.0, -0.3], 90))
+    b = res[("0.25-0.35", "braking")]
+    assert b["n"] == 1 and b["median"] == pytest.approx(-0.4) and b["false_share"] == 0.0
+    e = res[("0.35-0.50", "drive")]
+    assert e["n"] == 0 and e["median"] is None and e["false_share"] is None
+    assert sum(r["n"] for r in res.values()) == len(rows)
+    assert "| 0.15-0.25 | drive | 3 |" in study.combined_md(study.combined_bias(rows), 1901)
+
+
 def test_the_published_interval_is_the_worst_roads_not_the_pooled_one():
     """Per band and trail knot the 90th percentile of the error on the worst road: a small hard road is not
     drowned by a large easy one (the pooled percentile is), a road with fewer than 20 samples at a knot does not

@@ -7,6 +7,7 @@
     python tools/grip_study.py fit --interval-only  # the published friction interval only (the rest kept)
     python tools/grip_study.py fit --evidence-gate-only  # how far under drive/braking the trail warns (the rest kept)
     python tools/grip_study.py bound --seed 1902    # how much lead any warning could have: docs/grip_bound_1902.md
+    python tools/grip_study.py combined --seed 1901 # how the trail curve reads the utilisation under drive/braking
 
 ``accept`` (the default) simulates the ``paper`` campaign (Table I: every manoeuvre, mu 0.2 to 1.0) and the
 ``circuits`` campaign (random circuits, mu 0.25 to 1.0) with ``--seed`` (default 1902: neither the models' training
@@ -453,15 +454,15 @@ def fit_evidence_gate(runs: list[dict], p: grip.GripParams, false_on: str = "all
         lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
         return false, lead, o["limit_warned_share"] or 0.0
 
-    limit = max(FALSE_BUDGET, score(replace(p, evidence_long_ratio=0.0))[0])
+    scores = {g: score(replace(p, evidence_long_ratio=g)) for g in sorted({0.0, *EVIDENCE_LONG_RATIO})}
+    limit = max(FALSE_BUDGET, scores[0.0][0])
     best: tuple[float, float, grip.GripParams] | None = None
     for g in sorted(EVIDENCE_LONG_RATIO):
-        q = replace(p, evidence_long_ratio=g)
-        false, lead, warned = score(q)
+        false, lead, warned = scores[g]
         print(f"  trail as evidence up to |Fx| = {g:.2f} Fz: median lead {lead:.2f} s, limits warned {warned:.2f}, "
               f"false {false:.2f}/10 min", file=sys.stderr)
         if false <= limit and (best is None or (lead, warned) > best[:2]):
-            best = (lead, warned, q)
+            best = (lead, warned, replace(p, evidence_long_ratio=g))
     if best is None:
         print(f"  no evidence gate keeps false warnings <= {limit:.2f} per 10 min: the calibration's kept",
               file=sys.stderr)
@@ -579,6 +580,67 @@ BOUND_NOTE = ("How much lead any warning could have on these runs (:func:`bound`
               "even on the truth.")
 
 
+#: the bands of |Fx| / Fz over which :func:`combined_bias` compares the trail curve with the truth (upper edges)
+COMBINED_BANDS = (0.15, 0.25, 0.35, 0.5)
+
+
+def _combined_rows(runs: list[dict], p: grip.GripParams) -> np.ndarray:
+    """Per tick of every run where the trail can be read (``|Fy| >= min_force_ratio Fz``, the force changing slower
+    than ``max_force_rate``): ``|Fx| / Fz``, the sign of Fx (+1 drive, -1 braking), the trail curve's utilisation at
+    the trail and the true utilisation of the more used front tyre; the estimator's own filtered forces
+    (:attr:`grip.GripEstimator.forces`), stepped as the daemon steps it."""
+    out = []
+    for r in runs:
+        t = r["table"]
+        est = grip.GripEstimator(p)
+        cols = [np.asarray(t[k], float).tolist() for k in grip.GRIP_INPUTS]
+        u = gs.true_front_util(t).tolist()
+        prev = np.nan
+        for i in range(len(u)):
+            est.step(r["fl"][i], r["fr"][i], *(c[i] for c in cols))
+            fx, fy, fz, mz = est.forces
+            steady = abs(fy - prev) <= p.max_force_rate * fz * est.dt
+            prev = fy
+            if steady and abs(fy) >= p.min_force_ratio * fz:
+                out.append((abs(fx) / fz, 1.0 if fx > 0 else -1.0, -mz / fy, u[i]))
+    rows = np.array(out, dtype=float).reshape(-1, 4)
+    rows[:, 2] = np.interp(rows[:, 2], p.trail_m, p.util_at_trail)  # (the curve, held beyond its ends, as the daemon)
+    return rows
+
+
+def combined_bias(rows: np.ndarray, on: float = 0.75, calm: float = gs.CALM_UTIL) -> list[dict]:
+    """Per band of |Fx| / Fz (:data:`COMBINED_BANDS`) and direction (drive, braking): samples, the median and 90th
+    percentile of the trail curve's utilisation minus the true one, and the share of samples where the curve reads at
+    least ``on`` (the warning's threshold) while the truth is below ``calm`` (what would be a false warning)."""
+    out = []
+    lo = 0.0
+    for hi in COMBINED_BANDS:
+        for sign, name in ((1.0, "drive"), (-1.0, "braking")):
+            sel = (rows[:, 0] > lo) & (rows[:, 0] <= hi) & (rows[:, 1] == sign)
+            d = rows[sel, 2] - rows[sel, 3]
+            false = (rows[sel, 2] >= on) & (rows[sel, 3] < calm)
+            out.append({"band": f"{lo:.2f}-{hi:.2f}", "direction": name, "n": int(sel.sum()),
+                        "median": float(np.median(d)) if len(d) else None,
+                        "p90": float(np.percentile(d, 90)) if len(d) else None,
+                        "false_share": float(np.mean(false)) if len(d) else None})
+        lo = hi
+    return out
+
+
+def combined_md(res: list[dict], seed: int) -> str:
+    """:func:`combined_bias` as Markdown."""
+    def f(v: float | None, fmt: str) -> str:
+        return "—" if v is None else format(v, fmt)
+
+    lines = [f"Trail curve against the truth by longitudinal force, seed {seed}: "
+             f"`python tools/grip_study.py combined --seed {seed}`", "",
+             r"| \|Fx\| / Fz | direction | samples | median (curve − truth) | p90 | curve ≥ 0.75 while truth < 0.7 |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {r['band']} | {r['direction']} | {r['n']} | {f(r['median'], '+.3f')} | {f(r['p90'], '+.3f')} | "
+              f"{f(r['false_share'], '.4f')} |" for r in res]
+    return "\n".join(lines) + "\n"
+
+
 def _bound_md(res: dict, seed: int, note: str = "") -> str:
     """The bound's table (only the groups with a run reaching the limit), under ``note`` if given."""
     keys = [f"oracle_{on:g}_ahead_{h:g}" for on in BOUND_ON for h in BOUND_HORIZON_S]
@@ -658,7 +720,7 @@ def _source(before: str, fitted: tuple[str, ...], flag: str, seed: int) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", nargs="?", default="accept", choices=("accept", "fit", "bound"))
+    ap.add_argument("what", nargs="?", default="accept", choices=("accept", "fit", "bound", "combined"))
     ap.add_argument("--seed", type=int, default=None, help="campaign seed (accept: 1902, fit: 1901)")
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "grip_study", help="simulated data (reused)")
     ap.add_argument("--warning-only", action="store_true",
@@ -706,6 +768,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"calibrated on {len(runs)} runs -> {path}", file=sys.stderr)
         return 0
     (ROOT / "docs").mkdir(exist_ok=True)
+    if a.what == "combined":
+        print(combined_md(combined_bias(_combined_rows(runs, grip.load_params())), seed))
+        return 0
     if a.what == "bound":
         md = _bound_md(bound(runs), seed)
         (ROOT / "docs" / f"grip_bound_{seed}.md").write_text(md)

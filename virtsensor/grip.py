@@ -339,6 +339,12 @@ class GripEstimator:
         self.state = GripState()
         self.reset()
 
+    @property
+    def forces(self) -> tuple[float, float, float, float]:
+        """The filtered front-axle forces of the latest tick: ``(Fx, Fy, Fz)`` (N) and the SAT sum ``Mz`` (Nm), ISO
+        body axes (nan before the first tick); what the trail and the gates read."""
+        return self._fx, self._fy, self._fz, self._mz
+
     def reset(self) -> None:
         """Forget the filters and the warning (after an invalid tick); keeps the last given friction."""
         self._mz = self._fy = self._fx = self._fz = math.nan
@@ -395,9 +401,7 @@ class GripEstimator:
         else:
             s.trail_m = s.mu = s.halfwidth = math.nan
             if abs(fx) <= p.evidence_long_ratio * fz and abs(fy) >= p.min_force_ratio * fz:
-                i, w = _locate(-mz / fy, self._trail)  # (combined slip: the evidence only, no friction)
-                c = self._util
-                ev = c[i] + w * (c[i + 1] - c[i])
+                ev = self._evidence(-mz / fy)[2]  # (combined slip: the evidence only, no friction)
         self._held_m += vx * self.dt
         if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
             widen = p.hold_widen_per_m * self._held_m  # (the road met since may differ)
@@ -470,14 +474,19 @@ class GripEstimator:
         mu = self.mu_ref if self._dem_held and self._held_m <= self.params.hold_m else self.params.mu_road_max
         return self._tyre_ratio(fx, self._fy_ay * ay_lin, fz) / mu if mu > 0.0 else 0.0
 
+    def _evidence(self, t: float) -> tuple[int, float, float]:
+        """``(i, w, u)``: the trail ``t`` (m) located on the knots (:func:`_locate`) and the lateral utilisation the
+        calibrated curve gives there (the limit's evidence)."""
+        i, w = _locate(t, self._trail)
+        c = self._util
+        return i, w, c[i] + w * (c[i + 1] - c[i])
+
     def _read_trail(self, n: float, t: float, steady: bool) -> float:
         """The trail ``t`` (m) read: sets the state's trail and friction (given or nan), returns the evidence
         (the lateral utilisation at that trail)."""
         p, s = self.params, self.state
         s.trail_m = t
-        i, w = _locate(t, self._trail)
-        c = self._util
-        ev = c[i] + w * (c[i + 1] - c[i])
+        i, w, ev = self._evidence(t)
         c = self._use
         mu = n / (c[i] + w * (c[i + 1] - c[i]))
         c = self._err
