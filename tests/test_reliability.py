@@ -386,14 +386,25 @@ def _steady_left_turn(duration_s: float):
     return t, sig
 
 
-@pytest.mark.parametrize(("check", "subject", "bit", "fault"), [
-    ("ay_vs_yaw_rate_times_speed", "ay_mps2", 0, lambda s: 0.0 * s),  # the lateral accelerometer reads 0
-    ("assist_vs_boosted_steer_torque", "assist_torque_nm", 1, lambda s: -s),  # the assist pushes the wrong way
+def _straight(duration_s: float):
+    """Synthetic streams of a car driven straight at 20 m/s (every catalogue check holds): no yaw, no lateral
+    acceleration, the steering wheel within 0.02 rad of centre, the assist on the boost curve."""
+    t, sig = _steady_left_turn(duration_s)
+    sig["yaw_rate_radps"] = np.zeros_like(t)
+    sig["ay_mps2"] = 0.05 * np.sin(0.3 * t)
+    sig["steer_angle_rad"] = 0.02 * np.sin(0.2 * t)
+    return t, sig
+
+
+@pytest.mark.parametrize(("check", "subject", "bit", "fault", "drive"), [
+    ("ay_vs_yaw_rate_times_speed", "ay_mps2", 0, lambda s: 0.0 * s, _steady_left_turn),  # the accelerometer reads 0
+    ("assist_vs_boosted_steer_torque", "assist_torque_nm", 1, lambda s: -s, _steady_left_turn),  # assist reversed
+    ("steer_angle_vs_straight_yaw", "steer_angle_rad", 1, lambda s: s + 0.6, _straight),  # a 34 deg sensor offset
 ])
-def test_daemon_trips_a_redundancy_check_in_a_steady_turn_and_names_it(model, check, subject, bit, fault):
+def test_daemon_trips_a_redundancy_check_and_names_it(model, check, subject, bit, fault, drive):
     """Plausible for 6 s (VALID), then the subject disagrees from 6 s on: INVALID once the check's debounce
     has run, the message's health bit cleared, the check counted once and named in the logs."""
-    t, sig = _steady_left_turn(10.0)
+    t, sig = drive(10.0)
     sig[subject] = np.where(t >= 6.0, fault(sig[subject]), sig[subject])
     frames = list(iter_frames(t, sig))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
@@ -408,6 +419,23 @@ def test_daemon_trips_a_redundancy_check_in_a_steady_turn_and_names_it(model, ch
     assert vs.counters["implausible_checks"] == 1
     bad = [e for e in handler.events if e["event"] == "implausible"]
     assert len(bad) == 1 and bad[0]["check"] == check and bad[0]["subject"] == subject
+
+
+def test_the_straight_steering_check_leaves_a_turn_and_a_slow_car_alone(model):
+    """The same 0.6 rad offset while the car turns (yaw rate above 0.05 rad/s) or crawls (below 8 m/s) is not
+    judged by the straight-driving check: it cannot tell an offset from a steering angle there."""
+    for drive, vx in ((_steady_left_turn, None), (_straight, 5.0)):
+        t, sig = drive(10.0)
+        if vx is not None:
+            sig["vx_mps"] = np.full_like(t, vx)
+            for w in ("fl", "fr"):
+                sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
+        sig["steer_angle_rad"] = sig["steer_angle_rad"] + np.where(t >= 6.0, 0.6, 0.0)
+        frames = list(iter_frames(t, sig))
+        merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+        _, vs = _drive_sync(model, merged)
+        k = [r.name for r in vs._plaus.rules].index("steer_angle_vs_straight_yaw")
+        assert not vs._plaus.failing[k], drive.__name__
 
 
 @pytest.mark.parametrize("how", ["software_filter", "own_recv"])

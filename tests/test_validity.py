@@ -220,7 +220,8 @@ def test_lateral_acceleration_against_yaw_rate_times_speed_in_a_steady_turn():
     assert not p.implausible[i_ay]
 
 
-@pytest.mark.parametrize("why", ["steering moves", "slide: yaw rate far below the steering's", "straight ahead"])
+@pytest.mark.parametrize("why", ["steering moves", "slide: yaw rate far below the steering's", "straight ahead",
+                                 "spin: r vx beyond any road's grip"])
 def test_lateral_acceleration_check_is_not_judged_outside_steady_turns_with_grip(why):
     cat, rules = _catalogue_rules()
     p = Plausibility([rules["ay_vs_yaw_rate_times_speed"]], 12)
@@ -230,6 +231,8 @@ def test_lateral_acceleration_check_is_not_judged_outside_steady_turns_with_grip
             row[cat.INPUTS.index("steer_angle_rad")] += 0.05 * (k % 2)  # 1 rad/s back and forth
         elif why.startswith("slide"):
             row[cat.INPUTS.index("yaw_rate_radps")] = 0.05  # a quarter of the steering's kinematic yaw rate
+        elif why.startswith("spin"):  # r vx = 12 m/s^2 (and the steering's kinematic yaw rate) with ay at 9
+            row = _steady_turn(cat, ay=9.0, r=0.6)
         else:
             row = _row(cat, ay_mps2=-2.6, yaw_rate_radps=0.0)  # sliding sideways with the wheels straight
         assert p.update(row) == 0
@@ -252,6 +255,7 @@ def test_assist_torque_against_the_boost_curve():
     q = Plausibility([rule], 12)
     for k in range(100):  # the same torques while the wheel turns fast (EPAS damping, back-EMF): not judged
         q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, steer_angle_rad=0.05 * (k % 2)))
+        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, ax_mps2=-7.0))  # locked wheels
     assert not any(q.implausible)
 
 
@@ -296,19 +300,22 @@ def _reference_update(rules, state, values, stale, prev):
         judged = not any(stale[i] for i in (r.subject, *r.refs))
         judged = judged and all(abs(values[i] - prev[i]) <= step for i, step in r.steady)
         judged = judged and all(abs(values[i]) <= bound for i, bound in r.within)
+        judged = judged and all(values[i] >= bound for i, bound in r.above)
         if judged and r.turn is not None:
             yaw, vx, steer, kk, min_yaw, lo, hi = r.turn
             rk = kk * values[vx] * values[steer]
             judged = abs(rk) >= min_yaw and values[yaw] * rk > 0 and lo * abs(rk) <= abs(values[yaw]) <= hi * abs(rk)
-        if not judged:
-            run[k] = 0
-            continue
         if r.relation == "product":
             e = r.scale * math.prod(values[i] for i in r.refs)
         elif r.relation == "boost":
             e = _boost(r.boost, values[r.refs[0]], values[r.refs[1]])
+        elif r.relation == "ratio":
+            e = r.scale * values[r.refs[0]] / values[r.refs[1]] if judged else math.nan
         else:
             e = r.scale * sum(values[i] for i in r.refs) / len(r.refs)
+        if not judged or abs(e) > r.max_expected:
+            run[k] = 0
+            continue
         v = values[r.subject]
         ok = not abs(v - e) > r.tol_abs + r.tol_rel * abs(v)
         if ok == failing[k]:
@@ -327,7 +334,8 @@ def test_generated_checks_match_the_rules_semantics_on_random_sequences():
 
     cat, by_name = _catalogue_rules()
     rules = list(by_name.values())
-    assert {r.relation for r in rules} == {"mean", "product", "boost"} and any(r.turn for r in rules)
+    assert {r.relation for r in rules} == {"mean", "product", "ratio", "boost"} and any(r.turn for r in rules)
+    assert any(r.above for r in rules)
     rng = np.random.default_rng(15)
     p = Plausibility(rules, len(cat.INPUTS))
     state = ([False] * len(rules), [0] * len(rules))
@@ -336,14 +344,18 @@ def test_generated_checks_match_the_rules_semantics_on_random_sequences():
     yaw = turn[3] * 20.0 * 0.2  # a steady turn at the kinematic yaw rate
     base = np.array(_row(cat, ay_mps2=yaw * 20.0, yaw_rate_radps=yaw, steer_angle_rad=0.2, steer_torque_nm=2.0,
                          assist_torque_nm=_boost(by_name["assist_vs_boosted_steer_torque"].boost, 2.0, 20.0)))
+    straight = np.array(_row(cat, ay_mps2=0.0, yaw_rate_radps=0.0, steer_angle_rad=0.0, steer_torque_nm=2.0,
+                             assist_torque_nm=_boost(by_name["assist_vs_boosted_steer_torque"].boost, 2.0, 20.0)))
     names = list(cat.INPUTS)
     failed = [0] * len(rules)
-    for tick in range(4000):
-        # steady driving with small noise; stretches where one redundancy breaks, some unsteady ticks, NaNs
-        row = base * (1.0 + rng.normal(0.0, 0.005, len(base)))
-        phase, stretch = tick % 400, (tick // 400) % 3
+    for tick in range(4800):
+        # steady driving with small noise (turning, or straight in every fourth stretch); stretches where one
+        # redundancy breaks, some unsteady ticks, NaNs
+        phase, stretch = tick % 400, (tick // 400) % 4
+        row = (straight if stretch == 3 else base) * (1.0 + rng.normal(0.0, 0.005, len(base)))
         if 100 <= phase < 200:
-            row[names.index(("vx_mps", "ay_mps2", "assist_torque_nm")[stretch])] += (8.0, 4.0, 10.0)[stretch]
+            broken = ("vx_mps", "ay_mps2", "assist_torque_nm", "steer_angle_rad")[stretch]
+            row[names.index(broken)] += (8.0, 4.0, 10.0, 0.6)[stretch]
         if rng.random() < 0.02:
             row[rng.integers(len(row))] *= 3.0
         if rng.random() < 0.01:

@@ -180,7 +180,7 @@ class InputLayout:
         idx = {s: i for i, s in enumerate(self.signals)}
         out = []
         for r in cat.REDUNDANCIES:
-            if not all(s in idx for s in (r.subject, *r.references, *(g for g, _ in (*r.steady, *r.within)),
+            if not all(s in idx for s in (r.subject, *r.references, *(g for g, _ in (*r.steady, *r.within, *r.above)),
                                           *(("steer_angle_rad",) if r.turn is not None else ()))):
                 continue
             turn = None if r.turn is None else (
@@ -193,7 +193,8 @@ class InputLayout:
                 r.name, idx[r.subject], tuple(idx[x] for x in r.references), float(r.scale), float(r.tolerance_abs),
                 float(r.tolerance_rel), int(r.debounce_ticks), r.relation,
                 tuple((idx[g], float(rate) / cat.TABLE_RATE_HZ) for g, rate in r.steady),
-                tuple((idx[g], float(bound)) for g, bound in r.within), turn, boost))
+                tuple((idx[g], float(bound)) for g, bound in r.within), turn, boost,
+                tuple((idx[g], float(bound)) for g, bound in r.above), float(r.max_expected)))
         return tuple(out)
 
     def rules(self) -> ValidityRules:

@@ -203,11 +203,13 @@ class PlausibilityRule:
     failed after ``debounce`` consecutive failing judged ticks, passed after as many passing ones.
 
     ``expected`` by ``relation``: ``"mean"``, ``scale * mean(v[refs])``; ``"product"``, ``scale * prod(v[refs])``;
+    ``"ratio"``, ``scale * v[refs[0]] / v[refs[1]]`` (the rule's ``above`` keeps the divisor positive);
     ``"boost"``, ``boost = (speeds, gains, knee, max)`` of ``refs = (torque, speed)`` (see
     :class:`~virtsensor.signals.BoostCurve`). A tick is judged only when every ``(i, max_step)`` of ``steady``
     moved by at most ``max_step`` since the previous tick, every ``(i, bound)`` of ``within`` has ``|v[i]| <=
-    bound`` and, with ``turn = (yaw, vx, steer, k, min_yaw, lo,
-    hi)``, ``|r_kin| >= min_yaw`` and ``lo*|r_kin| <= |v[yaw]| <= hi*|r_kin|``, ``r_kin = k * v[vx] * v[steer]``
+    bound``, every ``(i, bound)`` of ``above`` has ``v[i] >= bound``, ``|expected| <= max_expected`` (a NaN
+    prediction is judged and passes) and, with ``turn = (yaw, vx, steer, k, min_yaw, lo, hi)``,
+    ``|r_kin| >= min_yaw`` and ``lo*|r_kin| <= |v[yaw]| <= hi*|r_kin|``, ``r_kin = k * v[vx] * v[steer]``
     (the same sign). An unjudged tick holds the verdict and restarts the count."""
 
     name: str
@@ -222,6 +224,8 @@ class PlausibilityRule:
     within: tuple[tuple[int, float], ...] = ()
     turn: tuple[int, int, int, float, float, float, float] | None = None
     boost: tuple[tuple[float, ...], tuple[float, ...], float, float] | None = None
+    above: tuple[tuple[int, float], ...] = ()
+    max_expected: float = math.inf
 
 
 def _boost(curve: tuple[tuple[float, ...], tuple[float, ...], float, float], t: float, v: float) -> float:
@@ -256,6 +260,7 @@ def _rule_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> list[str]:
     skip = [f"stale[{i}]" for i in dict.fromkeys((r.subject, *r.refs))]
     skip += [f"not abs({v}[{i}] - prev[{i}]) <= {_lit(step, env)}" for i, step in r.steady]
     skip += [f"not abs({v}[{i}]) <= {_lit(bound, env)}" for i, bound in r.within]
+    skip += [f"not {v}[{i}] >= {_lit(bound, env)}" for i, bound in r.above]
     if r.turn is not None:
         yaw, vx, steer, kk, min_yaw, lo, hi = r.turn
         skip.append(f"not (abs(rk := {_lit(kk, env)} * {v}[{vx}] * {v}[{steer}]) >= {_lit(min_yaw, env)} "
@@ -263,11 +268,15 @@ def _rule_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> list[str]:
                     f"<= {_lit(hi, env)} * abs(rk))")
     if r.relation == "product":
         expected = " * ".join([_lit(r.scale, env), *(f"{v}[{i}]" for i in r.refs)])
+    elif r.relation == "ratio":
+        expected = f"{_lit(r.scale, env)} * {v}[{r.refs[0]}] / {v}[{r.refs[1]}]"
     elif r.relation == "boost" and r.boost is not None:
         env[f"_B{k}"] = r.boost
         expected = f"_boost(_B{k}, {v}[{r.refs[0]}], {v}[{r.refs[1]}])"
     else:
         expected = f"{_lit(r.scale, env)} * ({' + '.join(f'{v}[{i}]' for i in r.refs)}) / {len(r.refs)}"
+    if math.isfinite(r.max_expected):  # (a NaN prediction is judged, and passes, as without the bound)
+        skip.append(f"abs({expected}) > {_lit(r.max_expected, env)}")
     return [f"    new[{k}] = False",
             f"    if {' or '.join(skip)}:",
             f"        run[{k}] = 0",
