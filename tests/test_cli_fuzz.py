@@ -252,3 +252,72 @@ def test_types_refuse_and_accept_their_own_examples(scratch):
             if _usable(v):
                 with pytest.raises(argparse.ArgumentTypeError):
                     full(fn, v.replace("{tmp}", str(scratch)))
+
+
+def test_every_path_argument_is_an_input_or_an_output():
+    """The clash check (an output over an input, or over another output) knows every path argument's role."""
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for name in cli.COMMANDS:
+        cli._load(cli.COMMANDS[name][0]).add_arguments(sub[name])
+        for a in sub[name]._actions:
+            if hasattr(a.type, "check_path"):
+                assert getattr(a.type, "path_role", None) in (t.INPUT, t.OUTPUT), (name, a.option_strings)
+
+
+@pytest.fixture()
+def inputs(tmp_path) -> Path:
+    """Input files of every kind the clash cases read (their content is never read: the refusal comes first)."""
+    for name in ("m.onnx", "m.card.json", "run.csv", "run.json", "run.blf", "tyre.tir"):
+        (tmp_path / name).write_text("x\n")
+    (tmp_path / "camp").mkdir()
+    (tmp_path / "camp" / "manifest.json").write_text("{}\n")
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "link.csv").symlink_to(tmp_path / "run.csv")
+    return tmp_path
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    # an output over an input, its model card or its metadata sidecar
+    (["score", "--model", "{tmp}/m.onnx", "--data", "{tmp}/run.csv", "--json", "{tmp}/run.csv"],
+     "--json {tmp}/run.csv would overwrite --data {tmp}/run.csv"),
+    (["score", "--model", "{tmp}/m.onnx", "--data", "{tmp}/run.csv", "--json", "{tmp}/m.onnx"], "--model"),
+    (["score", "--model", "{tmp}/m.onnx", "--data", "{tmp}/run.csv", "--json", "{tmp}/link.csv"], "--data"),
+    (["score", "--model", "{tmp}/m.onnx", "--data", "{tmp}/run.csv", "--json", "{tmp}/m.card.json"],
+     "the model card of --model"),
+    (["evaluate", "--model", "{tmp}/m.onnx", "--data", "{tmp}/camp", "--json", "{tmp}/m.onnx"], "--model"),
+    (["evaluate", "--model", "{tmp}/m.onnx", "--data", "{tmp}/camp", "--json", "{tmp}/e.json",
+      "--markdown", "{tmp}/camp/manifest.json"], "lies inside --data"),
+    (["tyre", "{tmp}/tyre.tir", "--json", "{tmp}/tyre.tir"], "would overwrite"),
+    (["demo", "--recording", "{tmp}/run.blf", "--rate", "max", "--json", "{tmp}/run.blf"], "--recording"),
+    (["demo", "--recording", "{tmp}/run.csv", "--rate", "max", "--json", "{tmp}/run.json"], "the metadata of"),
+    (["simulate", "recorded", "--mu", "1", "--inputs", "{tmp}/run.csv", "--out", "{tmp}/run.csv"], "--inputs"),
+    (["simulate", "recorded", "--mu", "1", "--inputs", "{tmp}/run.csv", "--out", "{tmp}/run.blf"],
+     "written with --out"),
+    (["diagnose", "--measured", "{tmp}/run.csv", "--json", "{tmp}/run.csv"], "--measured"),
+    (["bench", "--quick", "--no-cross-process", "--json", "{tmp}/m.onnx", "--model", "{tmp}/m.onnx"], "--model"),
+    (["train", "--data", "{tmp}/camp", "--recipe", "tpms", "--fallback", "{tmp}/m.onnx", "--out", "{tmp}/m.onnx"],
+     "--fallback"),
+    (["train", "--data", "{tmp}/m.card.json", "--out", "{tmp}/m.onnx"], "the model card of --out"),
+    (["explain", "--model", "{tmp}/m.onnx", "--data", "{tmp}/camp", "--out", "{tmp}/camp"], "--data"),
+    (["explain", "--model", "{tmp}/m.onnx", "--data", "{tmp}/camp", "--out", "{tmp}/camp/figs"], "lies inside"),
+    # two outputs on one file, or one inside the other's directory
+    (["evaluate", "--model", "{tmp}/m.onnx", "--data", "{tmp}/camp", "--json", "{tmp}/x", "--markdown", "{tmp}/x"],
+     "the same file"),
+    (["bench", "--json", "{tmp}/x", "--markdown", "{tmp}/x"], "the same file"),
+    (["demo", "--plot", "{tmp}/x.png", "--json", "{tmp}/x.png"], "the same file"),
+    (["score", "--model", "{tmp}/m.onnx", "--data", "{tmp}/run.csv", "--json", "{tmp}/x", "--markdown", "{tmp}/x"],
+     "the same file"),
+    (["diagnose", "--measured", "{tmp}/run.csv", "--json", "{tmp}/rep/diagnosis.md", "--report", "{tmp}/rep"],
+     "lies inside --report"),
+])
+def test_an_output_never_overwrites_an_input_or_another_output(inputs, argv, needle):
+    line = _assert_refused(argv, inputs)
+    assert needle.replace("{tmp}", str(inputs)) in line, line
+
+
+def test_an_output_never_overwrites_the_default_model(inputs, monkeypatch):
+    """Without --model the shipped model is read: its card is an input too."""
+    monkeypatch.setattr("virtsensor.assets.model_path", lambda name="improved": inputs / "m.onnx")
+    line = _assert_refused(["bench", "--json", "{tmp}/m.card.json"], inputs)
+    assert "--model (default)" in line, line

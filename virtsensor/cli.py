@@ -5,8 +5,9 @@ Each subcommand lives in ``virtsensor/commands/<name>.py`` and exposes
 Modules are imported only when their subcommand runs, so ``--help`` is fast
 and an optional heavy dependency never breaks an unrelated command. Every mistake
 is one line on stderr and exit code 2: argparse's (numbers and their ranges, at
-parse time), the path arguments' kinds (:func:`~virtsensor.commands._types.check_paths`,
-before the command runs) and the command's own :class:`~virtsensor.errors.UserError`.
+parse time), the path arguments' kinds and roles (:func:`~virtsensor.commands._types.check_paths`,
+before the command runs: no output overwrites an input, its model card or metadata, or another
+output) and the command's own :class:`~virtsensor.errors.UserError`.
 :func:`main` returns the exit code (it does not raise ``SystemExit``).
 """
 
@@ -102,7 +103,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     mod = _load(args._module)
     try:
-        # the kind of every path argument (file, directory, writable), before any work
+        # the kind of every path argument (file, directory, writable) and no output over an input, before any work
         check_paths(sub_action.choices[args.command], args)
         return int(mod.run(args) or 0)
     except UserError as exc:

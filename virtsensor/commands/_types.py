@@ -174,6 +174,11 @@ def tyre_spec(*, axles: bool = True) -> ArgType:
             raise argparse.ArgumentTypeError(f"{text!r}: no tyre file or name given")
         return text
 
+    def slots(text: str) -> list[tuple[Path, str]]:  # an input when it names a file (not a bundled tyre)
+        name = text.partition("=")[2] if axles and "=" in text else text
+        return [(Path(name), "")] if Path(name).is_file() else []
+
+    _with_role(parse, INPUT, slots)
     if not axles:
         return _tag(parse, "tyre", ["mf61_255_55R20"], ["", "/no/such/tyre.tir", "{tmp}/secret.txt"])
     return _tag(parse, "tyre", ["mf61_255_55R20", "front=mf61_255_55R20", "rear=c_segment_205_55R16"],
@@ -194,6 +199,7 @@ def track_spec() -> ArgType:
             raise argparse.ArgumentTypeError(f"{text}: a circuit is a name or a .csv/.geojson centreline")
         return text
 
+    _with_role(parse, INPUT, lambda text: [(Path(text), "")] if Path(text).is_file() else [])
     return _tag(parse, "circuit", ["zandvoort", "random:3"],
                 ["", "{tmp}/secret.txt", "/no/such/track.csv", "nowhere", "random:x"])
 
@@ -205,44 +211,186 @@ def track_spec() -> ArgType:
 # command runs (:func:`check_paths`, called by :func:`virtsensor.cli.main`), then its suffix: at parse
 # time only that it is not empty, so that a documented command line parses on a machine without its files.
 # ---------------------------------------------------------------------------------------------------------------
-def _path_tag(check: Callable[[str], str], name: str, valid: Sequence[str], invalid: Sequence[str]) -> ArgType:
+def _path_tag(check: Callable[[str], str], name: str, valid: Sequence[str], invalid: Sequence[str], *,
+              role: str, slots: Slots | None = None, is_dir: bool = False,
+              implicit: Callable[[], Path] | None = None) -> ArgType:
+    """A path type: ``check`` is its kind (run by :func:`check_paths`); ``role`` is :data:`INPUT` or :data:`OUTPUT`;
+    ``slots`` lists the files a value stands for (default: the path itself); ``is_dir``: an output directory;
+    ``implicit``: the file the command reads when the option is not given (e.g. the shipped model)."""
     def parse(text: str) -> str:
         if not text:
             raise argparse.ArgumentTypeError(f"empty {name} name")
         return text
 
     parse.check_path = check  # type: ignore[attr-defined]
+    _with_role(parse, role, slots or _plain_slots, is_dir=is_dir, implicit=implicit)
     return _tag(parse, name, valid, invalid)
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# inputs and outputs
+#
+# Every path argument is an input (read by the command) or an output (written by it). After the kinds,
+# :func:`check_paths` compares the resolved files of both sides, the files that come with each included (a
+# model's card, a recording's metadata sidecar, what an output writes beside itself): an output must not be an
+# input, lie inside an input directory, be the file of another output or lie inside an output directory.
+# ---------------------------------------------------------------------------------------------------------------
+#: roles of a path argument
+INPUT, OUTPUT = "input", "output"
+#: ``text -> [(file, label)]``: the files one argument value stands for; the label names a file that is not
+#: the value itself (e.g. ``"the model card of"``), "" for the value itself
+Slots = Callable[[str], list[tuple[Path, str]]]
+
+
+def _with_role(fn: Callable[[str], Any], role: str, slots: Slots, *, is_dir: bool = False,
+               implicit: Callable[[], Path] | None = None) -> None:
+    fn.path_role = role  # type: ignore[attr-defined]
+    fn.path_slots = slots  # type: ignore[attr-defined]
+    fn.path_is_dir = is_dir  # type: ignore[attr-defined]
+    fn.path_implicit = implicit  # type: ignore[attr-defined]
+
+
+def _plain_slots(text: str) -> list[tuple[Path, str]]:
+    return [(Path(text), "")]
+
+
+def input_slots(text: str) -> list[tuple[Path, str]]:
+    """The files an input path is read with: itself; for a model (``.onnx``) its card
+    (:func:`virtsensor.model.card_path_for`); for a recording file its metadata sidecar ``<stem>.json``
+    when there is one (read by ``demo`` and ``diagnose``)."""
+    from virtsensor.recordings.files import SUFFIXES
+
+    p = Path(text)
+    out = [(p, "")]
+    suffix = p.suffix.lower()
+    if suffix == ".onnx":
+        out.append((_card_path(p), "the model card of"))
+    elif suffix in SUFFIXES and p.with_suffix(".json").is_file():
+        out.append((p.with_suffix(".json"), "the metadata of"))
+    return out
+
+
+def _card_path(p: Path) -> Path:
+    from virtsensor.model.card import card_path_for
+
+    return card_path_for(p)
+
+
+def output_slots(companions: Callable[[Path], Sequence[Path]] | None = None, *, model: bool = False) -> Slots:
+    """The files an output path is written as: itself, the model card beside a model (``model``), and
+    ``companions(path)`` (e.g. a simulated run's metadata)."""
+    def slots(text: str) -> list[tuple[Path, str]]:
+        if text == "-":  # standard output
+            return []
+        p = Path(text)
+        out = [(p, "")]
+        if model:
+            out.append((_card_path(p), "the model card of"))
+        out += [(c, "written with") for c in (companions(p) if companions is not None else ())]
+        return out
+
+    return slots
+
+
+class _Slot:
+    """One file an argument stands for: its resolved path, whether it is a directory, and how to name it."""
+
+    def __init__(self, option: str, text: str, path: Path, label: str, is_dir: bool) -> None:
+        self.path = Path(os.path.realpath(path))
+        self.is_dir = is_dir
+        self.name = f"{option} {text}" if not label else f"{path} ({label} {option} {text})"
+
+    def same(self, other: _Slot) -> bool:
+        if self.path == other.path:
+            return True
+        try:
+            return self.path.exists() and other.path.exists() and os.path.samefile(self.path, other.path)
+        except OSError:
+            return False
+
+    def inside(self, other: _Slot) -> bool:
+        return other.is_dir and other.path in self.path.parents
+
+
+def _slots(action: argparse.Action, values: Sequence[str]) -> list[_Slot]:
+    """The files the values of a path argument stand for (the implicit default when none is given)."""
+    from virtsensor.errors import UserError
+
+    t = action.type
+    option = "/".join(action.option_strings) or action.metavar or action.dest
+    if not values and getattr(t, "path_implicit", None) is not None:
+        try:
+            values, option = [str(t.path_implicit())], f"{option} (default)"  # type: ignore[union-attr]
+        except UserError:  # a broken install: the command says so itself
+            return []
+    out = []
+    for v in values:
+        for path, label in t.path_slots(v):  # type: ignore[union-attr]
+            is_dir = t.path_is_dir if not label else False  # type: ignore[union-attr]
+            out.append(_Slot(option, v, path, label, is_dir or (not label and Path(v).is_dir())))
+    return out
+
+
+def path_clash(inputs: Sequence[_Slot], outputs: Sequence[_Slot]) -> str | None:
+    """Why these outputs cannot be written (one line), or None: an output is an input, lies inside an input
+    directory, is another output's file or lies inside an output directory."""
+    for k, o in enumerate(outputs):
+        for i in inputs:
+            if o.same(i):
+                return f"{o.name} would overwrite {i.name}, an input of this command"
+            if o.inside(i):
+                return f"{o.name} lies inside {i.name}, an input directory of this command"
+        for other in outputs[:k]:
+            if o.same(other):
+                return f"{o.name} and {other.name} are the same file: each output needs its own"
+            if o.inside(other) or other.inside(o):
+                inner, outer = (o, other) if o.inside(other) else (other, o)
+                return f"{inner.name} lies inside {outer.name}, an output directory of this command"
+    return None
+
+
 def check_paths(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Check the kind of every path argument of ``parser`` parsed into ``args`` (defaults included).
+    """Check every path argument of ``parser`` parsed into ``args`` (defaults included): its kind (the type's
+    ``check_path``), then that no output (with what it writes beside itself) is an input (with the card or
+    metadata read with it), lies inside an input directory, is another output's file or lies inside an output
+    directory (:func:`path_clash`). Nothing is read beyond what these checks need; nothing is written.
 
     Raises:
-        UserError: ``argument --opt: <path>: <what is wrong>`` for the first wrong one.
+        UserError: ``argument --opt: <path>: <what is wrong>`` for the first wrong kind, else one line naming
+            the two arguments that clash.
     """
     from virtsensor.errors import UserError
 
+    inputs: list[_Slot] = []
+    outputs: list[_Slot] = []
     for action in parser._actions:
-        check = getattr(action.type, "check_path", None)
         value = getattr(args, action.dest, None)
-        if check is None or value is None:
-            continue
-        for v in value if isinstance(value, list) else [value]:
+        values = [] if value is None else value if isinstance(value, list) else [value]
+        check = getattr(action.type, "check_path", None)
+        for v in values if check is not None else ():
             try:
                 check(v)
             except argparse.ArgumentTypeError as exc:
                 name = "/".join(action.option_strings) or action.metavar or action.dest
                 raise UserError(f"argument {name}: {exc}") from None
+        role = getattr(action.type, "path_role", None)
+        if role is not None:
+            (inputs if role == INPUT else outputs).extend(_slots(action, values))
+    problem = path_clash(inputs, outputs)
+    if problem:
+        raise UserError(problem)
+
+
 def _suffix_ok(p: Path, suffixes: Sequence[str]) -> None:
     if suffixes and p.suffix.lower() not in suffixes:
         raise argparse.ArgumentTypeError(f"{p}: expected a {' or '.join(suffixes)} file")
 
 
-def existing_file(*suffixes: str, what: str = "file") -> ArgType:
-    """A path to an existing regular file (with one of ``suffixes`` when given); returns the text.
+def existing_file(*suffixes: str, what: str = "file", implicit: Callable[[], Path] | None = None) -> ArgType:
+    """An input: a path to an existing regular file (with one of ``suffixes`` when given); returns the text.
 
-    ``what`` names the kind in the messages, e.g. ``log file``: ``x.blf: no such log file``.
+    ``what`` names the kind in the messages, e.g. ``log file``: ``x.blf: no such log file``. ``implicit``: the
+    file the command reads when the option is not given (outputs must not overwrite it either).
     """
 
     def check(text: str) -> str:
@@ -262,7 +410,7 @@ def existing_file(*suffixes: str, what: str = "file") -> ArgType:
 
     valid = [f"{{tmp}}/file{suffixes[0]}" if suffixes else "{tmp}/file.txt"]
     invalid = ["{tmp}/missing", "{tmp}/dir", "", "{tmp}/file.txt/x", f"{{tmp}}/dir{suffixes[0] if suffixes else ''}"]
-    return _path_tag(check, "file", valid, invalid)
+    return _path_tag(check, "file", valid, invalid, role=INPUT, slots=input_slots, implicit=implicit)
 
 
 def text_file(*suffixes: str) -> ArgType:
@@ -286,7 +434,8 @@ def text_file(*suffixes: str) -> ArgType:
         return text
 
     valid = base.fuzz_valid  # type: ignore[attr-defined]
-    return _path_tag(check, "text file", valid, [*base.fuzz_invalid, "{tmp}/binary.bin"])  # type: ignore[attr-defined]
+    return _path_tag(check, "text file", valid, [*base.fuzz_invalid, "{tmp}/binary.bin"],  # type: ignore[attr-defined]
+                     role=INPUT, slots=input_slots)
 
 
 def existing_dir() -> ArgType:
@@ -304,7 +453,7 @@ def existing_dir() -> ArgType:
             raise argparse.ArgumentTypeError(f"{p}: directory not readable")
         return text
 
-    return _path_tag(check, "directory", ["{tmp}/dir"], ["{tmp}/missing", "{tmp}/file.txt", ""])
+    return _path_tag(check, "directory", ["{tmp}/dir"], ["{tmp}/missing", "{tmp}/file.txt", ""], role=INPUT)
 
 
 def existing_path() -> ArgType:
@@ -322,7 +471,8 @@ def existing_path() -> ArgType:
             raise argparse.ArgumentTypeError(f"{p}: not readable")
         return text
 
-    return _path_tag(check, "path", ["{tmp}/dir"], ["{tmp}/missing", "", "{tmp}/file.txt/x"])
+    return _path_tag(check, "path", ["{tmp}/dir"], ["{tmp}/missing", "", "{tmp}/file.txt/x"], role=INPUT,
+                     slots=input_slots)
 
 
 def _writable_dir(d: Path, path: Path) -> None:
@@ -344,10 +494,12 @@ def _nearest_existing(p: Path) -> Path:
     return p
 
 
-def output_file(*suffixes: str, mkdirs: bool = False) -> ArgType:
-    """A file the command will write: not a directory, an existing file must be writable, and its
+def output_file(*suffixes: str, mkdirs: bool = False,
+                companions: Callable[[Path], Sequence[Path]] | None = None) -> ArgType:
+    """An output: a file the command will write: not a directory, an existing file must be writable, and its
     directory must exist and be writable (``mkdirs``: the nearest existing ancestor instead, the
-    command creating the rest). Nothing is created here."""
+    command creating the rest). Nothing is created here. A model (``.onnx`` among ``suffixes``) is written
+    with its card; ``companions(path)``: the other files the command writes beside it."""
 
     def check(text: str) -> str:
         p = Path(text)
@@ -370,7 +522,8 @@ def output_file(*suffixes: str, mkdirs: bool = False) -> ArgType:
         invalid.append(f"{{tmp}}/missing/{name}")
     if suffixes:
         invalid.append("{tmp}/out.wrongsuffix")
-    return _path_tag(check, "output file", [f"{{tmp}}/{name}"], invalid)
+    return _path_tag(check, "output file", [f"{{tmp}}/{name}"], invalid, role=OUTPUT,
+                     slots=output_slots(companions, model=".onnx" in suffixes))
 
 
 def output_file_or_stdout(*suffixes: str) -> ArgType:
@@ -381,7 +534,7 @@ def output_file_or_stdout(*suffixes: str) -> ArgType:
         return text if text == "-" else inner.check_path(text)  # type: ignore[attr-defined]
 
     return _path_tag(check, "output file or -", ["-", *inner.fuzz_valid],  # type: ignore[attr-defined]
-                     inner.fuzz_invalid)  # type: ignore[attr-defined]
+                     inner.fuzz_invalid, role=OUTPUT, slots=output_slots())  # type: ignore[attr-defined]
 
 
 def output_dir(*, empty: bool = False) -> ArgType:
@@ -401,4 +554,4 @@ def output_dir(*, empty: bool = False) -> ArgType:
         return text
 
     return _path_tag(check, "output directory", ["{tmp}/newdir"],
-                ["{tmp}/file.txt", "{tmp}/ro", "{tmp}/ro/sub", "{tmp}/file.txt/sub", ""])
+                     ["{tmp}/file.txt", "{tmp}/ro", "{tmp}/ro/sub", "{tmp}/file.txt/sub", ""], role=OUTPUT, is_dir=True)

@@ -18,9 +18,11 @@ HELP = "measure the daemon: per-stage and end-to-end latency, jitter, CPU/RSS, m
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from virtsensor.assets import model_path
     from virtsensor.commands import _types as t
 
-    parser.add_argument("--model", metavar="FILE.onnx", default=None, type=t.existing_file(".onnx"),
+    parser.add_argument("--model", metavar="FILE.onnx", default=None,
+                        type=t.existing_file(".onnx", implicit=model_path),
                         help="ONNX model (its .card.json beside it; default: the shipped improved model)")
     parser.add_argument("--json", metavar="FILE", type=t.output_file(), help="write the figures as JSON")
     parser.add_argument("--markdown", metavar="FILE", type=t.output_file(), help="write a Markdown summary")

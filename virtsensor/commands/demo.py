@@ -21,11 +21,13 @@ HELP = "the daemon on a bundled wet-road manoeuvre: estimated vs true SAT live, 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from virtsensor.commands import _types as t
-    from virtsensor.demo import DEFAULT_PLOT
+    from virtsensor.demo import DEFAULT_PLOT, default_model, default_recording
 
-    parser.add_argument("--model", metavar="FILE.onnx", default=None, type=t.existing_file(".onnx"),
+    parser.add_argument("--model", metavar="FILE.onnx", default=None,
+                        type=t.existing_file(".onnx", implicit=default_model),
                         help="ONNX model, its .card.json beside it (default: the shipped models/improved.onnx)")
-    parser.add_argument("--recording", metavar="LOG", default=None, type=t.existing_file(what="log file"),
+    parser.add_argument("--recording", metavar="LOG", default=None,
+                        type=t.existing_file(what="log file", implicit=default_recording),
                         help="CAN log to replay (.blf, .asc, .log, .csv, .trc; default: the bundled wet-road run)")
     parser.add_argument("--rate", default="1.0", type=t.rate(),
                         help="replay speed factor, 0.001 to 1000 (1.0 = real time, the default), or 'max' "

@@ -9,9 +9,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
-
-from virtsensor.errors import UserError
 
 HELP = "score a shipped model (the ONNX file and its card) on recordings: R2 and MAE per run and overall"
 
@@ -36,8 +33,6 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.learning.scoring import markdown, needed_signals, score_runs
     from virtsensor.model.onnx import OnnxModel
 
-    if args.markdown and Path(args.markdown).resolve() == Path(args.json).resolve():
-        raise UserError(f"--markdown {args.markdown}: the same file as --json")
     model = OnnxModel.load(args.model)
     runs = load_runs(args.data, needed=needed_signals(model.card))
     result = score_runs(model, runs)

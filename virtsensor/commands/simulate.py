@@ -9,7 +9,7 @@ from pathlib import Path
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
 from virtsensor.errors import UserError
 from virtsensor.recordings.files import LOG_SUFFIXES, TABLE_SUFFIXES
-from virtsensor.recordings.simulated import write_metadata, write_run
+from virtsensor.recordings.simulated import metadata_path, write_metadata, write_run
 
 HELP = f"simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log ({'/'.join(LOG_SUFFIXES)})"
 
@@ -29,8 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"road friction coefficient, {MU_RANGE[0]:g} to {MU_RANGE[1]:g} (magny-cours: dry lap)")
     parser.add_argument("--seed", type=t.seed(), default=0,
                         help="seed of the manoeuvre's levels and the sensor noise (0 to 2**32-1)")
-    parser.add_argument("--out", required=True, metavar="FILE", type=t.output_file(*TABLE_SUFFIXES, *LOG_SUFFIXES),
-                        help=f"output: .csv table or {'/'.join(LOG_SUFFIXES)} CAN log")
+    parser.add_argument("--out", required=True, metavar="FILE",
+                        type=t.output_file(*TABLE_SUFFIXES, *LOG_SUFFIXES, companions=lambda p: [metadata_path(p)]),
+                        help=f"output: .csv table or {'/'.join(LOG_SUFFIXES)} CAN log (its metadata "
+                             "<stem>.json beside it)")
     parser.add_argument("--inputs", metavar="FILE", type=t.existing_file(),
                         help="for MANOEUVRE 'recorded': a table (.csv) or CAN log whose steering-wheel angle and "
                              "speed (or motor torque) drive the re-simulation")

@@ -80,8 +80,13 @@ def write_run(sim_run: Any, out: Path) -> dict[str, np.ndarray]:
     return table
 
 
+def metadata_path(out: Path) -> Path:
+    """Where :func:`write_metadata` writes the metadata of the run written to ``out``: ``<out stem>.json``."""
+    return Path(out).with_suffix(".json")
+
+
 def write_metadata(sim_run: Any, out: Path, table: Mapping[str, Any]) -> None:
-    """Write the run's metadata (request, outcome, plan label) as JSON beside it, ``<out stem>.json``, atomically.
+    """Write the run's metadata (request, outcome, plan label) as JSON beside it (:func:`metadata_path`), atomically.
 
     Raises:
         UserError: the file cannot be written (the run's file ``out`` is then removed too: no run without
@@ -91,7 +96,7 @@ def write_metadata(sim_run: Any, out: Path, table: Mapping[str, Any]) -> None:
 
     t = table["time_s"]
     entry = manifest_entry(sim_run, out, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
-    meta = out.with_suffix(".json")
+    meta = metadata_path(out)
     try:
         write_json(meta, entry)
     except OSError as exc:
