@@ -144,3 +144,58 @@ def test_errors_are_one_line_exit_2(setup, tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "shap", None)
     assert main([*base, "--model", str(model), "--out", str(tmp_path / "o3")]) == 2
     assert "pip install 'virtsensor[explain]'" in capsys.readouterr().err
+
+
+def _tree(d):
+    """Every entry under ``d`` (hidden ones too) with its bytes: what a failed run must leave unchanged."""
+    return {str(p.relative_to(d)): (p.read_bytes() if p.is_file() else None) for p in sorted(d.rglob("*"))}
+
+
+def test_a_bad_circuit_is_refused_before_any_figure(setup, tmp_path, capsys):
+    """A circuit with missing rows (read last) is refused with nothing written: no new directory, an existing
+    one unchanged."""
+    root, data, model = setup
+    gap = _table(np.random.default_rng(1), 120)
+    keep = np.r_[0:50, 80:120]  # rows 51-80 deleted
+    write_csv(tmp_path / "gap.csv", {k: v[keep] for k, v in gap.items()})
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "fig2_correlation.png").write_bytes(b"previous figure")
+    (old / "notes.txt").write_text("mine")
+    before = _tree(tmp_path)
+    for out in (tmp_path / "new", old):
+        assert main(["explain", "--model", str(model), "--data", str(data), "--circuits", str(tmp_path / "gap.csv"),
+                     "--out", str(out), "--samples", "5", "--background", "5", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("gap.csv" in line for line in err), err
+    assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_an_interrupt_leaves_the_output_as_it_was(setup, tmp_path, monkeypatch, capsys, existing):
+    """Ctrl-C after the first figure: no new directory (nor staging one) is left, an existing one is unchanged;
+    a complete run then replaces the old figures and leaves other files alone."""
+    import virtsensor.learning.explain as ex
+
+    root, data, model = setup
+    out = tmp_path / "figs"
+    if existing:
+        out.mkdir()
+        (out / "fig2_correlation.png").write_bytes(b"previous figure")
+        (out / "notes.txt").write_text("mine")
+    before = _tree(tmp_path)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ex, "plot_importance", interrupted)
+    argv = ["explain", "--model", str(model), "--data", str(data), "--out", str(out), "--samples", "5",
+            "--background", "5", "--quiet"]
+    assert main(argv) == 130
+    assert _tree(tmp_path) == before
+    monkeypatch.undo()
+    assert main(argv) == 0
+    assert (out / "fig2_correlation.png").read_bytes()[:8] == PNG_MAGIC
+    assert not [p for p in tmp_path.rglob(".partial-*")]
+    if existing:
+        assert (out / "notes.txt").read_text() == "mine"

@@ -5,6 +5,8 @@ Contracts:
   of one; on any failure no partial file is left (the temporary name starts with ``.partial-``, which no
   reader of recordings ever takes for a run). The file is made readable by all (0644) and the rename is
   made durable (``fsync`` of the file and its folder, POSIX).
+* :func:`staged_dir`: the files of a directory written all or none: into a ``.partial-`` directory beside
+  it, moved into place only when every one is written; on a failure or an interrupt the target is as it was.
 * :func:`json_safe`: the same object with non-finite floats as ``None`` (JSON has no NaN/inf), numpy
   scalars and arrays as Python numbers and lists, paths as strings, sets as sorted lists, mapping keys as
   strings.
@@ -17,8 +19,11 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import tempfile
-from collections.abc import Callable, Mapping
+import uuid
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +32,7 @@ import numpy as np
 from virtsensor.errors import UserError
 
 __all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "check_writable", "dumps", "json_default",
-           "json_safe", "write_json"]
+           "json_safe", "staged_dir", "write_json"]
 
 #: Prefix of the temporary file of an atomic write (readers of recordings skip such files).
 PARTIAL_PREFIX = ".partial-"
@@ -127,6 +132,45 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
 def write_json(path: str | os.PathLike[str], obj: Any) -> None:
     """Write ``obj`` as indented JSON (:func:`json_safe`) with a final newline, atomically."""
     atomic_write_bytes(path, (dumps(obj) + "\n").encode())
+
+
+def _staging_parent(out: Path) -> Path:
+    """Where the staging directory of ``out`` goes: beside it (its nearest existing ancestor when its parent is
+    to be created), or inside an existing ``out`` whose parent is not writable."""
+    parent = next(a for a in (out.parent, *out.parent.parents) if a.exists())
+    if out.is_dir() and not os.access(parent, os.W_OK | os.X_OK):
+        return out
+    return parent
+
+
+@contextmanager
+def staged_dir(out: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a new empty directory to write the files of ``out`` into; when the block ends without an error,
+    move them into place: a new ``out`` (and its missing parents) is the staging directory renamed, an existing
+    one receives each file under its name (replacing a file of that name; any other content untouched).
+
+    The staging directory is ``.partial-<name>.<random>`` beside ``out`` (hidden: never read as a recording).
+    On an exception or an interrupt (``BaseException``) it is removed and ``out`` is left exactly as it was.
+
+    Raises:
+        OSError: the staging directory cannot be created, or the move fails (whatever the block raises passes
+            through unchanged).
+    """
+    out = Path(out)
+    stage = _staging_parent(out) / f"{PARTIAL_PREFIX}{out.name}.{uuid.uuid4().hex[:12]}"
+    stage.mkdir()  # the mode follows the umask, as a directory made by mkdir
+    try:
+        yield stage
+        if out.is_dir():
+            for entry in sorted(stage.iterdir()):
+                os.replace(entry, out / entry.name)
+            stage.rmdir()
+        else:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            stage.rename(out)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
 
 
 def check_writable(path: str | os.PathLike[str], option: str) -> None:

@@ -65,7 +65,7 @@ from virtsensor import plotting
 from virtsensor import signals as cat
 from virtsensor.demogrip import grip_figure
 from virtsensor.errors import UserError
-from virtsensor.fileio import write_json
+from virtsensor.fileio import staged_dir, write_json
 
 #: Background rows of the independent masker (drawn with the seed from the training side).
 BACKGROUND_ROWS = 100
@@ -414,17 +414,19 @@ def _round(x: Any) -> Any:
     return x
 
 
-def make_out_dir(out: str | os.PathLike[str]) -> Path:
-    """Create the output directory (and parents) or raise a one-line :class:`UserError`."""
+def check_out_dir(out: str | os.PathLike[str]) -> Path:
+    """``out`` as a path, checked for :func:`explain` to write into (nothing is created here).
+
+    Raises:
+        UserError: ``out`` exists and is not a directory, or it (or its nearest existing ancestor, for a new
+            one) is not a writable directory.
+    """
     p = Path(out)
     if p.exists() and not p.is_dir():
         raise UserError(f"--out {p}: exists and is not a directory")
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--out {p}: cannot create the directory: {exc.strerror or exc}") from None
-    if not os.access(p, os.W_OK):
-        raise UserError(f"--out {p}: directory is not writable")
+    nearest = next(a for a in (p, *p.parents) if a.exists())
+    if not nearest.is_dir() or not os.access(nearest, os.W_OK | os.X_OK):
+        raise UserError(f"--out {p}: {'directory' if nearest == p else nearest} is not writable")
     return p
 
 
@@ -454,6 +456,45 @@ def _lap_figures(out_dir: Path, model: Any, ds: Any, lap: str, name: str, axle_n
     return m
 
 
+@dataclass
+class _Inputs:
+    """Everything :func:`explain` reads, loaded and checked before any figure is drawn."""
+
+    model: Any
+    spec: Any
+    outputs: tuple[str, ...]
+    runs: list[Any]
+    cols: np.ndarray  # finite rows of the catalogue inputs and outputs, for the correlation
+    ds: Any  # the features of ``runs``
+    train_idx: np.ndarray  # the paper's random 70/30 split of ``ds``
+    test_idx: np.ndarray
+    laps: dict[str, Any]  # "dry"/"wet" -> the lap's features (with --track)
+    circuits: dict[str, Any]  # run name -> its features (with --circuits)
+
+
+def _load_inputs(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike[str]],
+                 track: str | os.PathLike[str] | None, circuits: Sequence[str | os.PathLike[str]],
+                 seed: int) -> _Inputs:
+    """The model, the data, the track's laps and the circuits, each checked (see :func:`explain`'s Raises)."""
+    from virtsensor.learning.dataset import build_dataset, load_runs
+    from virtsensor.learning.evaluation import random_split
+
+    model, spec, outputs = _load_model(model_path)
+    needed = sorted(set(cat.INPUTS) | set(spec.signals) | set(outputs))
+    runs = load_runs(data, needed=needed)
+    track_run = load_runs([track], needed=sorted(set(spec.signals) | set(outputs)))[0] if track else None
+    cols = table_columns([r.table for r in runs], (*cat.INPUTS, *cat.OUTPUTS))
+    if len(cols) < 2:
+        raise UserError("the data hold fewer than 2 finite rows: nothing to correlate")
+    ds = build_dataset(runs, spec, targets=outputs)
+    train_idx, test_idx = random_split(len(ds.X), seed)
+    if len(test_idx) == 0 or len(train_idx) == 0:
+        raise UserError(f"the data hold {len(ds.X)} usable rows: too few for a 70/30 split")
+    laps = _track_laps(track_run, track, spec, outputs) if track_run is not None else {}
+    return _Inputs(model, spec, outputs, runs, cols, ds, train_idx, test_idx, laps,
+                   _circuit_sets(circuits, spec, outputs) if circuits else {})
+
+
 def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str],
             *, track: str | os.PathLike[str] | None = None,
             circuits: Sequence[str | os.PathLike[str]] = (), seed: int = 0, samples: int = 500,
@@ -461,10 +502,15 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
             log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Write the Section IV.B figures and ``explain.json`` to ``out``; return the JSON document.
 
+    All or nothing: every input is read and checked before anything is written, and the files are written into
+    a staging directory beside ``out`` (:func:`virtsensor.fileio.staged_dir`), moved into place only once all
+    are written; on a refusal, a failure or an interrupt ``out`` is left as it was (not created when new).
+
     Args:
         model_path: the shipped ``.onnx`` (its model card beside it names the features).
         data: recordings (files or directories) of the data set, as for ``virtsensor train``.
-        out: output directory (created).
+        out: output directory (created with its parents when new; in an existing one, files of the same names
+            are replaced and any other file is left alone).
         track: optional Magny-Cours recording (dry lap then wet lap) for Figs. 5-7.
         circuits: recordings of circuits the model never saw: one estimate-vs-truth figure each.
         seed: seed of the 70/30 split, of the explained and background rows and of the permutations.
@@ -474,63 +520,67 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
         log: progress messages (default: none).
 
     Raises:
-        UserError: missing/invalid model, data lacking a signal, output directory not creatable,
-            shap or matplotlib not installed, nothing to explain.
+        UserError: missing/invalid model, data lacking a signal, a track lap or a circuit with fewer than 2
+            usable rows, output directory not writable, shap or matplotlib not installed, nothing to explain.
     """
-    from virtsensor.learning.dataset import build_dataset, load_runs
-    from virtsensor.learning.evaluation import random_split
-
     say = log or (lambda _msg: None)
     _check_options(samples, background, method)
     shap = require_shap()
     plotting.require("virtsensor explain")
-    model, spec, outputs = _load_model(model_path)
-    needed = sorted(set(cat.INPUTS) | set(spec.signals) | set(outputs))
-    runs = load_runs(data, needed=needed)
-    track_run = load_runs([track], needed=sorted(set(spec.signals) | set(outputs)))[0] if track else None
-    corr_names = (*cat.INPUTS, *cat.OUTPUTS)
-    cols = table_columns([r.table for r in runs], corr_names)
-    if len(cols) < 2:
-        raise UserError("the data hold fewer than 2 finite rows: nothing to correlate")
-    ds = build_dataset(runs, spec, targets=outputs)
-    train_idx, test_idx = random_split(len(ds.X), seed)
-    if len(test_idx) == 0 or len(train_idx) == 0:
-        raise UserError(f"the data hold {len(ds.X)} usable rows: too few for a 70/30 split")
-    out_dir = make_out_dir(out)  # (only once the data are known good: a refusal writes nothing)
+    out_path = check_out_dir(out)
+    inp = _load_inputs(model_path, data, track, circuits, seed)
+    try:
+        with staged_dir(out_path) as stage:
+            doc = _write_all(stage, inp, shap, model_path=model_path, data=data, seed=seed, samples=samples,
+                             background=background, method=method, say=say)
+    except OSError as exc:
+        raise UserError(f"--out {out_path}: cannot write the figures: {exc.strerror or exc}") from None
+    say(f"wrote {len(doc['figures'])} figures and explain.json to {out_path}")
+    return doc
 
+
+def _write_all(out_dir: Path, inp: _Inputs, shap: Any, *, model_path: str | os.PathLike[str],
+               data: Sequence[str | os.PathLike[str]], seed: int, samples: int, background: int, method: str,
+               say: Callable[[str], None]) -> dict[str, Any]:
+    """Draw every figure of :func:`explain` from the checked inputs into ``out_dir``, write ``explain.json``
+    there, and return its document."""
+    model, spec, outputs, ds = inp.model, inp.spec, inp.outputs, inp.ds
     # ---- Fig. 2: correlation of the raw catalogue signals --------------------------------------------------
-    C = correlation_matrix(cols)
+    corr_names = (*cat.INPUTS, *cat.OUTPUTS)
+    C = correlation_matrix(inp.cols)
     figures: list[str] = []
-    plot_correlation(out_dir / FIGURES["correlation"], corr_names, C, f"{len(cols)} rows of {len(runs)} runs")
+    plot_correlation(out_dir / FIGURES["correlation"], corr_names, C, f"{len(inp.cols)} rows of {len(inp.runs)} runs")
     figures.append(FIGURES["correlation"])
-    say(f"correlation of {len(corr_names)} signals over {len(cols)} rows")
+    say(f"correlation of {len(corr_names)} signals over {len(inp.cols)} rows")
 
     # ---- Figs. 8 and 9: SHAP of the ONNX model on the paper's test rows ----------------------------------
     rng = np.random.default_rng(seed)
-    explained = np.sort(rng.choice(test_idx, min(samples, len(test_idx)), replace=False))
-    bg_idx = np.sort(rng.choice(train_idx, min(background, len(train_idx)), replace=False))
+    explained = np.sort(rng.choice(inp.test_idx, min(samples, len(inp.test_idx)), replace=False))
+    bg_idx = np.sort(rng.choice(inp.train_idx, min(background, len(inp.train_idx)), replace=False))
     shap_doc = _shap_figures(shap, out_dir, model, spec, outputs, ds.X[explained], ds.X[bg_idx],
                              seed=seed, method=method, figures=figures, say=say)
     doc: dict[str, Any] = {
         "model": {"file": str(model_path), "sha256": model.card["sha256"], "feature_spec": spec.name,
                   "features": list(spec.names), "outputs": list(outputs)},
-        "data": {"sources": [str(p) for p in data], "runs": len(runs), "rows": int(len(ds.X)),
+        "data": {"sources": [str(p) for p in data], "runs": len(inp.runs), "rows": int(len(ds.X)),
                  "dropped_nonfinite": int(ds.dropped_nonfinite)},
         "seed": int(seed),
-        "correlation": {"signals": list(corr_names), "rows": int(len(cols)), "pearson": C.tolist()},
+        "correlation": {"signals": list(corr_names), "rows": int(len(inp.cols)), "pearson": C.tolist()},
         **shap_doc,
     }
 
-    # ---- Figs. 5-7: the Magny-Cours laps ----------------------------------------------------------------
-    if track_run is not None:
-        doc["track"] = _track_figures(out_dir, model, spec, outputs, track_run, track, figures, say)
-    if circuits:
-        doc["circuits"] = _circuit_figures(out_dir, model, spec, outputs, circuits, figures, say)
-    doc["grip"] = _grip_doc(out_dir, runs, model, figures, say)  # (the grip margin, where runs carry its truth)
+    # ---- Figs. 5-7: the Magny-Cours laps; the circuits; the grip margin --------------------------------------
+    if inp.laps:
+        doc["track"] = {lap: _lap_figures(out_dir, model, lds, f"{lap} lap", FIGURES[f"track_{lap}"],
+                                          FIGURES["axle"] if lap == "wet" else None, figures, say)
+                        for lap, lds in inp.laps.items()}
+    if inp.circuits:
+        doc["circuits"] = {name: _lap_figures(out_dir, model, cds, f"circuit {name}", f"circuit_{name}.png",
+                                              None, figures, say) for name, cds in inp.circuits.items()}
+    doc["grip"] = _grip_doc(out_dir, inp.runs, model, figures, say)  # (where runs carry the grip margin's truth)
     doc["figures"] = figures
     doc = _round(doc)
     write_json(out_dir / "explain.json", doc)
-    say(f"wrote {len(figures)} figures and explain.json to {out_dir}")
     return doc
 
 
@@ -629,9 +679,9 @@ def _shap_figures(shap: Any, out_dir: Path, model: Any, spec: Any, outputs: tupl
     }
 
 
-def _track_figures(out_dir: Path, model: Any, spec: Any, outputs: tuple[str, ...], track_run: Any,
-                   track: str | os.PathLike[str], figures: list[str], say: Callable[[str], None]) -> dict[str, Any]:
-    """Figs. 5-7 on the dry and wet laps of ``track_run`` (:func:`_lap_figures`); returns the metrics by lap.
+def _track_laps(track_run: Any, track: str | os.PathLike[str] | None, spec: Any,
+                outputs: tuple[str, ...]) -> dict[str, Any]:
+    """The features of the dry and wet laps of ``track_run``, in that order (for Figs. 5-7).
 
     Raises:
         UserError: a lap is missing or has fewer than 2 usable rows.
@@ -639,35 +689,30 @@ def _track_figures(out_dir: Path, model: Any, spec: Any, outputs: tuple[str, ...
     from virtsensor.learning.dataset import build_dataset, split_track_laps
 
     laps = split_track_laps(track_run)
+    out: dict[str, Any] = {}
     for lap in ("dry", "wet"):
         if lap not in laps:
             raise UserError(f"--track {track}: no {lap} lap found (road_mu must drop for the wet lap)")
-    doc: dict[str, Any] = {}
-    for lap, key in (("dry", "track_dry"), ("wet", "track_wet")):
-        lds = build_dataset([laps[lap]], spec, targets=outputs)
-        if len(lds.X) < 2:
-            raise UserError(f"--track {track}: the {lap} lap has {len(lds.X)} usable rows")
-        doc[lap] = _lap_figures(out_dir, model, lds, f"{lap} lap", FIGURES[key],
-                                FIGURES["axle"] if lap == "wet" else None, figures, say)
-    return doc
+        out[lap] = build_dataset([laps[lap]], spec, targets=outputs)
+        if len(out[lap].X) < 2:
+            raise UserError(f"--track {track}: the {lap} lap has {len(out[lap].X)} usable rows")
+    return out
 
 
-def _circuit_figures(out_dir: Path, model: Any, spec: Any, outputs: tuple[str, ...],
-                     circuits: Sequence[str | os.PathLike[str]], figures: list[str],
-                     say: Callable[[str], None]) -> dict[str, Any]:
-    """An estimate-vs-truth figure per recording of ``circuits`` (:func:`_lap_figures`); returns the metrics
-    by run name.
+def _circuit_sets(circuits: Sequence[str | os.PathLike[str]], spec: Any, outputs: tuple[str, ...]) -> dict[str, Any]:
+    """The features of each recording of ``circuits``, by run name (one estimate-vs-truth figure each).
 
     Raises:
-        UserError: a recording lacks a signal or has fewer than 2 usable rows.
+        UserError: a recording lacks a signal or has fewer than 2 usable rows, or two have the same name.
     """
     from virtsensor.learning.dataset import build_dataset, load_runs
 
-    doc: dict[str, Any] = {}
+    out: dict[str, Any] = {}
     for r in load_runs(circuits, needed=sorted(set(spec.signals) | set(outputs))):
-        cds = build_dataset([r], spec, targets=outputs)
-        if len(cds.X) < 2:
-            raise UserError(f"--circuits {r.path}: {len(cds.X)} usable rows")
-        doc[r.name] = _lap_figures(out_dir, model, cds, f"circuit {r.name}",
-                                   f"circuit_{r.name}.png", None, figures, say)
-    return doc
+        if r.name in out:
+            raise UserError(f"--circuits {r.path}: a second circuit named {r.name} (its figure would replace the "
+                            "first one's); rename one")
+        out[r.name] = build_dataset([r], spec, targets=outputs)
+        if len(out[r.name].X) < 2:
+            raise UserError(f"--circuits {r.path}: {len(out[r.name].X)} usable rows")
+    return out
