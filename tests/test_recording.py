@@ -284,6 +284,30 @@ def test_garbage_candump_line_names_the_line(tmp_path, run):
         list(iter_log(path))
 
 
+def test_garbage_trc_line_names_the_line_and_python_can_stays_quiet(tmp_path, run, caplog):
+    """python-can's TRC reader warns about a line it cannot parse and drops the frame: the read fails instead,
+    with our one line, and the warning does not reach stderr."""
+    t, sig = run
+    path = tmp_path / "g.trc"
+    write_log(path, t, sig)
+    lines = path.read_text().splitlines(keepends=True)
+    i = next(k for k, ln in enumerate(lines) if not ln.startswith(";")) + 3
+    lines.insert(i, "garbage\n")
+    path.write_text("".join(lines))
+    with pytest.raises(UserError, match=f"line {i + 1}: unparsable line 'garbage'"):
+        list(iter_log(path))
+    assert not [r for r in caplog.records if r.name.startswith("can")]  # (pytest holds what would go to stderr)
+
+
+def test_an_empty_trc_is_refused_without_python_cans_warning(tmp_path, caplog):
+    path = tmp_path / "empty.trc"
+    path.write_bytes(b"")
+    assert list(iter_log(path)) == []
+    with pytest.raises(UserError, match="empty.trc"):
+        read_log(path)
+    assert not [r for r in caplog.records if r.name.startswith("can")]
+
+
 def test_unsupported_and_missing_files(tmp_path, run):
     t, sig = run
     with pytest.raises(UserError, match="unsupported"):

@@ -209,6 +209,17 @@ def test_cli_bad_rate_and_missing_file(tmp_path, capsys, channel):
     assert cli.main(["replay", "--interface", "virtual", "--channel", channel]) == 2
 
 
+@pytest.mark.parametrize("suffix", [".log", ".trc", ".blf", ".asc"])
+def test_cli_refuses_an_empty_log_in_one_line(tmp_path, capsys, channel, suffix):
+    """A zero-byte log has no frame to play: one line, exit 2 (no "frames sent: 0"), no python-can warning."""
+    path = tmp_path / f"empty{suffix}"
+    path.write_bytes(b"")
+    rc = cli.main(["replay", str(path), "--interface", "virtual", "--channel", channel, "--rate", "max", "-q"])
+    out, err = capsys.readouterr()
+    assert rc == 2 and out == ""
+    assert err.count("\n") == 1 and str(path) in err and "Traceback" not in err, err
+
+
 def test_manoeuvre_without_simulator(monkeypatch, capsys, channel):
     monkeypatch.setitem(sys.modules, "sim.api", None)  # import fails
     rc = cli.main(["replay", "--manoeuvre", "steering-pulse", "--interface", "virtual", "--channel", channel])

@@ -138,3 +138,13 @@ def test_refuses_a_model_whose_card_does_not_match(recordings: Path, tmp_path: P
     out = tmp_path / "s.json"
     _refused(["score", "--model", str(onnx), "--data", str(recordings / "pulse.csv"), "--json", str(out)],
              capsys, "sha256", out)
+
+
+def test_refuses_an_empty_trc_log_in_one_line(tmp_path: Path, capsys, caplog) -> None:
+    """(python-can's TRC reader warned about the empty file on stderr, a second line; pytest holds such log
+    records in caplog instead)"""
+    empty = tmp_path / "empty.trc"
+    empty.write_bytes(b"")
+    out = tmp_path / "s.json"
+    _refused(["score", "--model", str(MODEL), "--data", str(empty), "--json", str(out)], capsys, "empty.trc", out)
+    assert "TRCReader" not in caplog.text

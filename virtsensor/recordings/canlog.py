@@ -29,9 +29,11 @@ whose last row has no end of line.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import re
+import threading
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -356,6 +358,37 @@ def _last_good(path: Path, real: str, stop_line: int) -> str:
             f"({last - first:.3f} s after the first frame)")
 
 
+#: python-can's loggers of the log readers :func:`iter_log` uses
+_READER_LOGGERS = ("can.io.trc", "can.io.asc", "can.io.canutils", "can.io.blf")
+
+
+class _ReaderWarnings(logging.Filter):
+    """Keeps python-can's reader warnings off stderr while :func:`iter_log` reads (records of this thread only):
+    our errors are one line. A line the reader could not parse (python-can warns and skips it, dropping a frame)
+    is kept in ``skipped`` as ``(line number, text)`` so that the read fails instead; an empty one (what an
+    empty file gives) is not a frame. Installed on creation; :meth:`remove` takes it off."""
+
+    def __init__(self, lines: _Lines | None) -> None:
+        super().__init__()
+        self._thread = threading.get_ident()
+        self._lines = lines
+        self.skipped: tuple[int, str] | None = None
+        for name in _READER_LOGGERS:
+            logging.getLogger(name).addFilter(self)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.thread != self._thread or record.levelno < logging.WARNING:
+            return True
+        args = record.args if isinstance(record.args, tuple) else ()
+        if "Failed to parse" in str(record.msg) and args and str(args[0]).strip() and self.skipped is None:
+            self.skipped = (self._lines.lineno if self._lines is not None else 0, str(args[0]))
+        return False
+
+    def remove(self) -> None:
+        for name in _READER_LOGGERS:
+            logging.getLogger(name).removeFilter(self)
+
+
 def iter_log(path: str | os.PathLike) -> Iterator:
     """Yield the python-can ``Message`` objects of a log file, in file order.
 
@@ -405,8 +438,11 @@ def iter_log(path: str | os.PathLike) -> Iterator:
                 f"{last - first:.3f} s after the first frame), frame {n} is cut")
             raise UserError(f"{path}: {problem}; {good}")
     index = 0
+    quiet = _ReaderWarnings(lines)
     try:
         for msg in reader:
+            if quiet.skipped is not None:
+                break
             yield msg
             index += 1
     except Exception as exc:  # noqa: BLE001 - translated into one line naming the position
@@ -420,10 +456,14 @@ def iter_log(path: str | os.PathLike) -> Iterator:
         detail = str(exc) if isinstance(exc, _GarbageLine) else f"{type(exc).__name__}: {exc}"
         raise UserError(f"{path}: cannot read frame {index} at {where}: {detail}") from None
     finally:
+        quiet.remove()
         try:
             reader.stop()
         except Exception:  # noqa: BLE001
             pass
+    if quiet.skipped is not None:
+        line, text = quiet.skipped
+        raise UserError(f"{path}: cannot read frame {index} at line {line}: unparsable line {text.strip()[:60]!r}")
 
 
 @dataclass

@@ -163,7 +163,7 @@ def _sources(frames_or_path, loop: bool):
         first = next(it, None)
         it.close()
         if first is None:
-            return (lambda: iter(())), 0, str(path)
+            raise UserError(f"{path}: no CAN frames to replay (an empty log)")
         return (lambda: iter_log(path)), None, str(path)
     if isinstance(frames_or_path, Sequence):
         seq = frames_or_path
@@ -320,7 +320,7 @@ def replay(
         :class:`ReplaySummary`.
 
     Raises:
-        UserError: unreadable log, or the bus refusing frames.
+        UserError: unreadable or empty log (no frame), or the bus refusing frames.
     """
     import can
 
