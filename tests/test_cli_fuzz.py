@@ -41,6 +41,8 @@ FREE_TEXT: dict[tuple[str, str], tuple[tuple[str, ...], tuple[str, ...]]] = {
 #: ``--set SECTION.NAME=VALUE`` (simulate, campaign, replay, diagnose).
 OVERRIDES = (("vehicle.mass_kg=1500",), ("x", "nope.nope=1", "vehicle.mass_kg=abc", "tyres.file={tmp}/secret.txt"))
 PER_CASE_S = 5.0
+#: the shipped models
+MODELS = Path(__file__).resolve().parents[1] / "models"
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 
 
@@ -200,6 +202,18 @@ def test_fuzz_every_mistake_is_one_line_and_exit_2(scratch, argv):
     (["bench", "--soak-ticks", "0"], "--soak-ticks"),
     (["demo", "--rate", "0"], "--rate"),
     (["diagnose", "--measured", "{tmp}/dir", "--ensemble", "11"], "--ensemble"),
+    # options that do not apply, or exclude each other
+    (["bench", "--cpu-latency-us", "5", "--no-cpu-latency"], "not allowed with argument --cpu-latency-us"),
+    (["bench", "--cpu-latency-us", "0", "--no-cpu-latency"], "not allowed with argument --cpu-latency-us"),
+    (["simulate", "fishhook", "--speed", "60", "--mu", "1", "--longitudinal", "torque", "--out", "{tmp}/x.csv"],
+     "--longitudinal goes with the manoeuvre 'recorded' only"),
+    (["simulate", "recorded", "--mu", "1", "--inputs", "{tmp}/file.csv", "--laps", "2", "--out", "{tmp}/x.csv"],
+     "--laps go with the manoeuvre 'circuit' only"),
+    (["replay", "{tmp}/file.csv", "-i", "virtual", "-c", "x", "--mu", "0.5"], "--mu: only for --manoeuvre"),
+    (["replay", "{tmp}/file.csv", "-i", "virtual", "-c", "x", "--speed", "60", "--seed", "1", "--set",
+      "vehicle.mass_kg=1500"], "--speed, --seed, --set: only for --manoeuvre"),
+    (["evaluate", "--model", str(MODELS / "improved.onnx"), "--data", "{tmp}/dir", "--json", "{tmp}/e.json",
+      "--tpms-model", str(MODELS / "paper.onnx"), "--pressure-runs", "{tmp}/dir"], "paper.onnx: not a TPMS model"),
     (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--set", "tyres.file={tmp}/secret.txt",
       "--out", "{tmp}/x.csv"], "secret.txt"),
 ])

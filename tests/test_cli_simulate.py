@@ -56,6 +56,8 @@ def test_parameter_overrides_change_the_car(tmp_path):
         (["simulate", "fishhook", "--speed", "60", "--mu", "1", "--set", "vehicle.mass_kg=heavy"],
          "vehicle.mass_kg: expected float"),
         (["simulate", "fishhook", "--speed", "fast", "--mu", "1"], "--speed: 'fast' is not a number"),
+        (["simulate", "fishhook", "--speed", "60", "--mu", "1", "--longitudinal", "torque"],
+         "--longitudinal goes with the manoeuvre 'recorded' only"),
     ],
 )
 def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, args, needle):

@@ -247,8 +247,10 @@ def test_train_tpms_on_runs_with_and_without_tpms(runs, models, tmp_path, capsys
 
 def test_evaluate_refuses_half_a_pressure_protocol(models, tmp_path, capsys):
     free, tpms = models
-    base = ["evaluate", "--model", str(free.path), "--data", str(tmp_path), "--json", str(tmp_path / "e.json")]
-    assert cli.main([*base, "--pressure-runs", str(tmp_path)]) == 2
+    data = tmp_path / "data"
+    data.mkdir()
+    base = ["evaluate", "--model", str(free.path), "--data", str(data), "--json", str(tmp_path / "e.json")]
+    assert cli.main([*base, "--pressure-runs", str(data)]) == 2
     assert cli.main([*base, "--tpms-model", str(tpms.path)]) == 2
     err = capsys.readouterr().err
     assert err.count("--pressure-runs and --tpms-model go together") == 2 and not (tmp_path / "e.json").exists()

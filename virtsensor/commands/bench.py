@@ -33,11 +33,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ticks of the soak (1 to 10**8; default 72000 = one hour at 20 Hz; --quick: 1000)")
     parser.add_argument("--no-cross-process", action="store_true",
                         help="skip the udp_multicast run in a private network namespace")
-    parser.add_argument("--cpu-latency-us", type=t.int_range(0, 2_000_000_000), default=0, metavar="US",
-                        help="PM QoS CPU-latency request (0 to 2e9 us) of the free-running daemon (as virtsensor run "
-                             "--cpu-latency-us; default 0); it is also measured without one")
-    parser.add_argument("--no-cpu-latency", action="store_true",
-                        help="measure the free-running daemon with the machine's idle policy only")
+    latency = parser.add_mutually_exclusive_group()
+    latency.add_argument("--cpu-latency-us", type=t.int_range(0, 2_000_000_000), default=None, metavar="US",
+                         help="PM QoS CPU-latency request (0 to 2e9 us) of the free-running daemon (as virtsensor "
+                              "run --cpu-latency-us; default 0); it is also measured without one")
+    latency.add_argument("--no-cpu-latency", action="store_true",
+                         help="measure the free-running daemon with the machine's idle policy only (not with "
+                              "--cpu-latency-us)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
 
 
@@ -51,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
 
     r = run_bench(args.model, quick=args.quick, soak_ticks=args.soak_ticks,
                   cross_process=not args.no_cross_process, progress=say,
-                  cpu_latency_us=None if args.no_cpu_latency else args.cpu_latency_us)
+                  cpu_latency_us=None if args.no_cpu_latency else args.cpu_latency_us or 0)
     text = to_json(r)
     if args.json:
         atomic_write_bytes(args.json, text.encode())

@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     recipe = card.get("recipe")
     if not recipe or recipe.get("features") not in SPECS:
         raise UserError(f"{args.model}: its card has no recipe this version can retrain")
+    pressure = _pressure_inputs(model, args) if args.pressure_runs else None  # checked before any work
     recipes = {"paper": RECIPES["paper"]}
     recipes["improved"] = recipe if recipe != RECIPES["paper"] else RECIPES["improved"]
     needed = {s for r in recipes.values() for s in SPECS[r["features"]].signals} | set(cat.OUTPUTS)
@@ -98,8 +99,8 @@ def run(args: argparse.Namespace) -> int:
                 ds.Y, P, None if env is None else env.outside_rows(ds.X, ds.feature_names))
         result["shipped_model"] = {"file": str(args.model), "sha256": card["sha256"], **shipped}
     result["grip"] = score_grip(model, [*runs, *([track] if track is not None else []), *circuits])
-    if args.pressure_runs:
-        result["pressure_protocol"] = _pressure(model, args)
+    if pressure is not None:
+        result["pressure_protocol"] = _pressure(model, *pressure)
     write_json(args.json, result)
     table = markdown_table(result)
     if args.pressure_runs:
@@ -112,17 +113,25 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _pressure(model, args):
-    """The pressure protocol: --model (pressure-free) and --tpms-model on --pressure-runs."""
+def _pressure_inputs(model, args):
+    """``(TPMS model, its feature spec, --pressure-train runs, --pressure-runs runs)``, each checked
+    (:func:`virtsensor.learning.pressure.check_models`: a model without tyre pressures is refused)."""
     from virtsensor import signals as cat
-    from virtsensor.features import FeatureSpec
     from virtsensor.learning.dataset import load_runs
-    from virtsensor.learning.pressure import fit_trail_correction, pressure_protocol
+    from virtsensor.learning.pressure import check_models
     from virtsensor.model.onnx import OnnxModel
 
     tpms = OnnxModel.load(args.tpms_model)
-    spec = FeatureSpec.from_json(tpms.card["feature_spec"])
+    spec = check_models(model, tpms)
     needed = sorted({*spec.signals, *cat.OUTPUTS})
-    coef = fit_trail_correction(model, load_runs(args.pressure_train, needed=needed), spec) \
-        if args.pressure_train else None
-    return pressure_protocol(model, tpms, load_runs(args.pressure_runs, needed=needed), coef)
+    train = load_runs(args.pressure_train, needed=needed) if args.pressure_train else []
+    return tpms, spec, train, load_runs(args.pressure_runs, needed=needed)
+
+
+def _pressure(model, tpms, spec, train, held):
+    """The pressure protocol: --model (pressure-free) and --tpms-model on --pressure-runs, with the trail
+    correction fitted on --pressure-train when given."""
+    from virtsensor.learning.pressure import fit_trail_correction, pressure_protocol
+
+    coef = fit_trail_correction(model, train, spec) if train else None
+    return pressure_protocol(model, tpms, held, coef)

@@ -16,6 +16,8 @@ from __future__ import annotations
 import argparse
 
 HELP = "play a CAN log (or a simulated manoeuvre) onto a python-can bus"
+#: --speed, --mu and --seed of a simulated manoeuvre when not given
+DEFAULT_SPEED_KMH, DEFAULT_MU, DEFAULT_SEED = 80.0, 1.0, 0
 
 
 def _mu_range() -> tuple[float, float]:
@@ -46,13 +48,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="bit rate in bit/s (1000 to 20,000,000), for interfaces that set it"
     )
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress display")
-    sim = parser.add_argument_group("simulated manoeuvre instead of FILE (needs the simulator)")
+    sim = parser.add_argument_group("simulated manoeuvre instead of FILE (needs the simulator; these options "
+                                    "are refused with a FILE, which plays as recorded)")
     sim.add_argument("--manoeuvre", metavar="NAME", help="manoeuvre to simulate and play")
-    sim.add_argument("--speed", metavar="KMH", type=t.positive_float(500.0), default=80.0,
-                     help="initial speed in km/h (> 0, the manoeuvre sets the limit; default 80)")
-    sim.add_argument("--mu", metavar="MU", type=t.float_range(mu_lo, mu_hi), default=1.0,
-                     help=f"road friction coefficient ({mu_lo:g} to {mu_hi:g}; default 1.0)")
-    sim.add_argument("--seed", type=t.seed(), default=0, help="simulation seed (0 to 2**32-1; default 0)")
+    sim.add_argument("--speed", metavar="KMH", type=t.positive_float(500.0), default=None,
+                     help=f"initial speed in km/h (> 0, the manoeuvre sets the limit; default {DEFAULT_SPEED_KMH:g})")
+    sim.add_argument("--mu", metavar="MU", type=t.float_range(mu_lo, mu_hi), default=None,
+                     help=f"road friction coefficient ({mu_lo:g} to {mu_hi:g}; default {DEFAULT_MU:g})")
+    sim.add_argument("--seed", type=t.seed(), default=None,
+                     help=f"simulation seed (0 to 2**32-1; default {DEFAULT_SEED})")
     sim.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.NAME=VALUE",
                      help="override one car parameter (repeatable)")
 
@@ -64,6 +68,11 @@ def run(args: argparse.Namespace) -> int:
     rate = parse_rate(args.rate)
     if (args.file is None) == (args.manoeuvre is None):
         raise UserError("give either a log FILE or --manoeuvre NAME (not both, not neither)")
+    given = [o for o, v in (("--speed", args.speed), ("--mu", args.mu), ("--seed", args.seed),
+                            ("--set", args.overrides or None)) if v is not None]
+    if args.file is not None and given:
+        raise UserError(f"{', '.join(given)}: only for --manoeuvre (a simulated run); the log {args.file} "
+                        "plays as it was recorded")
     # Validate the interface name before doing any work.
     import can
 
@@ -73,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
             f"valid: {', '.join(sorted(can.interfaces.VALID_INTERFACES))}"
         )
     if args.manoeuvre is not None:
-        source = simulated_frames(args.manoeuvre, speed_kmh=args.speed, mu=args.mu, seed=args.seed,
+        source = simulated_frames(args.manoeuvre, speed_kmh=_or(args.speed, DEFAULT_SPEED_KMH),
+                                  mu=_or(args.mu, DEFAULT_MU), seed=_or(args.seed, DEFAULT_SEED),
                                   overrides=args.overrides)
     else:
         source = args.file
@@ -84,3 +94,8 @@ def run(args: argparse.Namespace) -> int:
         bus.shutdown()
     print(summary.format())
     return 130 if summary.interrupted else 0
+
+
+def _or(value, default):
+    """``value``, or ``default`` when the option was not given."""
+    return default if value is None else value

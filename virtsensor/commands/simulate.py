@@ -36,8 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--inputs", metavar="FILE", type=t.existing_file(),
                         help="for MANOEUVRE 'recorded': a table (.csv) or CAN log whose steering-wheel angle and "
                              "speed (or motor torque) drive the re-simulation")
-    parser.add_argument("--longitudinal", choices=("speed", "torque"), default="speed",
-                        help="for 'recorded': follow the recorded speed (default) or apply the recorded motor torque")
+    parser.add_argument("--longitudinal", choices=("speed", "torque"), default=None,
+                        help="for 'recorded' only: follow the recorded speed (default) or apply the recorded "
+                             "motor torque")
     parser.add_argument("--track", metavar="FILE", type=t.track_spec(),
                         help="for 'circuit': a bundled circuit (magny-cours, hungaroring, zandvoort, red-bull-ring), "
                              "a random one (random:SEED), or a closed centreline, .csv with header x_m,y_m or "
@@ -63,8 +64,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         if args.speed is None:
             raise UserError(f"{args.manoeuvre}: --speed KMH is required")
-        if args.inputs is not None:
-            raise UserError("--inputs goes with the manoeuvre 'recorded' only")
+        if args.inputs is not None or args.longitudinal is not None:
+            raise UserError(f"{'--inputs' if args.inputs is not None else '--longitudinal'} goes with the "
+                            "manoeuvre 'recorded' only")
         if args.manoeuvre != "circuit" and (args.track is not None or args.laps is not None):
             raise UserError("--track and --laps go with the manoeuvre 'circuit' only")
         with sim_errors():
@@ -99,11 +101,14 @@ def _resimulate(args: argparse.Namespace):
         raise UserError("recorded: --inputs FILE is required (a .csv table or a CAN log)")
     if args.speed is not None:
         raise UserError("recorded: the speed comes from --inputs; drop --speed")
+    if args.track is not None or args.laps is not None:
+        raise UserError("--track and --laps go with the manoeuvre 'circuit' only")
     if not MU_RANGE[0] <= args.mu <= MU_RANGE[1]:
         raise UserError(f"mu {args.mu:g} is outside the range {MU_RANGE[0]:g}-{MU_RANGE[1]:g}")
-    needed = ["steer_angle_rad", "vx_mps" if args.longitudinal == "speed" else "motor_torque_nm"]
+    longitudinal = args.longitudinal or "speed"
+    needed = ["steer_angle_rad", "vx_mps" if longitudinal == "speed" else "motor_torque_nm"]
     table = load_runs([args.inputs], needed=needed)[0].table
     params = car_from_args(args)
     with sim_errors():
-        plan = from_recording(table, args.mu, longitudinal=args.longitudinal)
+        plan = from_recording(table, args.mu, longitudinal=longitudinal)
         return simulate_plan(plan, params, args.seed)

@@ -29,7 +29,8 @@ from virtsensor.features import FeatureSpec
 from virtsensor.learning.dataset import Run, build_dataset
 from virtsensor.metrics import metrics
 
-__all__ = ["NOMINAL_BAR", "fit_trail_correction", "pressure_protocol", "pressure_markdown", "run_pressure_bar"]
+__all__ = ["NOMINAL_BAR", "check_models", "fit_trail_correction", "pressure_protocol", "pressure_markdown",
+           "run_pressure_bar"]
 
 #: the catalogue car's placard pressure (gauge, bar): the pressure-free model's training pressure
 NOMINAL_BAR = 2.2
@@ -81,6 +82,32 @@ def _scores(Y: np.ndarray, P: np.ndarray) -> dict[str, Any]:
             **{k: {"mae_nm": m[k]["mae_nm"], "r2": m[k]["r2"]} for k in ("fl", "fr", "axle")}}
 
 
+def check_models(free_model: Any, tpms_model: Any) -> FeatureSpec:
+    """The TPMS model's feature spec, once both models fit the protocol: the TPMS model's features are the
+    pressure-free model's, then the two front tyre pressures (:data:`virtsensor.signals.TPMS_FRONT`), which
+    is what :func:`pressure_protocol` reads. Cheap: call it before any work.
+
+    Raises:
+        UserError: the TPMS model's card names no usable feature spec, its inputs carry no front tyre pressure
+            (a model of the paper or improved recipe, say), or its features are not the pressure-free model's
+            followed by the two front pressures.
+    """
+    where = getattr(tpms_model, "path", "the TPMS model")
+    try:
+        spec = FeatureSpec.from_json(tpms_model.card["feature_spec"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{where}: no usable feature_spec in its model card ({exc})") from None
+    if not set(cat.TPMS_FRONT) <= set(spec.signals):
+        recipe = (tpms_model.card.get("recipe") or {}).get("features", spec.name)
+        raise UserError(f"{where}: not a TPMS model: its card's inputs (features {recipe!r}) carry no front tyre "
+                        f"pressure ({', '.join(cat.TPMS_FRONT)}); give a model trained with --recipe tpms")
+    n = free_model.n_features
+    if tuple(free_model.input_names) != spec.names[:n] or spec.names[n:] != tuple(cat.TPMS_FRONT):
+        raise UserError(f"{getattr(free_model, 'path', 'model')}: its features are not the first ones of the TPMS "
+                        f"model {where} (the rest being the two front tyre pressures)")
+    return spec
+
+
 def pressure_protocol(free_model: Any, tpms_model: Any, runs: Sequence[Run],
                       correction: np.ndarray | None = None) -> dict[str, Any]:
     """Score both models (and the trail correction, when given) per pressure group of ``runs``.
@@ -90,14 +117,11 @@ def pressure_protocol(free_model: Any, tpms_model: Any, runs: Sequence[Run],
     per wheel (``fl``, ``fr``) and for the axle (sum of the two SATs).
 
     Raises:
-        UserError: no run at the nominal pressure, a run without TPMS, or a model whose features are not the
-            TPMS spec's.
+        UserError: no run at the nominal pressure, a run without TPMS, or models that do not fit the protocol
+            (:func:`check_models`).
     """
-    spec = FeatureSpec.from_json(tpms_model.card["feature_spec"])
+    spec = check_models(free_model, tpms_model)
     n = free_model.n_features
-    if tuple(free_model.input_names) != spec.names[:n]:
-        raise UserError(f"{getattr(free_model, 'path', 'model')}: its features are not the first ones of the TPMS "
-                        f"model {getattr(tpms_model, 'path', '')}")
     by_p: dict[float, list[Run]] = {}
     for r in runs:
         by_p.setdefault(run_pressure_bar(r), []).append(r)
