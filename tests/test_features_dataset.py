@@ -169,6 +169,31 @@ def test_train_and_evaluate_from_the_command_line(tmp_path, capsys):
     assert not (tmp_path / "x.onnx").exists()
 
 
+@pytest.mark.parametrize("copied", [False, True])
+def test_evaluate_refuses_a_run_both_held_out_and_trained_on(tmp_path, capsys, copied):
+    """--train-extra runs are trained on in every protocol: a --data run among them (the same file, or a copy of
+    it under another name) would be tested on after training on it."""
+    import shutil
+    from pathlib import Path
+
+    from virtsensor.cli import main
+
+    data = _write_runs(tmp_path / "data", n_runs=3, n=60)
+    extra = data
+    if copied:
+        extra = tmp_path / "extra"
+        extra.mkdir()
+        shutil.copy(data / "run1.csv", extra / "renamed.csv")
+    out = tmp_path / "e.json"
+    model = Path(__file__).resolve().parents[1] / "models" / "improved.onnx"
+    assert main(["evaluate", "--model", str(model), "--data", str(data), "--train-extra", str(extra),
+                 "--json", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "given both as --data and as --train-extra" in err, err
+    assert ("the same content" in err) == copied
+    assert not out.exists()
+
+
 def test_grid_search_scores_candidates_on_held_out_runs_and_ranks_them():
     """Section III.B: every candidate is scored by R2 on runs it never saw; a network too
     small for the function must rank below one that can fit it."""

@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.features import SPECS, FeatureSpec
     from virtsensor.fileio import atomic_write_bytes, write_json
-    from virtsensor.learning.dataset import build_dataset, load_runs, split_track_laps
+    from virtsensor.learning.dataset import build_dataset, check_disjoint, load_runs, split_track_laps
     from virtsensor.learning.evaluation import evaluate, held_out_runs, markdown_table
     from virtsensor.learning.gripscore import score_grip
     from virtsensor.learning.scoring import envelope_split
@@ -76,6 +76,9 @@ def run(args: argparse.Namespace) -> int:
     track = load_runs([args.track], needed=sorted(needed))[0] if args.track else None
     extra = {"improved": load_runs(args.train_extra, needed=sorted(needed))} if args.train_extra else None
     circuits = load_runs(args.circuits, needed=sorted(needed)) if args.circuits else []
+    check_disjoint([("--data", runs), ("--train-extra", extra["improved"] if extra else []),
+                    ("--track", [track] if track is not None else []), ("--circuits", circuits)],
+                   "a run plays one part: the held-out runs, laps and circuits are never trained on")
 
     def log(msg: str) -> None:
         if not args.quiet:
@@ -117,7 +120,7 @@ def _pressure_inputs(model, args):
     """``(TPMS model, its feature spec, --pressure-train runs, --pressure-runs runs)``, each checked
     (:func:`virtsensor.learning.pressure.check_models`: a model without tyre pressures is refused)."""
     from virtsensor import signals as cat
-    from virtsensor.learning.dataset import load_runs
+    from virtsensor.learning.dataset import check_disjoint, load_runs
     from virtsensor.learning.pressure import check_models
     from virtsensor.model.onnx import OnnxModel
 
@@ -125,7 +128,10 @@ def _pressure_inputs(model, args):
     spec = check_models(model, tpms)
     needed = sorted({*spec.signals, *cat.OUTPUTS})
     train = load_runs(args.pressure_train, needed=needed) if args.pressure_train else []
-    return tpms, spec, train, load_runs(args.pressure_runs, needed=needed)
+    held = load_runs(args.pressure_runs, needed=needed)
+    check_disjoint([("--pressure-train", train), ("--pressure-runs", held)],
+                   "the pressure protocol's held-out runs are never fitted on")
+    return tpms, spec, train, held
 
 
 def _pressure(model, tpms, spec, train, held):

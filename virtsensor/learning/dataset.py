@@ -30,7 +30,7 @@ from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 from virtsensor.recordings.check import check_table
 from virtsensor.recordings.files import read_table, recording_files
-from virtsensor.recordings.manifest import check_rows
+from virtsensor.recordings.manifest import check_rows, file_sha256
 
 
 @dataclass
@@ -85,6 +85,44 @@ def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[R
             meta["pressure_unknown"] = True
         runs.append(Run(f.stem, table, meta, f))
     return runs
+
+
+def run_digest(run: Run) -> str | None:
+    """sha256 of the run's file: its campaign manifest's when listed there (checked on loading), else of the
+    file's bytes; None for a run without a file."""
+    listed = run.meta.get("sha256")
+    if isinstance(listed, str):
+        return listed
+    return file_sha256(run.path) if run.path is not None else None
+
+
+def _identity(run: Run) -> list[object]:
+    """What makes two runs the same: their resolved file, their content's sha256."""
+    keys: list[object] = [] if run.path is None else [run.path.resolve()]
+    digest = run_digest(run)
+    return keys if digest is None else [*keys, ("sha256", digest)]
+
+
+def check_disjoint(named: Sequence[tuple[str, Sequence[Run]]], why: str) -> None:
+    """Refuse a run that is in two of the ``named`` sets (``(option, runs)``): the same file, or another file
+    with the same content (:func:`run_digest`), e.g. held-out runs also given on the training side.
+
+    Raises:
+        UserError: ``<file>: given both as <option> and as <option> [(<other file>, the same content)]; <why>``.
+    """
+    seen: dict[object, tuple[str, Run]] = {}
+    for option, runs in named:
+        identities = [(r, _identity(r)) for r in runs]
+        for r, keys in identities:
+            hit = next((seen[k] for k in keys if k in seen), None)
+            if hit is not None:
+                other_option, other = hit
+                same_file = r.path is not None and other.path is not None and r.path.resolve() == other.path.resolve()
+                also = "" if same_file else f" ({other.path or other.name}, the same content)"
+                raise UserError(f"{r.path or r.name}: given both as {other_option} and as {option}{also}; {why}")
+        for r, keys in identities:
+            for k in keys:
+                seen.setdefault(k, (option, r))
 
 
 @dataclass
