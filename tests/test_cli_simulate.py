@@ -117,3 +117,36 @@ def test_a_recorded_run_is_resimulated_from_its_driver_inputs(tmp_path):
     # the recorded inputs must be there
     res = run_cli("simulate", "recorded", "--mu", "1", "--out", str(tmp_path / "x.csv"))
     assert res.returncode == 2 and "--inputs" in res.stderr
+
+
+def _recorded_inputs(tmp_path, speed_mps):
+    """A table of driver inputs: a gentle steer at the given speed per row (m/s), 20 Hz for 4 s."""
+    from virtsensor.recordings.canlog import write_csv
+
+    n = 80
+    t = np.arange(n) * 0.05
+    table = {"time_s": t, **{s: np.zeros(n) for s in INPUTS}, **{s: np.zeros(n) for s in OUTPUTS}}
+    table["steer_angle_rad"] = 0.3 * np.sin(2 * np.pi * 0.5 * t)
+    table["vx_mps"] = np.broadcast_to(speed_mps, (n,)).astype(float)
+    path = tmp_path / "inputs.csv"
+    write_csv(path, table)
+    return path
+
+
+def test_recorded_inputs_that_never_move_the_car_write_nothing(tmp_path, capsys):
+    """(It wrote a 1-row table, 'STOPPED', exit 0: a table train and score refuse.)"""
+    inputs = _recorded_inputs(tmp_path, 0.0)
+    out = tmp_path / "rec.csv"
+    assert main(["simulate", "recorded", "--mu", "1", "--inputs", str(inputs), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "STOPPED after 1 sample(s)" in err and "never move" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inputs.csv"]
+
+
+def test_a_run_that_stops_after_a_usable_stretch_is_written_and_says_so(tmp_path, capsys):
+    """The car stops halfway (the recorded speed drops to 0): the run up to there is kept, cut short, exit 0."""
+    inputs = _recorded_inputs(tmp_path, np.where(np.arange(80) < 40, 15.0, 0.0))
+    out = tmp_path / "rec.csv"
+    assert main(["simulate", "recorded", "--mu", "1", "--inputs", str(inputs), "--out", str(out)]) == 0
+    assert "STOPPED at t=" in capsys.readouterr().err
+    assert 20 < len(read_csv(out)["time_s"]) < 80

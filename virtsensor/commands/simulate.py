@@ -9,7 +9,7 @@ from pathlib import Path
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
 from virtsensor.errors import UserError
 from virtsensor.recordings.files import LOG_SUFFIXES, TABLE_SUFFIXES
-from virtsensor.recordings.simulated import metadata_path, write_metadata, write_run
+from virtsensor.recordings.simulated import check_usable, metadata_path, run_table, write_metadata, write_run
 
 HELP = f"simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log ({'/'.join(LOG_SUFFIXES)})"
 
@@ -75,7 +75,10 @@ def run(args: argparse.Namespace) -> int:
         with sim_errors():
             sim_run = simulate(args.manoeuvre, args.speed, args.mu, args.seed, params,
                                track=args.track, laps=args.laps)
-    table = write_run(sim_run, out)
+    what = f"recorded (inputs {args.inputs})" if args.manoeuvre == "recorded" else args.manoeuvre
+    table = run_table(sim_run)
+    check_usable(sim_run, table, what)  # a run that ends early but long enough is written, and says so below
+    write_run(sim_run, out, table)
     n = len(table["time_s"])
     write_metadata(sim_run, out, table)
     speed = f"{args.speed:g} km/h" if args.speed is not None else f"recorded inputs of {args.inputs}"

@@ -32,6 +32,8 @@ RATE_HZ = cat.TABLE_RATE_HZ
 TICK_S = cat.TABLE_TICK_S
 #: largest departure of a step between rows from a whole number of ticks, as a fraction of a tick
 STEP_TOLERANCE = 0.05
+#: Fewest rows a table must have (a rate needs two ticks): every reader refuses fewer.
+MIN_ROWS = 2
 #: catalogue roles whose values must lie in their catalogue range (or be SNA)
 _RANGE_CHECKED = ("input", "output", "aux")
 
@@ -49,8 +51,8 @@ def table_error(path: Path | str, column: str, row: int | None, expected: str, g
 
 
 def _check_time(path: Path, t: np.ndarray, gaps: bool) -> None:
-    if t.size < 2:
-        raise table_error(path, "time_s", None, f"at least 2 rows at {RATE_HZ:g} Hz", f"{t.size}")
+    if t.size < MIN_ROWS:
+        raise table_error(path, "time_s", None, f"at least {MIN_ROWS} rows at {RATE_HZ:g} Hz", f"{t.size}")
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
         raise table_error(path, "time_s", int(bad[0]) + 1, "a finite time in s", f"{t[bad[0]]}")

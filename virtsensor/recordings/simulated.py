@@ -20,6 +20,7 @@ import numpy as np
 
 from virtsensor.errors import UserError
 from virtsensor.fileio import write_json
+from virtsensor.recordings.check import MIN_ROWS
 from virtsensor.recordings.files import LOG_SUFFIXES, TABLE_SUFFIXES
 
 
@@ -37,10 +38,39 @@ def run_table(sim_run: Any) -> dict[str, np.ndarray]:
     return table
 
 
-def write_run_file(sim_run: Any, path: Path) -> dict[str, np.ndarray]:
+def check_usable(sim_run: Any, table: Mapping[str, np.ndarray], what: str) -> None:
+    """Refuse a run whose table (:func:`run_table`) is too short for any use (fewer than
+    :data:`~virtsensor.recordings.check.MIN_ROWS` rows, which every reader refuses): a run that
+    ended early after a usable stretch passes (its outcome says it was cut short).
+
+    Raises:
+        UserError: ``<what>: the run STOPPED after N sample(s) ...: <why>; nothing written``, the why
+            from the outcome and the car's truth (e.g. inputs that never move the car).
+    """
+    n = len(table["time_s"])
+    if n >= MIN_ROWS:
+        return
+    from sim.engine import ABORT_SIDESLIP_RAD, ABORT_SPEED_MPS
+
+    outcome = sim_run.outcome
+    status = str(outcome.get("status", "completed"))
+    vx = np.asarray(sim_run.truth.get("vx_true_mps", []), dtype=np.float64)
+    top = float(np.nanmax(vx)) if vx.size else float("nan")
+    why = {
+        "stopped": f"the car never reached {ABORT_SPEED_MPS:g} m/s (at most {top:.1f} m/s): its inputs never move "
+                   "it" if top < ABORT_SPEED_MPS else f"the car slowed below {ABORT_SPEED_MPS:g} m/s at once",
+        "spun": f"the car spun at once (side-slip beyond {np.rad2deg(ABORT_SIDESLIP_RAD):.0f} deg)",
+        "off-track": "the car left the track at once",
+    }.get(status, "the run is shorter than one 20 Hz tick")
+    span = f" ({outcome['at_s']:.2f} s of {outcome['planned_s']:.2f} s planned)" if "at_s" in outcome else ""
+    raise UserError(f"{what}: the run {status.upper()} after {n} sample(s) at 20 Hz{span}: {why}; nothing written "
+                    f"(a table needs at least {MIN_ROWS} rows)")
+
+
+def write_run_file(sim_run: Any, path: Path, table: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Write a simulated run to ``path`` as it is, in the format of its suffix (not
     atomic: on failure the file may be partial; the caller owns the name). Returns
-    the run's canonical table.
+    the run's canonical table (``table``, when the caller has it from :func:`run_table`).
 
     Raises:
         ValueError: a suffix that is neither a table nor a CAN log.
@@ -51,7 +81,7 @@ def write_run_file(sim_run: Any, path: Path) -> dict[str, np.ndarray]:
     fmt = path.suffix.lower()
     if fmt not in TABLE_SUFFIXES + LOG_SUFFIXES:
         raise ValueError(f"{path}: unknown format {fmt!r}; use one of {', '.join(TABLE_SUFFIXES + LOG_SUFFIXES)}")
-    table = run_table(sim_run)
+    table = dict(table) if table is not None else run_table(sim_run)
     if fmt in TABLE_SUFFIXES:
         write_csv(path, table)
     else:
@@ -66,14 +96,15 @@ def partial_name(out: Path) -> Path:
     return out.with_name(f".partial-{out.name}")
 
 
-def write_run(sim_run: Any, out: Path) -> dict[str, np.ndarray]:
+def write_run(sim_run: Any, out: Path, table: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Write a simulated run to ``out`` (.csv table or CAN log, by suffix) atomically:
     it is written under :func:`partial_name` and renamed when complete; on any
-    failure no file is left behind. Returns the run's canonical table."""
+    failure no file is left behind. Returns the run's canonical table (``table``, when the
+    caller has it from :func:`run_table`)."""
     out = Path(out)
     tmp = partial_name(out)
     try:
-        table = write_run_file(sim_run, tmp)
+        table = write_run_file(sim_run, tmp, table)
         tmp.replace(out)
     finally:
         tmp.unlink(missing_ok=True)
