@@ -178,13 +178,14 @@ def tampered(tmp_path, request) -> Path:
 @pytest.mark.parametrize("argv", [
     ["run", "--model", "{m}", "--interface", "virtual", "--channel", "card-test", "--duration", "0.1"],
     ["bench", "--model", "{m}", "--quick", "--json", "{tmp}/b.json"],
-    ["evaluate", "--model", "{m}", "--data", "{tmp}", "--json", "{tmp}/e.json"],
-    ["score", "--model", "{m}", "--data", "{tmp}", "--json", "{tmp}/s.json"],
-    ["explain", "--model", "{m}", "--data", "{tmp}", "--out", "{tmp}/fig"],
+    ["evaluate", "--model", "{m}", "--data", "{tmp}/data", "--json", "{tmp}/e.json"],
+    ["score", "--model", "{m}", "--data", "{tmp}/data", "--json", "{tmp}/s.json"],
+    ["explain", "--model", "{m}", "--data", "{tmp}/data", "--out", "{tmp}/fig"],
     ["demo", "--model", "{m}", "--no-live", "--rate", "max", "--plot", "{tmp}/d.png"],
 ])
 def test_commands_refuse_a_tampered_card_with_exit_2(tampered, argv, capsys):
     tmp = tampered.parent
+    (tmp / "data").mkdir()  # (the outputs go beside the data: never inside an input directory)
     args = [a.format(m=tampered, tmp=tmp) for a in argv]
     before = sorted(p.name for p in tmp.iterdir())
     rc = cli.main(args)
