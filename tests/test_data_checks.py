@@ -219,6 +219,16 @@ def test_a_csv_table_cut_mid_row_is_refused(tmp_path):
         load_runs([path])
 
 
+def test_a_csv_that_is_not_utf8_is_refused_in_one_line(tmp_path, capsys):
+    path = tmp_path / "bin.csv"
+    path.write_bytes(bytes(range(128, 256)) * 4)
+    code, err = _train(capsys, tmp_path, path)
+    assert code == 2 and err.endswith("not UTF-8 text (byte 0x80 at byte offset 0); a CSV table is UTF-8 text "
+                                      "(a binary file or a CAN log named .csv?)") and str(path) in err, err
+    with pytest.raises(UserError, match=r"bin\.csv:1: not UTF-8"):
+        load_measured([path])
+
+
 def test_a_cut_mdf4_file_is_refused(tmp_path):
     asammdf = pytest.importorskip("asammdf")
     t = np.arange(0, 5, 0.01)

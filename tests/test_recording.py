@@ -409,6 +409,18 @@ def test_csv_errors_name_file_and_line(tmp_path):
         read_csv(p)
 
 
+@pytest.mark.parametrize(("data", "where"), [
+    (b"time_s,ax_mps2\n0.0,1.0\n0.05,\xe9\n", r"bad\.csv:3: not UTF-8 text \(byte 0xe9 at byte offset 28\)"),
+    ("time_s,ax_mps2é\n0.0,1.0\n".encode("latin-1"), r"bad\.csv:1: not UTF-8 text \(byte 0xe9 at byte offset 14\)"),
+    (b"LOGG\x90\x00\x00\x00\x01\x02", r"bad\.csv:1: not UTF-8 text \(byte 0x90 at byte offset 4\)"),  # a BLF
+])
+def test_a_csv_that_is_not_utf8_names_file_line_and_byte(tmp_path, data, where):
+    p = tmp_path / "bad.csv"
+    p.write_bytes(data)
+    with pytest.raises(UserError, match=where):
+        read_csv(p)
+
+
 def test_phase_override(run):
     t, sig = run
     frames = list(iter_frames(t, sig, phases={"ESC_WheelSpeeds_F": 0.011}))

@@ -29,6 +29,7 @@ whose last row has no end of line.
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 import os
@@ -683,11 +684,7 @@ def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
             last row the file ends inside (cut mid-row), with the last good row.
     """
     path = Path(path)
-    try:
-        f = open(path, encoding="utf-8")  # noqa: SIM115
-    except OSError as exc:
-        raise UserError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    with f:
+    with io.StringIO(_utf8_text(path), newline=None) as f:
         header = f.readline().strip()
         if not header:
             raise UserError(f"{path}:1: empty file, expected a header of signal names")
@@ -716,6 +713,21 @@ def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
                 raise UserError(f"{path}:{lineno}: {bad.strip()!r} is not a number") from None
     mat = np.array(rows, dtype=np.float64).reshape(len(rows), width)
     return {n: mat[:, i].copy() for i, n in enumerate(names)}
+
+
+def _utf8_text(path: Path) -> str:
+    """The text of a CSV table; a file that cannot be read or is not UTF-8 (a binary file, a CAN log renamed
+    ``.csv``, a Latin-1 header) is a UserError naming the file, the line and the byte offset."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise UserError(f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at byte offset {exc.start}); "
+                        f"a CSV table is UTF-8 text (a binary file or a CAN log named .csv?)") from None
 
 
 def _last_good_row(names: Sequence[str], rows: Sequence[Sequence[float]]) -> str:
