@@ -18,8 +18,8 @@ import numpy as np
 from sim.driver import Plan
 from sim.engine import simulate_batch
 from sim.manoeuvres import build_plan, check
-from sim.params import apply_overrides, car_parameters
-from sim.sensors import check_specs, make_streams
+from sim.params import apply_overrides, car_parameters, check_car
+from sim.sensors import make_streams
 
 
 @dataclass(frozen=True)
@@ -115,7 +115,7 @@ def simulate_many(
     trees = [with_pressures(t, r.pressures_bar) if r.pressures_bar is not None else t
              for t, r in zip(trees, requests, strict=True)]
     for tree in {id(t): t for t in trees}.values():
-        check_specs(tree)
+        check_car(tree)
     for r in requests:
         check(r.manoeuvre, r.speed_kmh, r.mu)
     if plans is None:
@@ -136,7 +136,7 @@ def simulate_many(
 def simulate_plan(plan: Plan, params: Mapping[str, Any] | None = None, seed: int = 0) -> SimRun:
     """Simulate one ready-made plan (e.g. :func:`sim.manoeuvres.from_recording`)."""
     params = car_parameters() if params is None else params
-    check_specs(params)
+    check_car(params)
     result = simulate_batch([plan], [params])
     truth = result.run(0)
     streams = make_streams(truth, params, seed=int(np.random.SeedSequence([seed, 1]).generate_state(1)[0]))

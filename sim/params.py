@@ -4,7 +4,9 @@ The defaults live in ``sim/data/car_c_segment.toml``. A run may override any
 leaf with ``section.name=value`` strings (the CLI's ``--set``) or with a TOML
 file of the same shape. Overrides are validated against the defaults: an
 unknown key, a value of the wrong type or a non-finite number raises
-:class:`ParamError` naming the key (and the file, for TOML files).
+:class:`ParamError` naming the key (and the file, for TOML files). The whole
+set is then checked against physical bounds (:func:`check_car`, which
+:func:`car_parameters` and every simulation entry point run before any work).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import copy
 import difflib
 import math
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -144,5 +147,224 @@ def car_parameters(
     files: Iterable[Path | str] = (),
     defaults: Path | str = DEFAULT_CAR,
 ) -> dict[str, Any]:
-    """The default car with overrides applied (the usual entry point)."""
-    return apply_overrides(load_defaults(defaults), assignments, files)
+    """The default car with overrides applied and checked (the usual entry point; see :func:`check_car`)."""
+    tree = apply_overrides(load_defaults(defaults), assignments, files)
+    check_car(tree)
+    return tree
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The physical range of one scalar parameter: ``lo``..``hi`` in ``unit``; an open end excludes its value."""
+
+    lo: float
+    hi: float
+    unit: str
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def holds(self, value: float) -> bool:
+        above = value > self.lo if self.lo_open else value >= self.lo
+        below = value < self.hi if self.hi_open else value <= self.hi
+        return above and below
+
+    def text(self) -> str:
+        return (f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+                f"{' ' + self.unit if self.unit else ''}")
+
+
+#: The physical range of every scalar car parameter (sensors: :func:`sim.sensors.check_specs`). A
+#: passenger car, from a 300 kg quadricycle to a 5 t van, on Earth: wide enough for every car the project
+#: ships, its diagnosis searches (payload -150..600 kg, pressure 1.2-3.4 bar, relaxation x0.25-4, friction
+#: x0.4-1.2, a steering friction to 8 Nm) and a rack 18 % quicker or slower; narrow enough that no value
+#: divides by zero or makes the model meaningless (a mass, a ratio, an inertia or a time constant of 0...).
+BOUNDS: dict[str, Bound] = {
+    "vehicle.mass_kg": Bound(300.0, 5000.0, "kg"),
+    "vehicle.wheelbase_m": Bound(1.5, 4.5, "m"),
+    "vehicle.front_axle_load_fraction": Bound(0.0, 1.0, "", lo_open=True, hi_open=True),
+    "vehicle.cg_height_m": Bound(0.2, 1.5, "m"),
+    "vehicle.track_front_m": Bound(1.0, 2.2, "m"),
+    "vehicle.track_rear_m": Bound(1.0, 2.2, "m"),
+    "vehicle.yaw_inertia_kgm2": Bound(100.0, 20000.0, "kg m^2"),
+    "vehicle.roll_inertia_sprung_kgm2": Bound(50.0, 5000.0, "kg m^2"),
+    "vehicle.pitch_inertia_sprung_kgm2": Bound(100.0, 20000.0, "kg m^2"),
+    "vehicle.unsprung_mass_front_kg": Bound(5.0, 150.0, "kg"),
+    "vehicle.unsprung_mass_rear_kg": Bound(5.0, 150.0, "kg"),
+    "vehicle.roll_centre_height_front_m": Bound(-0.2, 0.6, "m"),
+    "vehicle.roll_centre_height_rear_m": Bound(-0.2, 0.6, "m"),
+    "vehicle.pitch_centre_height_m": Bound(-0.2, 0.6, "m"),
+    "suspension.wheel_rate_front_npm": Bound(5e3, 3e5, "N/m"),
+    "suspension.wheel_rate_rear_npm": Bound(5e3, 3e5, "N/m"),
+    "suspension.damping_front_nspm": Bound(100.0, 5e4, "N s/m"),
+    "suspension.damping_rear_nspm": Bound(100.0, 5e4, "N s/m"),
+    "suspension.arb_front_npm": Bound(0.0, 2e5, "N/m"),
+    "suspension.arb_rear_npm": Bound(0.0, 2e5, "N/m"),
+    "suspension.bump_stop_travel_m": Bound(0.01, 0.3, "m"),
+    "suspension.bump_stop_rate_npm": Bound(1e4, 2e6, "N/m"),
+    "suspension.camber_roll_factor_front": Bound(-0.5, 1.5, ""),
+    "suspension.camber_roll_factor_rear": Bound(-0.5, 1.5, ""),
+    "aero.drag_coefficient": Bound(0.1, 1.5, ""),
+    "aero.frontal_area_m2": Bound(1.0, 6.0, "m^2"),
+    "aero.air_density_kgpm3": Bound(0.7, 1.5, "kg/m^3"),
+    "powertrain.motor_max_torque_nm": Bound(10.0, 2000.0, "Nm"),
+    "powertrain.motor_max_power_w": Bound(5e3, 1e6, "W"),
+    "powertrain.motor_max_speed_radps": Bound(100.0, 3000.0, "rad/s"),
+    "powertrain.gear_ratio": Bound(1.0, 20.0, ""),
+    "powertrain.efficiency": Bound(0.5, 1.0, ""),
+    "powertrain.torque_time_constant_s": Bound(0.005, 1.0, "s"),
+    "brakes.max_wheel_torque_front_nm": Bound(100.0, 10000.0, "Nm"),
+    "brakes.front_share": Bound(0.0, 1.0, "", lo_open=True),
+    "brakes.pressure_time_constant_s": Bound(0.005, 1.0, "s"),
+    "wheels.spin_inertia_front_kgm2": Bound(0.1, 10.0, "kg m^2"),
+    "wheels.spin_inertia_rear_kgm2": Bound(0.1, 10.0, "kg m^2"),
+    "tyres.pressure_front_pa": Bound(0.5e5, 5e5, "Pa"),
+    "tyres.pressure_rear_pa": Bound(0.5e5, 5e5, "Pa"),
+    "tyres.pressure_left_right_front_pa": Bound(-4.5e5, 4.5e5, "Pa"),
+    "tyres.pressure_left_right_rear_pa": Bound(-4.5e5, 4.5e5, "Pa"),
+    "tyres.static_camber_front_rad": Bound(-0.1, 0.1, "rad"),
+    "tyres.static_camber_rear_rad": Bound(-0.1, 0.1, "rad"),
+    "tyres.toe_in_front_rad": Bound(-0.03, 0.03, "rad"),
+    "tyres.toe_in_rear_rad": Bound(-0.03, 0.03, "rad"),
+    "tyres.relaxation_scale": Bound(0.1, 10.0, ""),
+    "tyres.friction_scale": Bound(0.05, 2.0, ""),
+    "steering.ratio": Bound(5.0, 40.0, ""),
+    "steering.ackermann_fraction": Bound(-1.0, 1.5, ""),
+    "steering.max_road_wheel_angle_rad": Bound(0.05, 1.0, "rad"),
+    "steering.wheel_inertia_kgm2": Bound(0.005, 0.5, "kg m^2"),
+    "steering.wheel_damping_nmsprad": Bound(0.0, 5.0, "Nm s/rad"),
+    "steering.torsion_bar_stiffness_nmprad": Bound(10.0, 2000.0, "Nm/rad"),
+    "steering.torsion_bar_damping_nmsprad": Bound(0.0, 10.0, "Nm s/rad"),
+    "steering.lower_inertia_kgm2": Bound(0.005, 2.0, "kg m^2"),
+    "steering.lower_damping_nmsprad": Bound(0.0, 20.0, "Nm s/rad"),
+    "steering.coulomb_friction_nm": Bound(0.0, 20.0, "Nm"),
+    "steering.friction_velocity_radps": Bound(0.001, 1.0, "rad/s"),
+    "steering.caster_trail_m": Bound(-0.05, 0.1, "m"),
+    "steering.scrub_radius_m": Bound(-0.1, 0.1, "m"),
+    "steering.kingpin_offset_wheel_centre_m": Bound(0.0, 0.2, "m"),
+    "steering.kingpin_inclination_rad": Bound(0.0, 0.35, "rad"),
+    "steering.assist_knee_nm": Bound(0.05, 10.0, "Nm"),
+    "steering.assist_max_nm": Bound(0.0, 200.0, "Nm"),
+    "steering.assist_noload_speed_radps": Bound(1.0, 200.0, "rad/s"),
+    "steering.assist_damping_nmsprad": Bound(0.0, 20.0, "Nm s/rad"),
+    "driver.robot_stiffness_nmprad": Bound(10.0, 1e5, "Nm/rad"),
+    "driver.robot_damping_nmsprad": Bound(0.0, 1000.0, "Nm s/rad"),
+    "driver.robot_max_rate_radps": Bound(0.5, 50.0, "rad/s"),
+    "driver.command_time_constant_s": Bound(0.005, 2.0, "s"),
+    "driver.steer_slip_margin_rad": Bound(0.0, 0.5, "rad"),
+    "driver.preview_time_s": Bound(0.05, 5.0, "s"),
+    "driver.preview_min_m": Bound(0.0, 50.0, "m"),
+    "driver.lateral_integral_gain": Bound(0.0, 1.0, "rad/(m s)"),
+    "driver.speed_gain_npmps": Bound(0.0, 1e5, "N s/m"),
+    "driver.speed_integral_gain": Bound(0.0, 1e5, "N/m"),
+    "simulation.step_s": Bound(0.0, 0.01, "s", lo_open=True),
+    "simulation.record_rate_hz": Bound(20.0, 100.0, "Hz"),
+    "simulation.gravity_mps2": Bound(9.5, 10.1, "m/s^2"),
+}
+#: keys a tree may lack (the simulator takes 0 for them: trees written before they existed)
+OPTIONAL = ("tyres.pressure_left_right_front_pa", "tyres.pressure_left_right_rear_pa")
+#: EPAS boost table: breakpoints (m/s) and gains (assist / torsion-bar torque)
+ASSIST_SPEEDS = Bound(0.0, 100.0, "m/s")
+ASSIST_GAINS = Bound(0.0, 50.0, "")
+#: the driver's update period (s, :data:`sim.driver.CONTROL_DT`): the step divides it, the record period is a
+#: whole number of it
+CONTROL_PERIOD_S = 0.01
+
+
+def _leaf(tree: Mapping[str, Any], key: str) -> Any:
+    node: Any = tree
+    for part in key.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            raise KeyError(key)
+        node = node[part]
+    return node
+
+
+def _out_of_range(key: str, value: Any, bound: Bound, why: str = "") -> ParamError:
+    shown = f"{value:g}" if isinstance(value, float) else repr(value)
+    return ParamError(f"car parameter {key}={shown} is outside its physical range {bound.text()}{why}")
+
+
+def check_car(tree: Mapping[str, Any]) -> None:
+    """Refuse a car whose parameters are not physically meaningful, before any simulation.
+
+    Each scalar must lie in its range of :data:`BOUNDS` (a passenger car on Earth: mass 300-5000 kg, ratios
+    and inertias > 0, fractions in (0, 1), step in (0, 0.01] s, gravity 9.5-10.1 m/s^2 (9.81 +- 3 %)...), and:
+
+    * every wheel's pressure (axle pressure -+ half the left-right difference) within 0.5-5 bar gauge;
+    * the four corners' unsprung mass under three quarters of the car's mass (a body to carry);
+    * ``simulation.step_s`` dividing the driver's 0.01 s update period, ``simulation.record_rate_hz`` dividing
+      its 100 Hz and at least every sensor's rate (sensors are sampled on the record grid);
+    * the EPAS boost table: at least two breakpoints, strictly increasing within 0-100 m/s, and as many gains,
+      each within 0-50;
+    * the sensors (:func:`sim.sensors.check_specs`).
+
+    Raises:
+        ParamError: one line naming the key, its value and the allowed range.
+    """
+    for key, bound in BOUNDS.items():
+        try:
+            value = _leaf(tree, key)
+        except KeyError:
+            if key in OPTIONAL:
+                continue
+            raise ParamError(f"car parameter {key} is missing") from None
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+            raise ParamError(f"car parameter {key}={value!r}: expected a finite number in {bound.text()}")
+        if not bound.holds(float(value)):
+            raise _out_of_range(key, float(value), bound)
+    _check_consistency(tree)
+    _check_assist(tree["steering"])
+    from sim.sensors import check_specs
+
+    try:
+        check_specs(tree)
+    except ValueError as exc:
+        raise ParamError(str(exc)) from None
+
+
+def _check_consistency(tree: Mapping[str, Any]) -> None:
+    """The cross-checks of :func:`check_car` between parameters."""
+    v, ty, sim = tree["vehicle"], tree["tyres"], tree["simulation"]
+    wheel = Bound(0.5e5, 5e5, "Pa")
+    for axle in ("front", "rear"):
+        p, d = ty[f"pressure_{axle}_pa"], ty.get(f"pressure_left_right_{axle}_pa", 0.0)
+        for side, pw in (("left", p + 0.5 * d), ("right", p - 0.5 * d)):
+            if not wheel.holds(pw):
+                raise ParamError(f"car parameter tyres.pressure_left_right_{axle}_pa={d:g} puts the {axle} {side} "
+                                 f"tyre at {pw:g} Pa, outside its physical range {wheel.text()} (0.5-5 bar gauge)")
+    unsprung = 2.0 * (v["unsprung_mass_front_kg"] + v["unsprung_mass_rear_kg"])
+    if unsprung > 0.75 * v["mass_kg"]:
+        raise ParamError(f"car parameter vehicle.mass_kg={v['mass_kg']:g} is too light for its unsprung masses "
+                         f"(four corners {unsprung:g} kg): the unsprung mass must stay under 3/4 of the car's mass")
+    step, rate = float(sim["step_s"]), float(sim["record_rate_hz"])
+    sub = round(CONTROL_PERIOD_S / step)
+    if abs(sub * step - CONTROL_PERIOD_S) > 1e-12:
+        raise ParamError(f"car parameter simulation.step_s={step:g} must divide the driver's "
+                         f"{CONTROL_PERIOD_S:g} s update period (0.005, 0.0025, 0.002, 0.001... s)")
+    every = round(1.0 / (rate * CONTROL_PERIOD_S))
+    fastest = max((float(s.get("rate_hz", 0.0)) for s in tree.get("sensors", {}).values()
+                   if isinstance(s, Mapping)), default=0.0)
+    if abs(every * CONTROL_PERIOD_S * rate - 1.0) > 1e-9 or rate < fastest:
+        raise ParamError(f"car parameter simulation.record_rate_hz={rate:g} must divide the driver's "
+                         f"{1.0 / CONTROL_PERIOD_S:g} Hz (100, 50, 25 or 20 Hz) and be at least the fastest "
+                         f"sensor's rate ({fastest:g} Hz)")
+
+
+def _check_assist(steering: Mapping[str, Any]) -> None:
+    """The EPAS boost table of :func:`check_car`."""
+    speeds, gains = steering["assist_speeds_mps"], steering["assist_gains"]
+    if not isinstance(speeds, list) or len(speeds) < 2:
+        raise ParamError(f"car parameter steering.assist_speeds_mps={speeds!r}: expected a list of at least 2 "
+                         f"speeds in {ASSIST_SPEEDS.text()}")
+    if not isinstance(gains, list) or len(gains) != len(speeds):
+        raise ParamError(f"car parameter steering.assist_gains={gains!r}: expected one gain per speed of "
+                         f"steering.assist_speeds_mps ({len(speeds)} values)")
+    for key, values, bound in (("steering.assist_speeds_mps", speeds, ASSIST_SPEEDS),
+                               ("steering.assist_gains", gains, ASSIST_GAINS)):
+        for i, x in enumerate(values):
+            if not bound.holds(float(x)):
+                raise _out_of_range(f"{key}[{i}]", float(x), bound)
+    for i in range(1, len(speeds)):
+        if not speeds[i] > speeds[i - 1]:
+            raise ParamError(f"car parameter steering.assist_speeds_mps={speeds!r}: breakpoints must increase "
+                             f"strictly (entry {i}, {speeds[i]:g}, is not above {speeds[i - 1]:g} m/s)")

@@ -69,7 +69,9 @@ ERROR_KEYS = ("delay_s", "offset", "gain")
 
 
 def check_specs(params: Mapping[str, Any]) -> None:
-    """Validate the [sensors] section: every spec complete and physically meaningful."""
+    """Validate the [sensors] section: every spec complete and physically meaningful (rate in (0, 100] Hz,
+    latency in [0, 1] s, noise and resolution >= 0, gain in (0, 10]); and [sensor_errors]: delay in [0, 2] s,
+    gain in (0, 10] (offsets: any finite value, in the signal's unit)."""
     sensors = params["sensors"]
     for key in {k for k, _ in SOURCES.values()}:
         if key not in sensors:
@@ -82,6 +84,10 @@ def check_specs(params: Mapping[str, Any]) -> None:
             raise ValueError(f"sensors.{key}.rate_hz must be in (0, 100], got {spec['rate_hz']}")
         if spec["latency_s"] < 0 or spec["noise"] < 0 or spec["resolution"] < 0:
             raise ValueError(f"sensors.{key}: latency, noise and resolution must be >= 0")
+        if spec["latency_s"] > 1.0:
+            raise ValueError(f"sensors.{key}.latency_s must be in [0, 1] s, got {spec['latency_s']}")
+        if not 0.0 < spec["gain"] <= 10.0:
+            raise ValueError(f"sensors.{key}.gain must be in (0, 10], got {spec['gain']}")
     for name, err in params.get("sensor_errors", {}).items():
         if name not in SOURCES:
             raise ValueError(f"sensor_errors.{name}: not a signal the sensors deliver")
@@ -90,8 +96,8 @@ def check_specs(params: Mapping[str, Any]) -> None:
             raise ValueError(f"sensor_errors.{name}: missing {', '.join(missing)}")
         if not 0.0 <= err["delay_s"] <= 2.0:
             raise ValueError(f"sensor_errors.{name}.delay_s must be in [0, 2] s, got {err['delay_s']}")
-        if err["gain"] <= 0.0:
-            raise ValueError(f"sensor_errors.{name}.gain must be > 0, got {err['gain']}")
+        if not 0.0 < err["gain"] <= 10.0:
+            raise ValueError(f"sensor_errors.{name}.gain must be in (0, 10], got {err['gain']}")
 
 
 def _sensor(t: np.ndarray, x: np.ndarray, spec: Mapping[str, float], rng: np.random.Generator,

@@ -71,6 +71,58 @@ def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, args, needle):
     assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize(("assignment", "needle"), [
+    ("vehicle.mass_kg=-5", "vehicle.mass_kg=-5 is outside its physical range [300, 5000] kg"),
+    ("vehicle.mass_kg=0", "vehicle.mass_kg=0 is outside its physical range [300, 5000] kg"),
+    ("vehicle.mass_kg=1e9", "vehicle.mass_kg=1e+09 is outside its physical range [300, 5000] kg"),
+    ("vehicle.mass_kg=1", "vehicle.mass_kg=1 is outside its physical range [300, 5000] kg"),
+    ("steering.ratio=0", "steering.ratio=0 is outside its physical range [5, 40]"),
+    ("simulation.step_s=0", "simulation.step_s=0 is outside its physical range (0, 0.01] s"),
+    ("simulation.step_s=-1", "simulation.step_s=-1 is outside its physical range (0, 0.01] s"),
+    ("simulation.step_s=0.003", "simulation.step_s=0.003 must divide the driver's 0.01 s update period"),
+    ("simulation.record_rate_hz=0", "simulation.record_rate_hz=0 is outside its physical range [20, 100] Hz"),
+    ("simulation.record_rate_hz=50", "record_rate_hz=50 must divide the driver's 100 Hz (100, 50, 25 or 20 Hz) and "
+                                     "be at least the fastest sensor's rate (100 Hz)"),
+    ("vehicle.front_axle_load_fraction=2", "front_axle_load_fraction=2 is outside its physical range (0, 1)"),
+    ("simulation.gravity_mps2=0", "gravity_mps2=0 is outside its physical range [9.5, 10.1] m/s^2"),
+    ("steering.assist_gains=[1]", "assist_gains=[1.0]: expected one gain per speed of steering.assist_speeds_mps"),
+    ("steering.assist_speeds_mps=[0,8,8,22,30,45]", "breakpoints must increase strictly (entry 2, 8, is not above 8"),
+    ("tyres.pressure_left_right_front_pa=4e5", "puts the front right tyre at 20000 Pa, outside its physical range"),
+])
+def test_car_parameters_outside_their_physical_range_are_refused(assignment, needle):
+    from sim.params import ParamError, car_parameters
+
+    with pytest.raises(ParamError, match="^car parameter ") as e:
+        car_parameters([assignment])
+    assert needle in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_cars_the_project_uses_pass_the_parameter_check():
+    from sim.effects import CAUSES, EFFECTS, with_effect
+    from sim.params import car_parameters, check_car
+
+    base = car_parameters(["vehicle.mass_kg=1650", "steering.assist_damping_nmsprad=4", "tyres.relaxation_scale=0.2",
+                           "brakes.front_share=0.2", "steering.max_road_wheel_angle_rad=0.1",
+                           "simulation.step_s=0.0025", "vehicle.mass_kg=300"])
+    for cause in CAUSES:  # the diagnosis' search bounds on the default car
+        for value in EFFECTS[cause].bounds:
+            if np.isfinite(value):
+                check_car(with_effect(car_parameters(), cause, value, "ay_mps2"))
+    check_car(base)
+
+
+def test_a_bad_car_writes_nothing_and_keeps_an_earlier_output(tmp_path, capsys):
+    out = tmp_path / "x.csv"
+    out.write_text("earlier run\n")
+    argv = ["simulate", "steering-pulse", "--speed", "50", "--mu", "1", "--set", "vehicle.mass_kg=1", "--out", str(out)]
+    assert main(argv) == 2
+    assert out.read_text() == "earlier run\n" and sorted(p.name for p in tmp_path.iterdir()) == ["x.csv"]
+    assert main(["campaign", "tiny", "--out", str(tmp_path / "c"), "--set", "simulation.step_s=0"]) == 2
+    assert not (tmp_path / "c").exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "vehicle.mass_kg=1 " in err[0] and "simulation.step_s=0 " in err[1], err
+
+
 def test_malformed_tir_is_named(tmp_path):
     bad = tmp_path / "bad.tir"
     bad.write_text("[MODEL]\nFITTYP = 61\n[VERTICAL]\nFNOMIN = four thousand\n")
