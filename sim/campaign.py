@@ -28,8 +28,8 @@ import json
 import os
 import signal
 import threading
-from collections.abc import Callable, Mapping, Sequence
-from contextlib import nullcontext
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -249,7 +249,8 @@ def run_campaign(
         writer: called in the worker on each finished run (e.g. to write its file);
             its return value replaces the run in the result (keeps memory low).
         progress: show a tqdm bar on stderr.
-        backend: joblib backend name (None: joblib's default, loky).
+        backend: joblib backend name (None: joblib's default, loky; ``ray`` and ``dask``: see
+            :func:`_backend_config`).
     """
     from joblib import Parallel, delayed
     from tqdm import tqdm
@@ -263,8 +264,12 @@ def run_campaign(
     groups = _batches(plans, n_batches)
     results: list[Any] = [None] * len(requests)
     me = os.getpid()
-    with _backend_config(backend, me):
-        par = Parallel(n_jobs=n_jobs, return_as="generator")
+    with _backend_config(backend, me, n_jobs):
+        from joblib.parallel import get_active_backend
+
+        # a backend that cannot stream results (joblib's Ray backend) returns them all at the end
+        streams = bool(getattr(get_active_backend()[0], "supports_return_generator", False))
+        par = Parallel(n_jobs=n_jobs, return_as="generator" if streams else "list")
         jobs = (delayed(_run_batch)([requests[i] for i in g], [plans[i] for i in g], params, writer, me)
                 for g in groups)
         outputs = par(jobs)
@@ -275,20 +280,70 @@ def run_campaign(
                         results[i] = item
                     bar.update(len(g))
         finally:
-            outputs.close()  # on an interrupt: joblib kills and joins the workers now
+            if streams:
+                outputs.close()  # on an interrupt: joblib kills and joins the workers now
     return results
 
 
-def _backend_config(backend: str | None, parent_pid: int):
+@contextmanager
+def _backend_config(backend: str | None, parent_pid: int, n_jobs: int = -1) -> Iterator[None]:
     """joblib configuration of a campaign: loky (joblib's default) with workers bound
-    to the campaign's process from their start; any other backend as named."""
+    to the campaign's process from their start; ``ray`` registered with joblib, joining the
+    cluster named by ``RAY_ADDRESS`` or starting a local one; ``dask`` on the cluster of the
+    current client or of ``DASK_SCHEDULER_ADDRESS``, else a local one of ``n_jobs`` workers
+    (closed at the end); any other backend as named. Workers of a cluster write their runs
+    into the campaign's directory: it must be on a file system they share."""
     from joblib import parallel_config
     from joblib.parallel import get_active_backend
 
     default_is_loky = type(get_active_backend()[0]).__name__ == "LokyBackend"
     if backend == "loky" or (backend is None and default_is_loky):
-        return parallel_config(backend="loky", initializer=_loky_initializer, initargs=(parent_pid,))
-    return parallel_config(backend=backend) if backend else nullcontext()
+        with parallel_config(backend="loky", initializer=_loky_initializer, initargs=(parent_pid,)):
+            yield
+    elif backend == "ray":
+        import ray
+        from ray.util.joblib import register_ray
+
+        register_ray()
+        started = not ray.is_initialized()
+        if started:
+            ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        try:
+            with parallel_config(backend="ray"):
+                yield
+        finally:
+            if started:
+                ray.shutdown()
+    elif backend == "dask":
+        with _dask_client(n_jobs), parallel_config(backend="dask"):
+            yield
+    else:
+        with parallel_config(backend=backend) if backend else nullcontext():
+            yield
+
+
+@contextmanager
+def _dask_client(n_jobs: int) -> Iterator[None]:
+    """The current Dask client, a client of ``DASK_SCHEDULER_ADDRESS``, or a local cluster of ``n_jobs``
+    single-threaded worker processes (all cores for -1) that ends with the campaign."""
+    import dask
+    from distributed import Client, get_client
+
+    try:
+        get_client()
+    except ValueError:  # no client yet: one is made below
+        pass
+    else:
+        yield
+        return
+    address = dask.config.get("scheduler-address", None)
+    workers = (os.cpu_count() or 1) if n_jobs < 1 else n_jobs
+    client = Client(address) if address else Client(n_workers=workers, threads_per_worker=1, processes=True,
+                                                    dashboard_address=None)
+    try:
+        yield
+    finally:
+        client.close()
 
 
 def manifest_entry(run: SimRun, path: Path, samples: int, duration_s: float) -> dict[str, Any]:

@@ -123,6 +123,33 @@ def test_a_bad_car_writes_nothing_and_keeps_an_earlier_output(tmp_path, capsys):
     assert len(err) == 2 and "vehicle.mass_kg=1 " in err[0] and "simulation.step_s=0 " in err[1], err
 
 
+@pytest.mark.parametrize(("backend", "extra"), [("ray", "distributed"), ("dask", "dask")])
+def test_a_cluster_backend_without_its_extra_names_it_in_one_line(tmp_path, capsys, monkeypatch, backend, extra):
+    for module in ("ray", "dask", "distributed"):
+        monkeypatch.setitem(sys.modules, module, None)  # as if not installed
+    out = tmp_path / "c"
+    assert main(["campaign", "tiny", "--out", str(out), "--backend", backend, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(f"--backend {backend} needs the optional extra '{extra}' (missing: "
+                                             f"{backend}{', distributed' if backend == 'dask' else ''}): "
+                                             f"pip install 'virtsensor[{extra}]'"), err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("backend", "module"), [("ray", "ray"), ("dask", "distributed")])
+def test_a_campaign_on_a_local_cluster_writes_the_runs_loky_writes(tmp_path, backend, module):
+    pytest.importorskip(module, reason=f"the optional extra of --backend {backend}")
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["campaign", "tiny", "--out", str(a), "--seed", "4", "--quiet", "--jobs", "2"]) == 0
+    assert main(["campaign", "tiny", "--out", str(b), "--seed", "4", "--quiet", "--jobs", "2",
+                 "--backend", backend]) == 0
+    runs = sorted(p.name for p in a.iterdir() if p.suffix == ".csv")
+    assert runs and runs == sorted(p.name for p in b.iterdir() if p.suffix == ".csv")
+    for name in runs:
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
 def test_malformed_tir_is_named(tmp_path):
     bad = tmp_path / "bad.tir"
     bad.write_text("[MODEL]\nFITTYP = 61\n[VERTICAL]\nFNOMIN = four thousand\n")

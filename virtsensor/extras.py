@@ -23,6 +23,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "explain": (*_TRAIN, "matplotlib", "shap"),
     "mdf": ("asammdf",),
     "distributed": ("ray",),
+    "dask": ("dask", "distributed"),
 }
 
 
@@ -57,7 +58,7 @@ def extra_for_module(module: str | None) -> str | None:
     if not module:
         return None
     top = module.split(".", 1)[0]
-    for name in ("train", "plots", "mdf", "distributed", "explain"):
+    for name in ("train", "plots", "mdf", "distributed", "dask", "explain"):
         if top in EXTRAS[name]:
             return name
     return None

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from virtsensor.errors import UserError
+from virtsensor.extras import require
 from virtsensor.recordings.files import WRITE_FORMATS
 from virtsensor.recordings.manifest import (
     MANIFEST,
@@ -30,6 +31,8 @@ from virtsensor.recordings.simulated import partial_name, write_run_file
 
 #: file formats of a campaign's runs (suffix without the dot)
 FORMATS = WRITE_FORMATS
+#: joblib backends of a cluster -> the optional extra that provides them
+CLUSTER_EXTRAS = {"ray": "distributed", "dask": "dask"}
 
 
 def run_name(request: Any, fmt: str) -> str:
@@ -87,12 +90,15 @@ def write_campaign(requests: Sequence[Any], params: Mapping[str, Any], out_dir: 
     first stopped by :func:`sim.campaign.run_campaign`) and it propagates.
 
     Raises:
-        UserError: ``out_dir`` not empty, a file, or an unfinished campaign; an unknown ``fmt``.
+        UserError: ``out_dir`` not empty, a file, or an unfinished campaign; an unknown ``fmt``; ``backend``
+            ``ray`` or ``dask`` without its optional extra (:data:`CLUSTER_EXTRAS`).
     """
     from sim.campaign import run_campaign
 
     if fmt not in FORMATS:
         raise UserError(f"--format {fmt!r}: one of {', '.join(FORMATS)}")
+    if backend in CLUSTER_EXTRAS:
+        require(CLUSTER_EXTRAS[backend], f"--backend {backend}")
     out_dir = Path(out_dir)
     _check_out(out_dir)
     info = dict(info or {})
