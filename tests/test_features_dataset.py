@@ -123,6 +123,14 @@ def test_evaluation_recovers_a_known_function():
     assert "| Magny-Cours wet asphalt | 0.931 / 8.10 |" in markdown_table(res)
 
 
+def test_evaluation_of_one_run_is_refused_before_any_fit():
+    recipe = {"paper": {"features": "paper", "params": {**RECIPES["paper"]["params"], "max_iter": 5}}}
+    with pytest.raises(UserError, match=r"^--data: 1 run\(s\) with usable rows for the 'paper' features; evaluate "
+                                        r"holds whole runs out \(30 % of them, at least one\) and trains on the "
+                                        r"others, so it needs at least 2$"):
+        evaluate([Run("r0", synthetic_table(100, 1))], None, recipe, seed=0)
+
+
 def _write_runs(d, n_runs=8, n=240):
     d.mkdir()
     for i in range(n_runs):

@@ -31,6 +31,8 @@ from virtsensor.learning.training import SteeringObserver, linear_pipeline, make
 from virtsensor.metrics import metrics
 
 TEST_FRACTION = 0.3
+#: fewest runs with usable rows evaluate works on: one held out, one to train on
+MIN_RUNS = 2
 
 
 def random_split(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -89,8 +91,10 @@ def evaluate(
     ``runs``, ``track`` and ``circuits`` only, so the protocols stay comparable across recipes.
 
     Raises:
-        UserError: two ``circuits`` with the same name (file stem).
+        UserError: two ``circuits`` with the same name (file stem); fewer than :data:`MIN_RUNS` runs with usable
+            rows for a recipe's features (checked before any fit).
     """
+    datasets = _datasets(runs, {*(r["features"] for r in recipes.values()), *([PAPER.name] if baselines else [])})
     extra_of = dict(train_extra or {})
     track_laps = split_track_laps(track) if track is not None else {}
     laps = held_out_runs(track_laps, circuits)
@@ -100,7 +104,7 @@ def evaluate(
 
     def protocols(name: str, spec_name: str, make: Callable[[], Any]) -> dict[str, Any]:
         spec = SPECS[spec_name]
-        ds = build_dataset(runs, spec)
+        ds = datasets[spec_name]
         lap_ds = {k: build_dataset([r], spec) for k, r in laps.items()}
         sizes[name] = {"rows": int(len(ds.X)), "runs": len(ds.runs), "dropped_nonfinite": ds.dropped_nonfinite,
                        "features": list(ds.feature_names)}
@@ -137,12 +141,27 @@ def evaluate(
         result[name] = protocols(name, recipe["features"], lambda p=params: make_pipeline(p, seed))
     if baselines:
         result["baselines"] = {"linear": protocols("linear", PAPER.name, linear_pipeline)}
-        result["baselines"]["eq1_observer"] = _observer_protocols(runs, laps, seed)
+        result["baselines"]["eq1_observer"] = _observer_protocols(datasets[PAPER.name], laps, seed)
         log(f"eq1_observer: runs held out R2 {result['baselines']['eq1_observer']['grouped']['r2']:.3f}")
     result["meta"] = {"seed": seed, "timing_s": timing, "data": sizes, "test_fraction": TEST_FRACTION,
                       "track_laps": {k: int(len(r.table["time_s"])) for k, r in track_laps.items()},
                       "circuits": {r.name: int(len(r.table["time_s"])) for r in circuits}}
     return result
+
+
+def _datasets(runs: Sequence[Run], spec_names: set[str]) -> dict[str, Dataset]:
+    """The runs' dataset of each feature spec named, each with at least :data:`MIN_RUNS` runs with usable rows."""
+    from virtsensor.errors import UserError
+
+    out = {}
+    for name in sorted(spec_names):
+        ds = out[name] = build_dataset(runs, SPECS[name])
+        n = len(np.unique(ds.groups))
+        if n < MIN_RUNS:
+            raise UserError(f"--data: {n} run(s) with usable rows for the {name!r} features; evaluate holds "
+                            f"whole runs out ({TEST_FRACTION * 100:g} % of them, at least one) and trains on the "
+                            f"others, so it needs at least {MIN_RUNS}")
+    return out
 
 
 def held_out_runs(track_laps: Mapping[str, Run], circuits: Sequence[Run]) -> dict[str, Run]:
@@ -162,8 +181,8 @@ def held_out_runs(track_laps: Mapping[str, Run], circuits: Sequence[Run]) -> dic
     return out
 
 
-def _observer_protocols(runs: Sequence[Run], laps: Mapping[str, Run], seed: int) -> dict[str, Any]:
-    ds = build_dataset(runs, PAPER)
+def _observer_protocols(ds: Dataset, laps: Mapping[str, Run], seed: int) -> dict[str, Any]:
+    """The eq. (1) observer's protocols on ``ds``, the runs' dataset of the paper's features."""
     out: dict[str, Any] = {}
     tr, te = random_split(len(ds.X), seed)
     # the observer needs whole runs (it differentiates in time): the random split is
