@@ -323,6 +323,8 @@ def reanchor(run: MeasuredRun, seg_index: int, item: dict[str, Any]) -> float:
         if m.sum() < 2:
             return 0.0
         scales[n] = float(np.mean(pv[m])) / max(float(np.mean(p[m])), 1e-6)
+        if not (np.isfinite(scales[n]) and scales[n] > 0.0):
+            return 0.0  # a re-simulated car that does not roll forward: no speed to re-anchor
         means.append(scales[n] * float(np.mean(run.table[n][seg.start:seg.stop][m] - p[m])))
     d = float(np.median(means))
     if not np.isfinite(d):

@@ -6,7 +6,7 @@ format, ``<file>: column <name>, row <k>: expected <what>, got <what>``:
 * ``time_s`` missing, not finite, or not strictly increasing;
 * a rate other than the canonical 20 Hz: every step between rows must be one
   tick (:data:`~virtsensor.signals.TABLE_TICK_S`) within :data:`STEP_TOLERANCE` of a tick, or, where gaps are
-  allowed (measured runs, cut into segments at gaps), a whole number of ticks;
+  allowed (a caller that cuts tables into segments at missing rows), a whole number of ticks;
 * a signal a car carries (catalogue roles input, output, aux) outside its
   catalogue range; NaN is SNA (signal not available) and passes; +-inf never
   does. The simulator's truth columns describe its state, not a sensor's

@@ -12,17 +12,20 @@ Files are listed and read by :mod:`virtsensor.recordings.files` (hidden and
 manifest). Checks, each a one-line :class:`UserError` naming the file:
 
 * a needed signal missing;
-* the shared input check :func:`virtsensor.recordings.check.check_table` with
-  gaps allowed: 20 Hz rows (logs and MDF files are sampled at 20 Hz by the
-  front-end, whatever their message rates), strictly increasing time, every
-  signal inside its catalogue range or SNA;
+* the shared input check :func:`virtsensor.recordings.check.check_table`, as
+  ``train`` and ``score`` apply it: 20 Hz rows with none missing (logs and MDF
+  files are sampled at 20 Hz by the front-end, whatever their message rates),
+  strictly increasing time, every signal inside its catalogue range or SNA, a
+  finite reference SAT in every row;
 * a unit scaling that contradicts the car's kinematics (speed in km/h, angles in
   degrees, accelerations in g, pressures in bar...), found by cross-checking
-  signals that physics ties together.
+  signals that physics ties together;
+* no moving sample (``vx_mps`` never above :data:`MOVING_MPS`: a car standing
+  still has nothing to re-simulate).
 
-Gaps (non-finite samples, or missing ticks in a CSV table) are kept as gaps: the
-run is cut into segments at them, never interpolated across; each segment is
-re-simulated on its own and the gaps are listed in the report.
+An input that is SNA (NaN: a sensor's dropout) is kept as a gap: the run is cut
+into segments at it, never interpolated across; each segment in which the car
+moves is re-simulated on its own and the gaps are listed in the report.
 """
 
 from __future__ import annotations
@@ -45,6 +48,8 @@ TICK_S = cat.TABLE_TICK_S
 NEEDED: tuple[str, ...] = cat.TABLE_COLUMNS[1:]
 #: shortest segment between gaps worth re-simulating (s)
 MIN_SEGMENT_S = 4.0
+#: a run or segment whose forward speed never exceeds this (m/s, walking pace) has the car standing still
+MOVING_MPS = 1.0
 
 
 @dataclass
@@ -134,6 +139,12 @@ def _check_units(path: Path, table: Mapping[str, np.ndarray]) -> None:
                                 f"(steering ratio {1.0 / (gain * 2.7):.0f}:1); degrees instead of radians?")
 
 
+def _moving(table: Mapping[str, np.ndarray], start: int, stop: int) -> bool:
+    """Whether the car moves in rows ``start:stop`` (``vx_mps`` above :data:`MOVING_MPS`; no speed: assumed)."""
+    vx = table.get("vx_mps")
+    return vx is None or bool(np.any(np.abs(vx[start:stop]) > MOVING_MPS))
+
+
 def _segments(path: Path, table: dict[str, np.ndarray], needed: Sequence[str]
               ) -> tuple[dict[str, np.ndarray], list[Segment], list[tuple[float, float]], list[str]]:
     """Put the run on a regular tick grid (missing ticks become NaN rows), find gaps
@@ -159,11 +170,14 @@ def _segments(path: Path, table: dict[str, np.ndarray], needed: Sequence[str]
     segs: list[Segment] = []
     edges = np.flatnonzero(np.diff(np.concatenate([[0], good.astype(np.int8), [0]])))
     for a, b in zip(edges[::2], edges[1::2], strict=True):
-        if (b - a) * TICK_S >= MIN_SEGMENT_S:
-            segs.append(Segment(int(a), int(b)))
-        else:
+        if (b - a) * TICK_S < MIN_SEGMENT_S:
             notes.append(f"a {(b - a) * TICK_S:.2f} s stretch at {full['time_s'][a]:.2f} s between gaps is too "
                          f"short to re-simulate (< {MIN_SEGMENT_S:g} s)")
+        elif not _moving(full, a, b):
+            notes.append(f"in the {(b - a) * TICK_S:.2f} s stretch at {full['time_s'][a]:.2f} s the car stands "
+                         f"still (vx_mps never above {MOVING_MPS:g} m/s): not re-simulated")
+        else:
+            segs.append(Segment(int(a), int(b)))
     bad_edges = np.flatnonzero(np.diff(np.concatenate([[0], (~good).astype(np.int8), [0]])))
     for a, b in zip(bad_edges[::2], bad_edges[1::2], strict=True):
         gaps.append((float(full["time_s"][a]), float(full["time_s"][b - 1] + TICK_S)))
@@ -188,11 +202,15 @@ def load_measured(paths: Iterable[str | Path], needed: Sequence[str] = NEEDED,
         if source.entry is not None:
             check_rows(path, source.entry, len(table["time_s"]))
         table = {k: np.asarray(v, dtype=float) for k, v in table.items()}
-        check_table(path, table, gaps=True)
+        check_table(path, table, targets=cat.OUTPUTS)
         _check_units(path, table)
         full, segs, gaps, notes = _segments(path, table, needed)
-        if not segs:
+        if not _moving(table, 0, len(table["time_s"])):
+            why = f"no moving sample (vx_mps never above {MOVING_MPS:g} m/s: the car stands still)"
+            segs = []
+        else:
             why = f"no stretch of at least {MIN_SEGMENT_S:g} s without gaps in the needed signals"
+        if not segs:
             if skipped is None:
                 raise UserError(f"{path}: {why}")
             skipped.append((str(path), why))
