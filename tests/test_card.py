@@ -168,11 +168,50 @@ def test_card_read_errors_name_the_file_and_never_quote_it(tmp_path):
         ModelCard.read(bad)
 
 
-@pytest.fixture(params=[_flip_first_critical, _swap_outputs], ids=["critical-flag", "swapped-outputs"])
+def _spec_as_text(data: dict) -> None:
+    data["feature_spec"] = "paper"
+
+
+def _short_center(data: dict) -> None:
+    data["weights"]["center"] = data["weights"]["center"][:-1]
+
+
+@pytest.fixture(params=[(_flip_first_critical, False), (_swap_outputs, False), (_spec_as_text, True),
+                        (_short_center, True)],
+                ids=["critical-flag", "swapped-outputs", "resealed-spec-as-text", "resealed-short-center"])
 def tampered(tmp_path, request) -> Path:
+    change, reseal = request.param
     onnx_path = _copy_shipped(tmp_path)
-    _edit(onnx_path, request.param)
+    _edit(onnx_path, change, reseal=reseal)
     return onnx_path
+
+
+@pytest.mark.parametrize(("change", "needle"), [
+    (_spec_as_text, "feature_spec: expected an object with 'name', 'tick_s' and 'features'"),
+    (lambda d: d["feature_spec"]["features"].pop(), "feature_spec: its features"),
+    (lambda d: d["feature_spec"]["features"][0].update(op="square"), "feature_spec: not a usable feature spec"),
+    (_short_center, "weights.center: expected 12 finite numbers (one per feature)"),
+    (lambda d: d["weights"].update(scale=[0.0] * 12), "weights.scale: expected non-zero numbers"),
+    (lambda d: d["weights"].update(layers="none"), "weights.layers: expected a non-empty list"),
+    (lambda d: d["weights"]["layers"][0]["W"].pop(), "weights.layers[0].W: expected 12 rows"),
+    (lambda d: d["weights"]["layers"][-1]["b"].pop(), "weights.layers[2].b: expected 2 finite numbers"),
+    (lambda d: d["weights"].update(activation="softmax"), "weights.activation: expected one of identity"),
+    (lambda d: d.update(parity_inputs=[[0.0] * 11]), "parity_inputs: expected rows of 12 finite numbers"),
+    (lambda d: d.update(recipe="paper"), "recipe: expected an object with 'features'"),
+    (lambda d: d.update(signals="ax_mps2"), "signals: expected a list of signal names, got str"),
+    (lambda d: d.update(metrics=[1]), "metrics: expected a JSON object, got list"),
+    (lambda d: d.update(onnx_input=3), "onnx_input: expected a string, got int"),
+    (lambda d: d.update(fallback={"file": "x.onnx"}), "fallback: expected an object with file, sha256"),
+])
+def test_a_resealed_card_of_the_wrong_types_or_shapes_is_refused_naming_the_field(tmp_path, change, needle):
+    """A card edited and sealed again with its own digest (as tools/seal_cards.py seals): its types and
+    shapes are checked at load, one line naming the card and the field, before any loader reads them."""
+    onnx_path = _copy_shipped(tmp_path)
+    card_path = _edit(onnx_path, change, reseal=True)
+    with pytest.raises(UserError) as e:
+        ModelCard.read(card_path)
+    msg = str(e.value)
+    assert msg.startswith(f"{card_path}: ") and needle in msg and "\n" not in msg, msg
 
 
 @pytest.mark.parametrize("argv", [

@@ -11,7 +11,10 @@ sorted at every level, no insignificant whitespace (separators ``,`` and ``:``),
 kept as they are, and numbers written as Python's :mod:`json` writes them (integers in decimal, floats
 in their shortest round-trip form). Any edit of a loaded card (a flipped ``critical`` flag, swapped
 ``outputs``, changed weights) changes that digest, and :meth:`ModelCard.read` refuses the card.
-The ONNX side of the checks (sha256 of the graph, output names, the numpy weights against the graph)
+A card re-sealed after an edit still has its types and shapes checked (:func:`check_fields`: a
+``feature_spec`` that is a feature spec of the card's features, ``weights`` whose scaler and layers fit
+its features and outputs, ``parity_inputs`` rows of its features...), so no loader meets a field it cannot
+read. The ONNX side of the checks (sha256 of the graph, output names, the numpy weights against the graph)
 is in :class:`virtsensor.model.onnx.OnnxModel`.
 
 A card may state the validity envelope of its training rows (``envelope``,
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
 from collections.abc import Iterator, Mapping
@@ -144,7 +148,8 @@ class ModelCard(Mapping[str, Any]):
 
         Raises:
             UserError: a required key missing or of the wrong type, feature names and ``inputs``
-                disagreeing, non-boolean ``critical`` flags, duplicate names (message names the file).
+                disagreeing, non-boolean ``critical`` flags, duplicate names, an optional field of the
+                wrong type or shape (:func:`check_fields`); the message names the file and the field.
         """
         where, d = self._where(), self._data
         missing = [k for k in REQUIRED_KEYS if k not in d]
@@ -167,6 +172,7 @@ class ModelCard(Mapping[str, Any]):
         if len(set(self.outputs)) != len(outs) or d.get("n_outputs", len(outs)) != len(outs):
             raise UserError(f"{where}: outputs {list(self.outputs)} are not distinct or disagree with n_outputs")
         self._validate_inputs(where)
+        check_fields(d, where, self.feature_names, len(outs))
         if self._data.get("envelope") is not None:
             env = Envelope.from_json(self._data["envelope"], where)
             stray = sorted(set(env.signals) - set(self._data.get("signals") or env.signals))
@@ -277,6 +283,119 @@ class ModelCard(Mapping[str, Any]):
         if envelope is not None:
             fields["envelope"] = envelope.to_json()
         return fields
+
+
+#: activations the numpy back-end computes (:class:`virtsensor.model.onnx.NumpyForward`)
+ACTIVATIONS = ("identity", "tanh", "relu", "logistic")
+#: optional keys that hold a JSON object, a string, a list of strings
+_OBJECT_KEYS = ("training_data", "metrics", "opset", "target_opset", "tool_versions")
+_STRING_KEYS = ("model", "onnx_file", "onnx_input", "onnx_output", "created_utc")
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _numbers(value: Any, n: int | None = None) -> bool:
+    """Whether ``value`` is a list of finite numbers (of length ``n`` when given)."""
+    return isinstance(value, list) and all(_is_number(x) for x in value) and (n is None or len(value) == n)
+
+
+def _matrix(value: Any) -> tuple[int, int] | None:
+    """The (rows, columns) of a non-empty list of equally long, non-empty rows of finite numbers; None if not."""
+    if not isinstance(value, list) or not value or not all(_numbers(r) and r for r in value):
+        return None
+    width = len(value[0])
+    return (len(value), width) if all(len(r) == width for r in value) else None
+
+
+def check_fields(d: Mapping[str, Any], where: str, feature_names: tuple[str, ...], n_outputs: int) -> None:
+    """The types and shapes of a card's optional fields that loaders read, when present: ``feature_spec``
+    (a feature spec whose names are ``feature_names``), ``weights`` (scaler of one entry per feature, layers
+    chaining the features to the outputs), ``parity_inputs`` (rows of one finite number per feature),
+    ``recipe``, ``signals``, ``fallback``, ``input_dtype`` and the keys of objects and strings.
+
+    Raises:
+        UserError: ``<where>: <field>: expected ..., got ...`` for the first field that is wrong.
+    """
+    def bad(field: str, expected: str, got: Any = None) -> UserError:
+        shown = type(got).__name__ if got is not None else "something else"
+        return UserError(f"{where}: {field}: expected {expected}, got {shown}")
+
+    for key in _OBJECT_KEYS:
+        if key in d and not isinstance(d[key], dict):
+            raise bad(key, "a JSON object", d[key])
+    for key in _STRING_KEYS:
+        if key in d and not isinstance(d[key], str):
+            raise bad(key, "a string", d[key])
+    if "input_dtype" in d and d["input_dtype"] not in ("float32", "float64"):
+        raise UserError(f"{where}: input_dtype: expected float32 or float64, got {d['input_dtype']!r}")
+    if "signals" in d and not (isinstance(d["signals"], list) and all(isinstance(x, str) for x in d["signals"])):
+        raise bad("signals", "a list of signal names", d["signals"])
+    recipe = d.get("recipe")
+    if recipe is not None and not (isinstance(recipe, dict) and isinstance(recipe.get("features"), str)
+                                   and isinstance(recipe.get("params"), dict)):
+        raise bad("recipe", "an object with 'features' (a name) and 'params' (an object)", recipe)
+    if d.get("feature_spec") is not None:
+        _check_feature_spec(d["feature_spec"], where, feature_names)
+    if d.get("weights") is not None:
+        _check_weights(d["weights"], where, len(feature_names), n_outputs)
+    rows = d.get("parity_inputs")
+    if rows is not None and (_matrix(rows) or (0, 0))[1] != len(feature_names):
+        raise UserError(f"{where}: parity_inputs: expected rows of {len(feature_names)} finite numbers "
+                        f"(one per feature)")
+    fb = d.get("fallback")
+    if fb is not None and not (isinstance(fb, dict) and isinstance(fb.get("file"), str)
+                               and isinstance(fb.get("sha256"), str) and isinstance(fb.get("n_features"), int)
+                               and not isinstance(fb.get("n_features"), bool)
+                               and 1 <= fb["n_features"] <= len(feature_names)
+                               and isinstance(fb.get("optional"), list)
+                               and all(isinstance(x, str) for x in fb["optional"])):
+        raise bad("fallback", f"an object with file, sha256, n_features (1 to {len(feature_names)}) and "
+                              f"optional (names)", fb)
+
+
+def _check_feature_spec(doc: Any, where: str, feature_names: tuple[str, ...]) -> None:
+    from virtsensor.features import FeatureSpec
+
+    if not isinstance(doc, dict) or not isinstance(doc.get("features"), list) or not all(
+            isinstance(f, dict) and isinstance(f.get("lag", 0), int) and not isinstance(f.get("lag", 0), bool)
+            for f in doc["features"]):
+        raise UserError(f"{where}: feature_spec: expected an object with 'name', 'tick_s' and 'features' (a list "
+                        f"of {{signal, op, lag}} objects), got {type(doc).__name__}")
+    try:
+        spec = FeatureSpec.from_json(doc)
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{where}: feature_spec: not a usable feature spec ({type(exc).__name__}: {exc})") from None
+    if spec.names != feature_names:
+        raise UserError(f"{where}: feature_spec: its features {list(spec.names)} are not feature_names "
+                        f"{list(feature_names)}")
+
+
+def _check_weights(w: Any, where: str, n_features: int, n_outputs: int) -> None:
+    if not isinstance(w, dict):
+        raise UserError(f"{where}: weights: expected a JSON object, got {type(w).__name__}")
+    for key in ("center", "scale"):
+        if w.get(key) is not None and not _numbers(w[key], n_features):
+            raise UserError(f"{where}: weights.{key}: expected {n_features} finite numbers (one per feature)")
+    if w.get("scale") is not None and any(x == 0 for x in w["scale"]):
+        raise UserError(f"{where}: weights.scale: expected non-zero numbers")
+    for key in ("activation", "out_activation"):
+        if w.get(key, "identity") not in ACTIVATIONS:
+            raise UserError(f"{where}: weights.{key}: expected one of {', '.join(ACTIVATIONS)}")
+    layers = w.get("layers")
+    if not isinstance(layers, list) or not layers or not all(isinstance(x, dict) for x in layers):
+        raise UserError(f"{where}: weights.layers: expected a non-empty list of {{W, b}} objects")
+    width = n_features
+    for i, layer in enumerate(layers):
+        shape = _matrix(layer.get("W"))
+        if shape is None or shape[0] != width:
+            raise UserError(f"{where}: weights.layers[{i}].W: expected {width} rows of equally many finite numbers")
+        if not _numbers(layer.get("b"), shape[1]):
+            raise UserError(f"{where}: weights.layers[{i}].b: expected {shape[1]} finite numbers")
+        width = shape[1]
+    if width != n_outputs:
+        raise UserError(f"{where}: weights.layers: the last layer gives {width} outputs, the card has {n_outputs}")
 
 
 def seal_file(path: str | os.PathLike[str], extra: Mapping[str, Any] | None = None) -> ModelCard:
