@@ -167,7 +167,7 @@ def test_campaign_is_deterministic_whatever_the_number_of_workers(tmp_path):
     assert main(["campaign", "tiny", "--out", str(b), "--seed", "4", "--quiet", "--jobs", "2",
                  "--batch-size", "2"]) == 0
     files = sorted(p.name for p in a.iterdir())
-    assert "manifest.json" in files and len(files) == 5
+    assert "manifest.json" in files and ".campaign.json" in files and len(files) == 6
     for name in files:
         if name != "manifest.json":
             assert (a / name).read_bytes() == (b / name).read_bytes(), name

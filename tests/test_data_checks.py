@@ -91,6 +91,22 @@ def test_a_campaign_directory_that_differs_from_its_manifest_is_refused_naming_t
     assert code == 2 and len(err.splitlines()) == 1 and re.search(needle, err), err
 
 
+def test_a_campaign_directory_whose_manifest_is_gone_is_refused_but_a_plain_one_is_read(tmp_path, capsys):
+    d = _campaign_dir(tmp_path / "c")
+    (d / "manifest.json").unlink()
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and err.endswith(f"{d}: written by a campaign (.campaign.json) but its manifest.json is "
+                                      f"missing, so its runs cannot be verified (rows, sha256); restore the "
+                                      f"manifest or run the campaign again"), err
+    with pytest.raises(UserError, match=r"manifest\.json is missing"):
+        load_measured([d / "run0.csv"])  # a run given by name too
+    plain = tmp_path / "plain"  # the same tables as the user's own: no campaign file, read as they are
+    plain.mkdir()
+    for f in d.glob("*.csv"):
+        (plain / f.name).write_bytes(f.read_bytes())
+    assert [r.name for r in load_runs([plain])] == ["run0", "run1", "run2"]
+
+
 def test_manifest_rows_and_entries_are_checked(tmp_path):
     d = _campaign_dir(tmp_path / "c")
     m = json.loads((d / "manifest.json").read_text())

@@ -22,6 +22,7 @@ from virtsensor.recordings.files import WRITE_FORMATS
 from virtsensor.recordings.manifest import (
     MANIFEST,
     MARKER,
+    PROVENANCE,
     file_sha256,
     incomplete_campaign,
     start_marker,
@@ -71,6 +72,7 @@ def _remove(out_dir: Path, names: Sequence[str], created: bool) -> None:
     for name in (*names, MANIFEST):
         (out_dir / name).unlink(missing_ok=True)
         partial_name(out_dir / name).unlink(missing_ok=True)
+    (out_dir / PROVENANCE).unlink(missing_ok=True)
     (out_dir / MARKER).unlink(missing_ok=True)
     if created:
         try:

@@ -8,6 +8,8 @@ A directory is read as follows:
 
 * with a campaign's in-progress marker and no manifest: refused (the campaign
   did not complete);
+* with a campaign's provenance and no manifest: refused (its runs cannot be
+  checked);
 * with a manifest: exactly the manifest's runs, each present, none extra, each
   file's sha256 as listed (:func:`virtsensor.recordings.manifest.listed_runs`);
 * otherwise: its visible files with a recording suffix, in name order.
@@ -24,7 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from virtsensor.errors import UserError
-from virtsensor.recordings.manifest import MANIFEST, incomplete_campaign, is_hidden, listed_runs
+from virtsensor.recordings.manifest import MANIFEST, incomplete_campaign, is_hidden, listed_runs, unverifiable_campaign
 
 if TYPE_CHECKING:  # numpy only in annotations: the suffixes stay cheap to import (``--help``)
     import numpy as np
@@ -54,10 +56,15 @@ def _unsupported(path: Path) -> UserError:
                      f"(a recording is one of {', '.join(SUFFIXES)})")
 
 
-def _directory(d: Path) -> list[Source]:
-    why = incomplete_campaign(d)
+def _check_campaign(d: Path) -> None:
+    """Refuse a campaign directory that did not complete or lost its manifest."""
+    why = incomplete_campaign(d) or unverifiable_campaign(d)
     if why:
         raise UserError(why)
+
+
+def _directory(d: Path) -> list[Source]:
+    _check_campaign(d)
     if (d / MANIFEST).exists():
         out = []
         for path, entry in listed_runs(d):
@@ -79,9 +86,7 @@ def _file(p: Path) -> Source:
         raise UserError(f"{p}: {kind}, never a recording")
     if p.suffix.lower() not in SUFFIXES:
         raise _unsupported(p)
-    why = incomplete_campaign(p.parent)
-    if why:
-        raise UserError(why)
+    _check_campaign(p.parent)
     if (p.parent / MANIFEST).exists():
         ((path, entry),) = listed_runs(p.parent, only=[p])
         return Source(p, entry)

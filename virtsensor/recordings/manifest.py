@@ -6,13 +6,18 @@ A campaign (``virtsensor campaign``) writes, in this order:
    runs it plans and in which format;
 2. each run under a hidden ``.partial-*`` name, renamed to its final name by the
    campaign's own process once every run is complete;
-3. the manifest :data:`MANIFEST` (atomically), listing every run with its file
-   name, its number of table rows and the sha256 of its bytes;
+3. its provenance :data:`PROVENANCE` (hidden: written by a campaign, which
+   preset, how many runs), then the manifest :data:`MANIFEST` (atomically),
+   listing every run with its file name, its number of table rows and the
+   sha256 of its bytes;
 4. then it removes the marker.
 
 So a directory with a marker and no manifest holds a campaign that did not
 complete (stopped, killed, crashed); a directory with a manifest holds exactly
-the manifest's runs, each of which can be checked. Readers apply these rules
+the manifest's runs, each of which can be checked; a directory with the
+provenance and no manifest holds a campaign whose manifest was lost, whose
+runs cannot be checked (:func:`unverifiable_campaign`). A directory with none
+of these files is a plain directory of recordings. Readers apply these rules
 through :func:`listed_runs` and :func:`check_rows`; every violation is a
 :class:`~virtsensor.errors.UserError` naming the file.
 """
@@ -30,6 +35,8 @@ from virtsensor.errors import UserError
 
 MANIFEST = "manifest.json"
 MARKER = ".campaign-incomplete.json"
+#: hidden file a complete campaign leaves beside its manifest: the directory was written by a campaign
+PROVENANCE = ".campaign.json"
 #: keys every run entry of a manifest carries (besides its metadata)
 ENTRY_KEYS = ("file", "rows", "sha256")
 
@@ -64,6 +71,9 @@ def write_manifest(directory: Path, manifest: Mapping[str, Any]) -> Path:
         missing = [k for k in ENTRY_KEYS if k not in entry]
         if missing:
             raise ValueError(f"manifest entry {entry.get('file')!r} lacks {', '.join(missing)}")
+    (directory / PROVENANCE).write_text(json.dumps({
+        "written_by": "virtsensor campaign", "preset": manifest.get("preset"), "runs": len(manifest["runs"]),
+        "manifest": MANIFEST}, indent=1) + "\n")
     path = directory / MANIFEST
     tmp = directory / f".partial-{MANIFEST}"
     try:
@@ -94,6 +104,15 @@ def incomplete_campaign(directory: Path) -> str | None:
     done = len(_visible_files(directory))
     return (f"{directory}: campaign{preset} did not complete: no {MANIFEST}, {done}{planned} runs written "
             f"(it was stopped or killed); delete the directory and run the campaign again")
+
+
+def unverifiable_campaign(directory: Path) -> str | None:
+    """Why ``directory`` holds a campaign's runs that cannot be checked (its provenance, no manifest), or None."""
+    directory = Path(directory)
+    if not (directory / PROVENANCE).exists() or (directory / MANIFEST).exists():
+        return None
+    return (f"{directory}: written by a campaign ({PROVENANCE}) but its {MANIFEST} is missing, so its runs "
+            f"cannot be verified (rows, sha256); restore the manifest or run the campaign again")
 
 
 def _read_manifest(path: Path) -> list[dict[str, Any]]:
