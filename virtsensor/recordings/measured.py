@@ -12,20 +12,22 @@ Files are listed and read by :mod:`virtsensor.recordings.files` (hidden and
 manifest). Checks, each a one-line :class:`UserError` naming the file:
 
 * a needed signal missing;
-* the shared input check :func:`virtsensor.recordings.check.check_table`, as
-  ``train`` and ``score`` apply it: 20 Hz rows with none missing (logs and MDF
-  files are sampled at 20 Hz by the front-end, whatever their message rates),
-  strictly increasing time, every signal inside its catalogue range or SNA, a
-  finite reference SAT in every row;
+* the shared input check :func:`virtsensor.recordings.check.check_table` with
+  gaps allowed: 20 Hz rows (logs and MDF files are sampled at 20 Hz by the
+  front-end, whatever their message rates), strictly increasing time, every
+  signal inside its catalogue range or SNA (a test day's log has dropouts: unlike
+  ``train`` and ``score``, which refuse missing rows and a non-finite reference
+  SAT, the diagnosis keeps them as gaps);
 * a unit scaling that contradicts the car's kinematics (speed in km/h, angles in
   degrees, accelerations in g, pressures in bar...), found by cross-checking
   signals that physics ties together;
 * no moving sample (``vx_mps`` never above :data:`MOVING_MPS`: a car standing
   still has nothing to re-simulate).
 
-An input that is SNA (NaN: a sensor's dropout) is kept as a gap: the run is cut
-into segments at it, never interpolated across; each segment in which the car
-moves is re-simulated on its own and the gaps are listed in the report.
+Gaps (non-finite samples of a needed signal, the reference SATs included, or
+missing ticks in a CSV table) are kept as gaps: the run is cut into segments at
+them, never interpolated across; each segment in which the car moves is
+re-simulated on its own and the gaps are listed in the report.
 """
 
 from __future__ import annotations
@@ -202,7 +204,7 @@ def load_measured(paths: Iterable[str | Path], needed: Sequence[str] = NEEDED,
         if source.entry is not None:
             check_rows(path, source.entry, len(table["time_s"]))
         table = {k: np.asarray(v, dtype=float) for k, v in table.items()}
-        check_table(path, table, targets=cat.OUTPUTS)
+        check_table(path, table, gaps=True)
         _check_units(path, table)
         full, segs, gaps, notes = _segments(path, table, needed)
         if not _moving(table, 0, len(table["time_s"])):
