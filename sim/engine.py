@@ -118,7 +118,7 @@ def simulate_batch(
     # sample by sample, so no step rescans the recorded history
     aborted_at = np.full(B, n_rec)
     ended_by = np.zeros(B, dtype=np.int8)
-    plan_end = np.array([p.n for p in plans])
+    plan_samples = np.array([(p.n - 1) // rec_every + 1 for p in plans])  # each run's own recorded samples
     for k in range(n_ctl):
         x_prev = x
         u = drv.update(k, x)
@@ -139,24 +139,26 @@ def simulate_batch(
             k3, _ = veh.derivatives(x + half * k2, u_half)
             k4, _ = veh.derivatives(x + dt * k3, replace(u, steer_lead_s=t0 + dt))
             x = x + (dt / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
-        if not np.all(np.isfinite(x)):
-            bad = ~np.all(np.isfinite(x), axis=1)
-            # a run that has already ended (spun, stopped, or past its own plan in a longer
-            # batch) is no longer a test: its state is frozen; anywhere else it is an error
-            ended = (np.maximum(aborted_at, 1) < j) | (k >= plan_end)
-            if np.any(bad & ~ended):
-                names = ", ".join(f"{plans[i].name}{plans[i].label}" for i in np.flatnonzero(bad & ~ended)[:3])
-                raise FloatingPointError(f"simulation diverged at t={k * CONTROL_DT:.2f} s in run(s) {names}")
-            x = np.where(bad[:, None], x_prev, x)
+        # a run whose every sample is recorded (it ended: spun, stopped, off-track, or its own
+        # plan is over in a longer batch) is no longer a test: its state stays where it was.
+        # Integrated on, a spun car under a driver still chasing its path (the front wheels
+        # spun up, the car sliding backwards) diverges until the tyre and body terms overflow
+        # (RuntimeWarnings on stderr) while the batch's other runs go on, and none of it is kept
+        done = (np.maximum(aborted_at, 1) < j) | (j >= plan_samples)
+        if done.any():
+            x = np.where(done[:, None], x_prev, x)
+        if not np.all(np.isfinite(x)):  # a run still live diverged: an error
+            bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))[:3]
+            names = ", ".join(f"{plans[i].name}{plans[i].label}" for i in bad)
+            raise FloatingPointError(f"simulation diverged at t={k * CONTROL_DT:.2f} s in run(s) {names}")
         if progress is not None and (k % 100 == 0 or k == n_ctl - 1):
             progress(k + 1)
-        if k % 100 == 99 and np.all(np.maximum(aborted_at, 1) < j):
-            break  # every run has ended (stopped or spun): nothing left to simulate
+        if done.all():
+            break  # every run has ended or is over: nothing left to simulate
     time_s = np.arange(n_rec) * (rec_every * CONTROL_DT)
-    n_valid = np.array([min(n_rec, (p.n - 1) // rec_every + 1) for p in plans])
-    n_valid = np.minimum(np.minimum(n_valid, j), np.maximum(aborted_at, 1))
+    n_valid = np.minimum(np.minimum(np.minimum(plan_samples, n_rec), j), np.maximum(aborted_at, 1))
     # an abort after a run's own plan has ended (a longer run in the batch) is no abort
-    ended_by[aborted_at >= np.array([(p.n - 1) // rec_every + 1 for p in plans])] = 0
+    ended_by[aborted_at >= plan_samples] = 0
     return BatchResult(time_s, rec, n_valid, plans, params, ended_by)
 
 

@@ -293,6 +293,66 @@ def test_a_complete_run_says_so() -> None:
     assert run.outcome == {"status": "completed", "at_s": 2.0, "planned_s": 2.0}
 
 
+def _frozen_after_end(plans: list[Plan], params: list[dict]) -> tuple[list, list, list]:
+    """Simulate ``plans`` in one batch; per run, the states the driver saw (every control step), and
+    the RuntimeWarnings raised."""
+    import warnings
+
+    from sim.driver import Driver
+    from sim.engine import simulate_batch
+
+    seen: list[np.ndarray] = []
+    update = Driver.update
+
+    def spy(self, k, x):
+        seen.append(x.copy())
+        return update(self, k, x)
+
+    with warnings.catch_warnings(record=True) as caught, pytest.MonkeyPatch.context() as mp:
+        warnings.simplefilter("always")
+        mp.setattr(Driver, "update", spy)
+        res = simulate_batch(plans, params)
+    states = np.stack(seen, axis=1)  # (B, steps, state)
+    return [res.outcome(i) for i in range(len(plans))], states, [w for w in caught if w.category is RuntimeWarning]
+
+
+def test_a_run_that_ended_stays_where_it_ended_while_the_batch_goes_on() -> None:
+    """A spun run is not integrated on while a longer run of its batch is (integrated on, a spun car
+    diverges until numpy overflows; ``test_a_spun_circuit_run_in_a_long_batch_warns_nothing``)."""
+    spin = _open_loop_plan(6.0, 25.0, 1.0, 800.0, 0.5)
+    straight = _open_loop_plan(8.0, 20.0, 0.0, 0.0, 1.0)
+    outcomes, states, warned = _frozen_after_end([spin, straight], [car_parameters(["brakes.front_share=0.2"]),
+                                                                    car_parameters()])
+    assert [o["status"] for o in outcomes] == ["spun", "completed"] and not warned
+    ended = int(round(outcomes[0]["at_s"] / 0.01)) + 2
+    assert states.shape[1] == 801 and ended < 600
+    assert np.array_equal(states[0, ended:], np.broadcast_to(states[0, ended], states[0, ended:].shape))
+    assert not np.array_equal(states[1, ended], states[1, -1])  # the other run goes on
+
+
+@pytest.mark.slow
+def test_a_spun_circuit_run_in_a_long_batch_warns_nothing(tmp_path: Path) -> None:
+    """The ``circuits`` campaign case: a random circuit spun at 2.4 s on a rear tyre of 0.75 times the grip
+    and, integrated on beside a longer run, overflowed 77 s later (RuntimeWarnings from the tyre and body)."""
+    import warnings
+
+    from sim.api import Request, simulate_many
+    from sim.params import resolve_data_file
+
+    tir = resolve_data_file("tyres/c_segment_205_55R16.tir").read_text()
+    low = tmp_path / "low.tir"
+    low.write_text(tir.replace("LMUX = 1 ", "LMUX = 0.75 ").replace("LMUY = 1 ", "LMUY = 0.75 "))
+    oval = write_xy(tmp_path / "oval.csv", stadium())
+    requests = [Request("circuit", 170.0, 1.0, 0, track="random:2995255897", laps=1),
+                Request("circuit", 60.0, 1.0, 0, track=str(oval), laps=4)]  # 95 s
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        runs = simulate_many(requests, car_parameters([f"tyres.file_rear={low}"]))
+    assert [r.outcome["status"] for r in runs] == ["spun", "completed"]
+    assert runs[0].outcome["at_s"] < 5.0
+    assert not [w for w in caught if w.category is RuntimeWarning], [str(w.message) for w in caught]
+
+
 def test_random_circuits_are_deterministic_drivable_and_track_like():
     """random:SEED circuits: the same for a seed, closed, never self-crossing (star-shaped), with corners
     like a grand-prix circuit's (the module docstring's figures)."""
