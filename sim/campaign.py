@@ -352,7 +352,9 @@ def manifest_entry(run: SimRun, path: Path, samples: int, duration_s: float) -> 
     ``outcome`` says how the run ended (:meth:`sim.engine.BatchResult.outcome`):
     ``"completed"`` or, for a run cut short, ``"spun"``, ``"stopped"`` or ``"off-track"``,
     with the time ``at_s`` (s) it ended and the plan's ``planned_s``, so a short run
-    never passes for a complete one.
+    never passes for a complete one. A run with a planned distance (circuits, the double
+    lane change) adds ``driven_m`` and ``planned_m`` along its path; one whose time ran out
+    short of it is ``"behind-plan"`` (a whole recording of what the car did, not the lap).
     """
     request = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(run.request).items()
                if k not in ("track", "laps", "pressures_bar") or v is not None}

@@ -62,6 +62,11 @@ class Plan:
         track_half_width_m: while following the path, the car has left the track once
             its centre is farther than this from the path (m); the run ends there
             (:meth:`Driver.off_track`). None: no limit.
+        planned_distance_m: distance along ``path`` (m, from its start) the car must have
+            covered when the plan's time runs out for the run to have driven what it
+            planned (a circuit: its laps; a double lane change: through the exit gate);
+            short of it the run ends ``behind-plan`` (:func:`sim.engine.simulate_batch`).
+            None: the run is planned by time only.
     """
 
     name: str
@@ -82,6 +87,7 @@ class Plan:
     motor_feedforward: np.ndarray | None = None
     path_grip: tuple[float, float] | None = None
     track_half_width_m: float | None = None
+    planned_distance_m: float | None = None
 
     @property
     def n(self) -> int:
@@ -101,7 +107,7 @@ class Plan:
             path, None if self.path_speed is None else self.path_speed.copy(), self.path_ds,
             tuple(self.mu_dist), tuple(self.mu_values), {**self.label, "mirrored": True},
             None if self.motor_feedforward is None else self.motor_feedforward.copy(), self.path_grip,
-            self.track_half_width_m,
+            self.track_half_width_m, self.planned_distance_m,
         )
 
 
@@ -211,6 +217,9 @@ class Driver:
         self.motor = np.zeros(B)
         self.brake = np.zeros(B)
         self.lat_err = np.zeros(B)
+        #: (B,) where each car is along its path (m from the path's start, the foot of its
+        #: centre on the path) at the last path-following update
+        self.station_m = np.zeros(B)
         self._rows = np.arange(B)
 
     def reset(self, x: np.ndarray) -> None:
@@ -273,6 +282,7 @@ class Driver:
         # a driver does not wind the wheels far past the tyres' grip: at most the
         # kinematic angle of the sharpest curvature over the search window ahead
         s_car = start + frac
+        self.station_m = s_car * self.path_ds
         k_ahead = self._max_abs_along(self.path_curv, s_car, np.minimum(s_car + self.WINDOW - 1, last))
         limit = np.arctan(v.L * np.maximum(k_ahead, np.abs(curvature))) + self.slip_margin
         delta = np.clip(delta, -limit, limit)

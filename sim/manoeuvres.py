@@ -208,6 +208,8 @@ def double_lane_change(v: float, mu: float, rng: np.random.Generator, params: Ma
     t, plan = _base("double-lane-change", duration, v, mu, {"direction": direction})
     plan.steer_mode[:] = STEER_PATH
     plan.path, plan.path_ds = path, ds
+    # the test is driven once the car is through the exit gate; the run-out beyond it is margin
+    plan.planned_distance_m = lead + 125.0
     return plan
 
 
@@ -306,6 +308,8 @@ def _track_plan(name: str, tr: Any, laps: int, mu_laps: tuple[float, ...], v: fl
     plan.mu_values = tuple(float(m) for m in mu_laps)
     plan.path_grip = TRACK_GRIP
     plan.track_half_width_m = TRACK_HALF_WIDTH_M
+    # the laps are the plan: the last second of its duration is margin past the line
+    plan.planned_distance_m = laps * float(tr.length)
     return plan
 
 

@@ -146,8 +146,9 @@ def test_simulate_circuit_cli_writes_the_run_and_its_outcome(tmp_path: Path, cap
     assert code == 0 and out.exists()
     meta = json.loads((tmp_path / "run.json").read_text())
     assert meta["manoeuvre"] == "circuit" and meta["track"] == str(track) and meta["file"] == "run.csv"
-    assert meta["outcome"]["status"] == "completed"
-    assert "completed" in capsys.readouterr().err
+    o = meta["outcome"]
+    assert o["status"] == "completed" and o["driven_m"] > o["planned_m"] > 300.0
+    assert f"completed ({o['driven_m']:.0f} m of {o['planned_m']:.0f} m driven)" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------- refusals
@@ -291,6 +292,33 @@ def test_a_car_off_the_track_ends_the_run(tmp_path: Path) -> None:
 def test_a_complete_run_says_so() -> None:
     run = simulate_plan(_open_loop_plan(2.0, 20.0, 0.2, 0.0, 1.0))
     assert run.outcome == {"status": "completed", "at_s": 2.0, "planned_s": 2.0}
+
+
+def test_a_lap_driven_to_plan_is_completed_with_its_distance(oval_run) -> None:
+    out = oval_run.outcome
+    lap = oval_run.plan.label["lap_length_m"]
+    assert out["status"] == "completed" and out["planned_m"] == pytest.approx(lap, abs=0.1)
+    # past the line by the plan's last second, less the speed loop's lag
+    assert out["planned_m"] < out["driven_m"] < out["planned_m"] + 60 / 3.6
+
+
+def test_a_car_that_falls_behind_its_plan_says_so_and_how_far_it_got(tmp_path: Path, capsys) -> None:
+    """A crippled motor (5 Nm) cannot hold the speed profile: when the planned time runs out the
+    lap is not driven. The run is whole (every planned sample) but ``behind-plan``, not ``completed``."""
+    track = write_xy(tmp_path / "oval.csv", stadium())
+    out = tmp_path / "slow.csv"
+    assert main(["simulate", "circuit", "--track", str(track), "--speed", "60", "--mu", "1",
+                 "--set", "powertrain.motor_max_torque_nm=5", "--out", str(out)]) == 0
+    meta = json.loads((tmp_path / "slow.json").read_text())
+    o = meta["outcome"]
+    assert o["status"] == "behind-plan" and o["at_s"] == pytest.approx(o["planned_s"], abs=0.01)
+    assert o["planned_m"] == pytest.approx(meta["label"]["lap_length_m"], abs=0.1)
+    assert 0.5 * o["planned_m"] < o["driven_m"] < 0.95 * o["planned_m"]
+    assert meta["duration_s"] == pytest.approx(o["planned_s"], abs=0.1)  # a whole recording (20 Hz)
+    err = capsys.readouterr().err
+    share = f"{100 * o['driven_m'] / o['planned_m']:.1f} %"
+    assert f"BEHIND PLAN: {o['driven_m']:.0f} m of {o['planned_m']:.0f} m driven ({share})" in err
+    assert "completed" not in err
 
 
 def _frozen_after_end(plans: list[Plan], params: list[dict]) -> tuple[list, list, list]:

@@ -7,7 +7,8 @@ Usage::
         [--track hungaroring zandvoort red-bull-ring FILE...] [--json study.json]
 
 One lap per circuit and friction, all in one vectorised batch (``sim.api.simulate_many``).
-Per run it prints the outcome (completed, or spun / stopped / off-track at t), the car's
+Per run it prints the outcome (completed, spun / stopped / off-track at t, or behind-plan and
+the share of the lap driven when the planned time ran out), the car's
 largest distance from the centreline (m), its largest body side-slip (deg) and the 99th
 percentile of the front tyres' longitudinal slip (-; above ~0.15 the driven wheels spin
 or the brakes lock). Magny-Cours is the report circuit: leave it out of any tuning.
@@ -65,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
         row = {"track": run.request.track, "mu": run.request.mu, **run.outcome, **lap_figures(run)}
         rows.append(row)
         end = "completed" if row["status"] == "completed" else f"{row['status']} at {row['at_s']:.1f} s"
+        if row["status"] == "behind-plan":  # the time ran out short of the lap
+            end = f"behind-plan, {100 * row['driven_m'] / row['planned_m']:.1f} % of lap"
         print(f"{row['track']:>16s}  mu {row['mu']:.1f}  {end:<22s} of {row['planned_s']:6.1f} s  "
               f"off path <= {row['off_path_max_m']:7.1f} m  side-slip <= {row['sideslip_max_deg']:4.1f} deg  "
               f"front slip p99 {row['front_slip_p99']:.3f}")

@@ -88,10 +88,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _outcome_text(outcome: dict) -> str:
+    """How the run ended, for the summary line; with the distance driven along the path when planned."""
     status = outcome.get("status", "completed")
+    driven, planned = outcome.get("driven_m"), outcome.get("planned_m")
+    distance = f"{driven:.0f} m of {planned:.0f} m driven" if driven is not None and planned else ""
+    if status == "behind-plan":
+        return (f"BEHIND PLAN: {distance} ({100.0 * driven / planned:.1f} %) when the planned "
+                f"{outcome['planned_s']:.1f} s ran out")
     if status == "completed":
-        return "completed"
-    return f"{status.upper()} at t={outcome['at_s']:.2f} s of {outcome['planned_s']:.2f} s planned (run cut short)"
+        return f"completed ({distance})" if distance else "completed"
+    return (f"{status.upper()} at t={outcome['at_s']:.2f} s of {outcome['planned_s']:.2f} s planned"
+            f"{', ' + distance if distance else ''} (run cut short)")
 
 
 def _resimulate(args: argparse.Namespace):
