@@ -28,7 +28,8 @@ import json
 import os
 import signal
 import threading
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -38,6 +39,7 @@ import numpy as np
 
 from sim.api import Request, SimRun, simulate_many
 from sim.driver import Plan
+from sim.engine import OUTCOMES
 from sim.manoeuvres import MANOEUVRES, build_plan
 
 PAPER_MU = (1.0, 0.7, 0.5, 0.3, 0.2)
@@ -366,3 +368,16 @@ def manifest_entry(run: SimRun, path: Path, samples: int, duration_s: float) -> 
         "outcome": dict(run.outcome),
         "label": json.loads(json.dumps(run.plan.label, default=float)),
     }
+
+
+def outcome_tally(outcomes: Iterable[Mapping[str, Any]]) -> str:
+    """The runs' outcomes (manifest ``outcome`` entries) in a few words: ``"all completed"``, or
+    how many did not complete as planned, by status (:data:`sim.engine.OUTCOMES` order), e.g.
+    ``"17 not completed as planned: 15 spun, 2 behind-plan"``."""
+    counts = Counter(str(o.get("status", "completed")) for o in outcomes)
+    counts.pop("completed", None)
+    if not counts:
+        return "all completed"
+    order = sorted(counts, key=lambda s: (OUTCOMES.index(s) if s in OUTCOMES else len(OUTCOMES), s))
+    return (f"{sum(counts.values())} not completed as planned: "
+            + ", ".join(f"{counts[s]} {s}" for s in order))

@@ -176,3 +176,14 @@ def test_grid_presets_cover_every_manoeuvre_speed_and_friction_once_deterministi
             assert len(speeds) == n_speeds and speeds[0] == pytest.approx(lo, abs=0.05)
             assert speeds[-1] == pytest.approx(hi, abs=0.05)
             assert sorted((r.speed_kmh, r.mu) for r in mine) == sorted((v, mu) for v in speeds for mu in mus)
+
+
+def test_the_summary_counts_runs_that_did_not_complete_as_planned_by_status():
+    """``campaign``'s summary line: how many runs did not complete as planned, by status (OUTCOMES order), so a
+    spun or behind-plan run is seen without opening manifest.json."""
+    from sim.campaign import outcome_tally
+
+    outcomes = [{"status": "behind-plan", "driven_m": 2128.0, "planned_m": 4285.0}, *[{"status": "spun"}] * 15,
+                *[{"status": "completed"}] * 14, {"status": "off-track"}, {"status": "behind-plan"}]
+    assert outcome_tally(outcomes) == "18 not completed as planned: 15 spun, 1 off-track, 2 behind-plan"
+    assert outcome_tally([{"status": "completed"}] * 3) == outcome_tally([]) == "all completed"

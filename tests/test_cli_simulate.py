@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -161,9 +162,14 @@ def test_malformed_tir_is_named(tmp_path):
     assert not out.exists()
 
 
-def test_campaign_is_deterministic_whatever_the_number_of_workers(tmp_path):
+def test_campaign_is_deterministic_whatever_the_number_of_workers(tmp_path, capsys):
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["campaign", "tiny", "--out", str(a), "--seed", "4", "--quiet", "--jobs", "1"]) == 0
+    assert "tiny: 4 runs (all completed), " in capsys.readouterr().err
+    runs = {e["manoeuvre"]: e["outcome"] for e in json.loads((a / "manifest.json").read_text())["runs"]}
+    dlc = runs.pop("double-lane-change")  # a planned path: through the exit gate, 155 m
+    assert dlc["status"] == "completed" and dlc["planned_m"] == 155.0 < dlc["driven_m"]
+    assert all("driven_m" not in o for o in runs.values())  # open-loop runs are planned by time only
     assert main(["campaign", "tiny", "--out", str(b), "--seed", "4", "--quiet", "--jobs", "2",
                  "--batch-size", "2"]) == 0
     files = sorted(p.name for p in a.iterdir())

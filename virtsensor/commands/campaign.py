@@ -60,7 +60,7 @@ def _sigterm_interrupts() -> Iterator[None]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim.campaign import PRESETS, draw_pressures
+    from sim.campaign import PRESETS, draw_pressures, outcome_tally
     from virtsensor.recordings.campaign import write_campaign
 
     if args.preset not in PRESETS:
@@ -82,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
                                   batch_size=args.batch_size, backend=args.backend, progress=not args.quiet)
     runs, samples, simulated, wall = len(manifest["runs"]), manifest["samples"], manifest["simulated_s"], \
         manifest["wall_s"]
-    print(f"{args.preset}: {runs} runs, {samples} samples at 20 Hz, {simulated:.0f} s simulated "
+    tally = outcome_tally(e["outcome"] for e in manifest["runs"])
+    print(f"{args.preset}: {runs} runs ({tally}), {samples} samples at 20 Hz, {simulated:.0f} s simulated "
           f"in {wall:.1f} s wall (real-time factor {simulated / wall:.0f}) -> {args.out}", file=sys.stderr)
     return 0
