@@ -303,12 +303,12 @@ def test_a_lap_driven_to_plan_is_completed_with_its_distance(oval_run) -> None:
 
 
 def test_a_car_that_falls_behind_its_plan_says_so_and_how_far_it_got(tmp_path: Path, capsys) -> None:
-    """A crippled motor (5 Nm) cannot hold the speed profile: when the planned time runs out the
+    """A crippled motor (10 Nm, the least a car may have) cannot hold the speed profile: when the planned time runs out the
     lap is not driven. The run is whole (every planned sample) but ``behind-plan``, not ``completed``."""
     track = write_xy(tmp_path / "oval.csv", stadium())
     out = tmp_path / "slow.csv"
     assert main(["simulate", "circuit", "--track", str(track), "--speed", "60", "--mu", "1",
-                 "--set", "powertrain.motor_max_torque_nm=5", "--out", str(out)]) == 0
+                 "--set", "powertrain.motor_max_torque_nm=10", "--out", str(out)]) == 0
     meta = json.loads((tmp_path / "slow.json").read_text())
     o = meta["outcome"]
     assert o["status"] == "behind-plan" and o["at_s"] == pytest.approx(o["planned_s"], abs=0.01)
