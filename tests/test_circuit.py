@@ -303,8 +303,8 @@ def test_a_lap_driven_to_plan_is_completed_with_its_distance(oval_run) -> None:
 
 
 def test_a_car_that_falls_behind_its_plan_says_so_and_how_far_it_got(tmp_path: Path, capsys) -> None:
-    """A crippled motor (10 Nm, the least a car may have) cannot hold the speed profile: when the planned time runs out the
-    lap is not driven. The run is whole (every planned sample) but ``behind-plan``, not ``completed``."""
+    """A crippled motor (10 Nm, the least a car may have) cannot hold the speed profile: when the planned time
+    runs out the lap is not driven. The run is whole (every planned sample) but ``behind-plan``, not ``completed``."""
     track = write_xy(tmp_path / "oval.csv", stadium())
     out = tmp_path / "slow.csv"
     assert main(["simulate", "circuit", "--track", str(track), "--speed", "60", "--mu", "1",

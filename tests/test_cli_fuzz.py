@@ -282,8 +282,9 @@ def test_every_path_argument_is_an_input_or_an_output():
 @pytest.fixture()
 def inputs(tmp_path) -> Path:
     """Input files of every kind the clash cases read (their content is never read: the refusal comes first)."""
-    for name in ("m.onnx", "m.card.json", "run.csv", "run.json", "run.blf", "tyre.tir"):
+    for name in ("m.onnx", "m.card.json", "run.csv", "run.blf", "tyre.tir"):
         (tmp_path / name).write_text("x\n")
+    (tmp_path / "run.json").write_text('{"file": "run.csv"}\n')  # run.csv's metadata, as simulate writes it
     (tmp_path / "camp").mkdir()
     (tmp_path / "camp" / "manifest.json").write_text("{}\n")
     (tmp_path / "rep").mkdir()
@@ -309,6 +310,7 @@ def inputs(tmp_path) -> Path:
     (["simulate", "recorded", "--mu", "1", "--inputs", "{tmp}/run.csv", "--out", "{tmp}/run.blf"],
      "written with --out"),
     (["diagnose", "--measured", "{tmp}/run.csv", "--json", "{tmp}/run.csv"], "--measured"),
+    (["diagnose", "--measured", "{tmp}/run.csv", "--json", "{tmp}/run.json"], "the metadata of --measured"),
     (["bench", "--quick", "--no-cross-process", "--json", "{tmp}/m.onnx", "--model", "{tmp}/m.onnx"], "--model"),
     (["train", "--data", "{tmp}/camp", "--recipe", "tpms", "--fallback", "{tmp}/m.onnx", "--out", "{tmp}/m.onnx"],
      "--fallback"),
@@ -328,6 +330,23 @@ def inputs(tmp_path) -> Path:
 def test_an_output_never_overwrites_an_input_or_another_output(inputs, argv, needle):
     line = _assert_refused(argv, inputs)
     assert needle.replace("{tmp}", str(inputs)) in line, line
+
+
+def test_a_json_beside_a_table_is_no_input_of_a_command_that_never_reads_it(inputs):
+    """``score --data run.csv --json run.json`` run twice: the first run's output is no metadata of ``run.csv``
+    (metadata names its recording in ``file``), so the second run is not refused."""
+    import argparse
+
+    from virtsensor.commands import score
+
+    (inputs / "run.json").write_text('{"overall": {}}\n')  # an earlier score --json
+    from virtsensor.commands._types import check_paths
+
+    parser = argparse.ArgumentParser()
+    score.add_arguments(parser)
+    args = parser.parse_args(["--model", str(inputs / "m.onnx"), "--data", str(inputs / "run.csv"),
+                              "--json", str(inputs / "run.json")])
+    check_paths(parser, args)  # raises (one line) on a clash
 
 
 def test_an_output_never_overwrites_the_default_model(inputs, monkeypatch):

@@ -256,8 +256,10 @@ def _plain_slots(text: str) -> list[tuple[Path, str]]:
 
 def input_slots(text: str) -> list[tuple[Path, str]]:
     """The files an input path is read with: itself; for a model (``.onnx``) its card
-    (:func:`virtsensor.model.card_path_for`); for a recording file its metadata sidecar ``<stem>.json``
-    when there is one (read by ``demo`` and ``diagnose``)."""
+    (:func:`virtsensor.model.card_path_for`); for a recording file its metadata sidecar ``<stem>.json`` when
+    there is one (read by ``demo`` and ``diagnose``): a JSON object whose ``file`` names the recording, as
+    ``simulate`` writes it. Any other ``<stem>.json`` (say the output of an earlier ``score --json``) is no
+    input, so running a command twice is not refused."""
     from virtsensor.recordings.files import SUFFIXES
 
     p = Path(text)
@@ -265,9 +267,23 @@ def input_slots(text: str) -> list[tuple[Path, str]]:
     suffix = p.suffix.lower()
     if suffix == ".onnx":
         out.append((_card_path(p), "the model card of"))
-    elif suffix in SUFFIXES and p.with_suffix(".json").is_file():
+    elif suffix in SUFFIXES and _is_metadata_of(p.with_suffix(".json"), p):
         out.append((p.with_suffix(".json"), "the metadata of"))
     return out
+
+
+def _is_metadata_of(meta: Path, recording: Path) -> bool:
+    """Whether ``meta`` is a recording's metadata sidecar: a JSON object (at most 1 MiB) whose ``file`` is the
+    recording's name."""
+    import json
+
+    try:
+        if not meta.is_file() or meta.stat().st_size > TEXT_PROBE_BYTES:
+            return False
+        doc = json.loads(meta.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and doc.get("file") == recording.name
 
 
 def _card_path(p: Path) -> Path:
