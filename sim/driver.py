@@ -217,9 +217,7 @@ class Driver:
         self.motor = np.zeros(B)
         self.brake = np.zeros(B)
         self.lat_err = np.zeros(B)
-        #: (B,) where each car is along its path (m from the path's start, the foot of its
-        #: centre on the path) at the last path-following update
-        self.station_m = np.zeros(B)
+        self.station_m = np.zeros(B)  #: (B,) each car's foot on its path (m from its start), last update
         self._rows = np.arange(B)
 
     def reset(self, x: np.ndarray) -> None:

@@ -97,17 +97,7 @@ def simulate_batch(
     """
     if len(plans) != len(params):
         raise ValueError("one parameter tree per plan")
-    dt = float(params[0]["simulation"]["step_s"])
-    rec_rate = float(params[0]["simulation"]["record_rate_hz"])
-    if any(float(p["simulation"]["step_s"]) != dt for p in params):
-        raise ValueError("runs of one batch must share simulation.step_s")
-    sub = int(round(CONTROL_DT / dt))
-    if sub < 1 or abs(sub * dt - CONTROL_DT) > 1e-12:
-        raise ValueError(f"simulation.step_s={dt} must divide the control period {CONTROL_DT} s")
-    rec_every = int(round(1.0 / (rec_rate * CONTROL_DT)))
-    if rec_every < 1 or abs(rec_every * CONTROL_DT * rec_rate - 1.0) > 1e-9:
-        raise ValueError(f"simulation.record_rate_hz={rec_rate} must divide 100 Hz")
-
+    dt, sub, rec_every = _steps(params)
     veh = Vehicle(params)
     drv = Driver(veh, plans, params)
     B = veh.B
@@ -167,12 +157,37 @@ def simulate_batch(
         if done.all():
             break  # every run has ended or is over: nothing left to simulate
     time_s = np.arange(n_rec) * (rec_every * CONTROL_DT)
-    n_valid = np.minimum(np.minimum(np.minimum(plan_samples, n_rec), j), np.maximum(aborted_at, 1))
-    # an abort after a run's own plan has ended (a longer run in the batch) is no abort
-    ended_by[aborted_at >= plan_samples] = 0
-    driven = station[np.arange(B), n_valid - 1]
-    ended_by[(ended_by == 0) & _behind(plans, driven)] = OUTCOMES.index("behind-plan")
+    n_valid, driven = _finish(plans, plan_samples, aborted_at, ended_by, station, j)
     return BatchResult(time_s, rec, n_valid, plans, params, ended_by, driven)
+
+
+def _steps(params: Sequence[Mapping[str, Any]]) -> tuple[float, int, int]:
+    """``(dt, sub, rec_every)``: the integration step (s) the batch's runs share, the steps per control period and
+    the control periods per recorded sample; ValueError when they do not fit the 100 Hz control period."""
+    dt = float(params[0]["simulation"]["step_s"])
+    rec_rate = float(params[0]["simulation"]["record_rate_hz"])
+    if any(float(p["simulation"]["step_s"]) != dt for p in params):
+        raise ValueError("runs of one batch must share simulation.step_s")
+    sub = int(round(CONTROL_DT / dt))
+    if sub < 1 or abs(sub * dt - CONTROL_DT) > 1e-12:
+        raise ValueError(f"simulation.step_s={dt} must divide the control period {CONTROL_DT} s")
+    rec_every = int(round(1.0 / (rec_rate * CONTROL_DT)))
+    if rec_every < 1 or abs(rec_every * CONTROL_DT * rec_rate - 1.0) > 1e-9:
+        raise ValueError(f"simulation.record_rate_hz={rec_rate} must divide 100 Hz")
+    return dt, sub, rec_every
+
+
+def _finish(plans: Sequence[Plan], plan_samples: np.ndarray, aborted_at: np.ndarray, ended_by: np.ndarray,
+            station: np.ndarray, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(n_valid, driven_m)`` per run once the batch is over (``j`` samples recorded): its valid samples (its own
+    plan's, cut at an abort) and the distance covered along its path at the last of them; sets ``ended_by`` in
+    place (an abort after a run's own plan has ended, in a longer batch, is no abort; ``behind-plan``)."""
+    n_rec = station.shape[1]
+    n_valid = np.minimum(np.minimum(np.minimum(plan_samples, n_rec), j), np.maximum(aborted_at, 1))
+    ended_by[aborted_at >= plan_samples] = 0
+    driven = station[np.arange(len(plans)), n_valid - 1]
+    ended_by[(ended_by == 0) & _behind(plans, driven)] = OUTCOMES.index("behind-plan")
+    return n_valid, driven
 
 
 #: a test driver ends a run once the car has (nearly) stopped or is spinning
@@ -189,7 +204,7 @@ OUTCOMES = ("completed", "spun", "stopped", "off-track", "behind-plan")
 #: 100.1-100.7 % of theirs. The speed loop trails the profile, most on a dry road (Zandvoort
 #: at 150 km/h, mu 1: by about 29 m, 0.7 % of the lap, so 13 m past the line); over many laps
 #: that lag adds up while the margin does not, and 1 % still covers it. A car a hundredth of
-#: its laps behind is flagged; a crippled motor is far behind (5 Nm: 46 % of Zandvoort).
+#: its laps behind is flagged; a crippled motor is far behind (10 Nm: 62 % of Zandvoort at 150 km/h).
 BEHIND_TOLERANCE = 0.01
 
 

@@ -150,11 +150,14 @@ def staged_dir(out: str | os.PathLike[str]) -> Iterator[Path]:
     one receives each file under its name (replacing a file of that name; any other content untouched).
 
     The staging directory is ``.partial-<name>.<random>`` beside ``out`` (hidden: never read as a recording).
-    On an exception or an interrupt (``BaseException``) it is removed and ``out`` is left exactly as it was.
+    On an exception or an interrupt (``BaseException``) in the block it is removed and ``out`` is left exactly as
+    it was; so is an existing ``out`` where one of the new files' names is taken by a directory (checked before
+    anything moves). A move that fails part way for another reason (the disk, permissions changed meanwhile)
+    leaves the files moved so far in place.
 
     Raises:
-        OSError: the staging directory cannot be created, or the move fails (whatever the block raises passes
-            through unchanged).
+        OSError: the staging directory cannot be created, a name in ``out`` is taken by a directory, or the move
+            fails (whatever the block raises passes through unchanged).
     """
     out = Path(out)
     stage = _staging_parent(out) / f"{PARTIAL_PREFIX}{out.name}.{uuid.uuid4().hex[:12]}"
@@ -162,7 +165,11 @@ def staged_dir(out: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield stage
         if out.is_dir():
-            for entry in sorted(stage.iterdir()):
+            entries = sorted(stage.iterdir())
+            taken = [e.name for e in entries if (out / e.name).is_dir() and not (out / e.name).is_symlink()]
+            if taken:
+                raise IsADirectoryError(f"{out / taken[0]}: is a directory, cannot put the new file there")
+            for entry in entries:
                 os.replace(entry, out / entry.name)
             stage.rmdir()
         else:

@@ -367,7 +367,9 @@ class _ReaderWarnings(logging.Filter):
     """Keeps python-can's reader warnings off stderr while :func:`iter_log` reads (records of this thread only):
     our errors are one line. A line the reader could not parse (python-can warns and skips it, dropping a frame)
     is kept in ``skipped`` as ``(line number, text)`` so that the read fails instead; an empty one (what an
-    empty file gives) is not a frame. Installed on creation; :meth:`remove` takes it off."""
+    empty file gives) is not a frame. The reader's other warnings (an ASC frame whose DLC and data length
+    differ, say) are dropped too: the frame itself is still yielded, and the decoder counts it as a length
+    error. Installed on creation; :meth:`remove` takes it off."""
 
     def __init__(self, lines: _Lines | None) -> None:
         super().__init__()
