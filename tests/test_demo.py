@@ -197,3 +197,19 @@ def test_demo_refuses_a_recording_without_the_models_inputs(tmp_path, capsys):
                  "--plot", str(tmp_path / "p.png")]) == 2
     err = capsys.readouterr().err
     assert "none of the model's input messages" in err and len(err.strip().splitlines()) == 1
+
+
+def test_metrics_give_the_error_over_the_valid_ticks_alone():
+    """``mae_valid_nm``: the error a consumer that trusts VALID only sees (a DEGRADED tick's error is left out);
+    ``valid_share``: over all ticks, INIT and INVALID included."""
+    from virtsensor.demo import _metrics
+
+    true = np.zeros((6, 2))
+    est = np.array([[1.0, 2.0], [1.0, 2.0], [9.0, 9.0], [9.0, 9.0], [np.nan, np.nan], [np.nan, np.nan]])
+    status = np.array([[0, 0], [0, 0], [1, 1], [1, 1], [2, 2], [3, 3]])
+    m = _metrics(est, true, status)
+    assert m["fl"]["mae_valid_nm"] == 1.0 and m["fr"]["mae_valid_nm"] == 2.0
+    assert m["fl"]["mae_nm"] == 5.0  # VALID and DEGRADED
+    assert m["fl"]["valid_share"] == pytest.approx(2 / 6, abs=1e-4)
+    status[:2] = 1  # no VALID tick at all
+    assert _metrics(est, true, status)["fl"]["mae_valid_nm"] is None

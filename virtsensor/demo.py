@@ -216,7 +216,9 @@ def _fmt(v: float) -> str:
 
 def _metrics(est: np.ndarray, true: np.ndarray, status: np.ndarray) -> dict[str, Any] | None:
     """MAE, RMSE (Nm) and R2 (:mod:`virtsensor.metrics`) per wheel over the ticks with an estimate (status
-    VALID or DEGRADED) and a finite reference, their mean over the two wheels; None when a wheel has < 2."""
+    VALID or DEGRADED) and a finite reference, their mean over the two wheels; None when a wheel has < 2. Also
+    per wheel the MAE over the VALID ticks alone (``mae_valid_nm``, None without one) and their share of all
+    ticks (``valid_share``): what a consumer that trusts only VALID gets."""
     out: dict[str, Any] = {}
     for k, w in enumerate(("fl", "fr")):
         ok = np.isfinite(est[:, k]) & np.isfinite(true[:, k]) & (status[:, k] <= 1)
@@ -224,11 +226,14 @@ def _metrics(est: np.ndarray, true: np.ndarray, status: np.ndarray) -> dict[str,
             return None
         e, y = est[ok, k], true[ok, k]
         err = e - y
+        valid = np.isfinite(est[:, k]) & np.isfinite(true[:, k]) & (status[:, k] == 0)
         out[w] = {"mae_nm": round(mae(y, e), 4),
                   "rmse_nm": round(float(np.sqrt((err ** 2).mean())), 4),
                   "r2": round(r2(y, e), 5),
                   "max_abs_error_nm": round(float(np.abs(err).max()), 3),
-                  "peak_true_nm": round(float(np.abs(y).max()), 3), "ticks": int(ok.sum())}
+                  "peak_true_nm": round(float(np.abs(y).max()), 3), "ticks": int(ok.sum()),
+                  "mae_valid_nm": round(mae(true[valid, k], est[valid, k]), 4) if valid.any() else None,
+                  "valid_share": round(float((status[:, k] == 0).mean()), 4)}
     out["mean"] = {k: round(float(np.mean([out["fl"][k], out["fr"][k]])), 5) for k in ("mae_nm", "rmse_nm", "r2")}
     return out
 
