@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim.params import CONTROL_PERIOD_S
 from sim.vehicle import IOM, IPSI, IR, IS, ISW, IVX, IX, IY, Inputs, Vehicle
 
 # steering modes
@@ -22,7 +23,7 @@ STEER_TABLE, STEER_PATH, STEER_HOLD, STEER_FREE = 0, 1, 2, 3
 # longitudinal modes
 SPEED_TARGET, SPEED_OPEN, SPEED_COAST = 0, 1, 2
 
-CONTROL_DT = 0.01  # s, the driver's update period
+CONTROL_DT = CONTROL_PERIOD_S  # s, the driver's update period
 
 
 @dataclass

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from sim.driver import CONTROL_DT, Driver, Plan
+from sim.params import step_counts
 from sim.vehicle import (
     IOM,
     IPHI,
@@ -163,17 +164,11 @@ def simulate_batch(
 
 def _steps(params: Sequence[Mapping[str, Any]]) -> tuple[float, int, int]:
     """``(dt, sub, rec_every)``: the integration step (s) the batch's runs share, the steps per control period and
-    the control periods per recorded sample; ValueError when they do not fit the 100 Hz control period."""
+    the control periods per recorded sample (:func:`sim.params.step_counts`); ValueError when they do not fit."""
     dt = float(params[0]["simulation"]["step_s"])
-    rec_rate = float(params[0]["simulation"]["record_rate_hz"])
     if any(float(p["simulation"]["step_s"]) != dt for p in params):
         raise ValueError("runs of one batch must share simulation.step_s")
-    sub = int(round(CONTROL_DT / dt))
-    if sub < 1 or abs(sub * dt - CONTROL_DT) > 1e-12:
-        raise ValueError(f"simulation.step_s={dt} must divide the control period {CONTROL_DT} s")
-    rec_every = int(round(1.0 / (rec_rate * CONTROL_DT)))
-    if rec_every < 1 or abs(rec_every * CONTROL_DT * rec_rate - 1.0) > 1e-9:
-        raise ValueError(f"simulation.record_rate_hz={rec_rate} must divide 100 Hz")
+    sub, rec_every = step_counts(dt, float(params[0]["simulation"]["record_rate_hz"]))
     return dt, sub, rec_every
 
 

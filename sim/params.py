@@ -265,9 +265,27 @@ OPTIONAL = ("tyres.pressure_left_right_front_pa", "tyres.pressure_left_right_rea
 #: EPAS boost table: breakpoints (m/s) and gains (assist / torsion-bar torque)
 ASSIST_SPEEDS = Bound(0.0, 100.0, "m/s")
 ASSIST_GAINS = Bound(0.0, 50.0, "")
-#: the driver's update period (s, :data:`sim.driver.CONTROL_DT`): the step divides it, the record period is a
-#: whole number of it
+#: the driver's update period (s; :data:`sim.driver.CONTROL_DT` is this): the step divides it, the record
+#: period is a whole number of it
 CONTROL_PERIOD_S = 0.01
+
+
+def step_counts(step_s: float, record_rate_hz: float) -> tuple[int, int]:
+    """``(sub, every)``: integration steps per driver update and driver updates per recorded sample.
+
+    Raises:
+        ParamError: the step does not divide :data:`CONTROL_PERIOD_S`, or the record rate does not divide its
+            rate (100 Hz).
+    """
+    sub = round(CONTROL_PERIOD_S / step_s)
+    if sub < 1 or abs(sub * step_s - CONTROL_PERIOD_S) > 1e-12:
+        raise ParamError(f"car parameter simulation.step_s={step_s:g} must divide the driver's "
+                         f"{CONTROL_PERIOD_S:g} s update period (0.005, 0.0025, 0.002, 0.001... s)")
+    every = round(1.0 / (record_rate_hz * CONTROL_PERIOD_S))
+    if every < 1 or abs(every * CONTROL_PERIOD_S * record_rate_hz - 1.0) > 1e-9:
+        raise ParamError(f"car parameter simulation.record_rate_hz={record_rate_hz:g} must divide the driver's "
+                         f"{1.0 / CONTROL_PERIOD_S:g} Hz (100, 50, 25 or 20 Hz)")
+    return sub, every
 
 
 def _leaf(tree: Mapping[str, Any], key: str) -> Any:
@@ -336,15 +354,11 @@ def _check_consistency(tree: Mapping[str, Any]) -> None:
     if unsprung > 0.75 * v["mass_kg"]:
         raise ParamError(f"car parameter vehicle.mass_kg={v['mass_kg']:g} is too light for its unsprung masses "
                          f"(four corners {unsprung:g} kg): the unsprung mass must stay under 3/4 of the car's mass")
-    step, rate = float(sim["step_s"]), float(sim["record_rate_hz"])
-    sub = round(CONTROL_PERIOD_S / step)
-    if abs(sub * step - CONTROL_PERIOD_S) > 1e-12:
-        raise ParamError(f"car parameter simulation.step_s={step:g} must divide the driver's "
-                         f"{CONTROL_PERIOD_S:g} s update period (0.005, 0.0025, 0.002, 0.001... s)")
-    every = round(1.0 / (rate * CONTROL_PERIOD_S))
+    rate = float(sim["record_rate_hz"])
+    step_counts(float(sim["step_s"]), rate)
     fastest = max((float(s.get("rate_hz", 0.0)) for s in tree.get("sensors", {}).values()
                    if isinstance(s, Mapping)), default=0.0)
-    if abs(every * CONTROL_PERIOD_S * rate - 1.0) > 1e-9 or rate < fastest:
+    if rate < fastest:
         raise ParamError(f"car parameter simulation.record_rate_hz={rate:g} must divide the driver's "
                          f"{1.0 / CONTROL_PERIOD_S:g} Hz (100, 50, 25 or 20 Hz) and be at least the fastest "
                          f"sensor's rate ({fastest:g} Hz)")
