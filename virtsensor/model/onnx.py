@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from virtsensor.errors import UserError
-from virtsensor.model.card import ModelCard, card_path_for
+from virtsensor.model.card import ACTIVATIONS, ModelCard, card_path_for
 
 #: Largest |reference - onnxruntime| difference (Nm) accepted: sklearn at export, the numpy back-end at load.
 PARITY_TOL_NM = 1e-3
@@ -269,7 +269,6 @@ class OnnxModel:
 # ---------------------------------------------------------------------------------------------------------------
 # numpy back-end
 # ---------------------------------------------------------------------------------------------------------------
-_ACTIVATIONS = ("identity", "tanh", "relu", "logistic")
 
 
 class NumpyForward:
@@ -288,8 +287,8 @@ class NumpyForward:
         self.activation = str(weights.get("activation", "identity"))
         self.out_activation = str(weights.get("out_activation", "identity"))
         for a in (self.activation, self.out_activation):
-            if a not in _ACTIVATIONS:
-                raise ValueError(f"unsupported activation {a!r} (one of {', '.join(_ACTIVATIONS)})")
+            if a not in ACTIVATIONS:
+                raise ValueError(f"unsupported activation {a!r} (one of {', '.join(ACTIVATIONS)})")
         for W, b, W_next in zip(self.Ws, self.bs, [*self.Ws[1:], None], strict=True):
             if W.ndim != 2 or b.shape != (W.shape[1],) or (W_next is not None and W_next.shape[0] != W.shape[1]):
                 raise ValueError("inconsistent layer shapes in the weights")
