@@ -13,8 +13,11 @@ declares the output ``[None, 1]`` whatever the number of outputs, so a two-outpu
 ``(2N, 1)`` (rows interleaved FL, FR, FL, FR...). The linear-regressor graph is already
 ``(N, n_outputs)``. :func:`export_pipeline` retargets that final ``Reshape`` to ``[-1, n_outputs]``
 (or appends one when the graph has none), names the output ``sat``, declares its ValueInfo
-``[N, n_outputs]``, records the column names in the graph's metadata, and checks the shape on a
-3-row batch before writing anything.
+``[N, n_outputs]``, records the column names in the graph's metadata, rewrites the graph into the same
+function with fewer kernels (:func:`virtsensor.model.leangraph.lean_graph`: the scaler folded into the first
+layer, ``MatMul`` + ``Add`` as ``Gemm``, identity ``Cast``/``Reshape`` dropped; the card's ``onnx_rewrites``
+lists what was applied), and checks the shape on a 3-row batch and the parity against scikit-learn before
+writing anything.
 
 Needs scikit-learn, skl2onnx and onnx (imported when a function runs); the daemon never imports
 this module.
@@ -51,7 +54,7 @@ GRAPH_NAME = "virtsensor_sat"
 COMPUTED_KEYS = (
     "onnx_file", "sha256", "onnx_input", "onnx_output", "input_dtype", "feature_names", "n_features",
     "outputs", "n_outputs", "opset", "target_opset", "created_utc", "tool_versions", "parity_max_abs_nm",
-    "parity_rows", "parity_inputs", "card_sha256",
+    "parity_rows", "parity_inputs", "card_sha256", "onnx_rewrites",
 )
 
 Precision = Literal["float32", "float64"]
@@ -118,6 +121,7 @@ def export_pipeline(
     outputs = _outputs(output_names, n_outputs)
     opset = dict(TARGET_OPSET if target_opset is None else target_opset)
     model = _convert(pipeline, n_features, n_outputs, precision, opset, feature_names, outputs)
+    model, rewrites = _lean(model, pipeline, precision)
     onnx_bytes = model.SerializeToString()
     parity = _parity(onnx_bytes, pipeline, probe, parity_X, n_outputs, precision)
     if "parity_inputs" not in parity:
@@ -125,7 +129,7 @@ def export_pipeline(
 
     path = Path(path)
     card = {**card_extra, **_computed_fields(model, onnx_bytes, path, precision, feature_names, outputs, opset),
-            **parity}
+            "onnx_rewrites": rewrites, **parity}
     sealed = ModelCard(card, path=card_path_for(path)).sealed()
     # the whole runtime check (graph metadata, weights on the parity rows) before anything touches the disk
     try:
@@ -172,6 +176,51 @@ def _convert(pipeline: Any, n_features: int, n_outputs: int, precision: str, ops
         entry = model.metadata_props.add()
         entry.key, entry.value = key, json.dumps(names)
     return model
+
+
+#: A rewritten graph is kept when its largest error against scikit-learn is within this factor of the converted
+#: graph's, or below :data:`LEAN_EXACT_NM` (Nm: a tenth of the parity tolerance, a thousandth of the SAT's
+#: resolution on the bus) whatever the converted graph's.
+LEAN_SLACK = 1.1
+LEAN_EXACT_NM = 1e-4
+
+
+def _lean(model: Any, pipeline: Any, precision: str) -> tuple[Any, list[str]]:
+    """:func:`lean_as_exact` against scikit-learn on 200 rows drawn around the pipeline's scaler
+    (:func:`~virtsensor.model.onnx.default_parity_inputs`: the choice depends on the fitted pipeline only, so an
+    export stays byte-reproducible)."""
+    n_features = int(model.graph.input[0].type.tensor_type.shape.dim[1].dim_value)
+    try:
+        weights = pipeline_weights(pipeline)
+    except TypeError:  # a pipeline the numpy back-end does not know: rows around 0
+        weights = None
+    rows = np.asarray(rt.default_parity_inputs(weights, n_features, 200), dtype=np.float64)
+    return lean_as_exact(model, lambda X: pipeline.predict(X), rows, precision)
+
+
+def lean_as_exact(model: Any, reference: Any, rows: np.ndarray, precision: str) -> tuple[Any, list[str]]:
+    """The lean rewrite of ``model`` (:func:`~virtsensor.model.leangraph.lean_graph`) that is as exact as ``model``
+    against ``reference(rows) -> (N, n_outputs)`` Nm: within :data:`LEAN_SLACK` times its largest error, or below
+    :data:`LEAN_EXACT_NM`. Tried in order: the scaler fully folded, its scale only; else ``model`` itself.
+    Returns the graph (``model`` is not modified) and the rewrites applied."""
+    import copy
+
+    from virtsensor.model.leangraph import lean_graph
+
+    dtype = np.float32 if precision == "float32" else np.float64
+    ref = np.asarray(reference(rows), dtype=np.float64).reshape(len(rows), -1)
+
+    def error(m: Any) -> float:
+        got = rt.make_session(m.SerializeToString())[0].run([OUTPUT_NAME], {INPUT_NAME: rows.astype(dtype)})[0]
+        return float(np.max(np.abs(np.asarray(got, dtype=np.float64) - ref)))
+
+    limit = max(LEAN_SLACK * error(model), LEAN_EXACT_NM)
+    for keep_centre in (False, True):
+        lean = copy.deepcopy(model)
+        done = lean_graph(lean, keep_centre=keep_centre)
+        if done and error(lean) <= limit:
+            return lean, done
+    return model, []
 
 
 def _parity(onnx_bytes: bytes, pipeline: Any, probe: np.ndarray, parity_X: np.ndarray | None, n_outputs: int,
