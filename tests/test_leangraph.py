@@ -17,7 +17,7 @@ from sklearn.preprocessing import MinMaxScaler, RobustScaler, StandardScaler
 from virtsensor import signals as cat
 from virtsensor.model import export as ex
 from virtsensor.model import onnx as rt
-from virtsensor.model.leangraph import lean_graph
+from virtsensor.model.leangraph import MAX_FOLD_AMPLIFICATION, fold_amplification, lean_graph
 
 N = len(cat.INPUTS)
 SCALERS = {"robust": RobustScaler, "standard": StandardScaler, "minmax": MinMaxScaler}
@@ -37,7 +37,7 @@ def _run(model: onnx.ModelProto, X: np.ndarray, dtype) -> np.ndarray:
 
 @pytest.mark.parametrize("precision", ["float32", "float64"])
 @pytest.mark.parametrize("scaler", list(SCALERS))
-@pytest.mark.parametrize("estimator", ["mlp_tanh", "mlp_relu", "linear"])
+@pytest.mark.parametrize("estimator", ["mlp_tanh", "mlp_relu", "mlp_logistic", "mlp_identity", "linear"])
 def test_every_pipeline_the_trainer_may_export_keeps_its_function(tmp_path, precision, scaler, estimator):
     X, Y = _data(300, 0, centre=0.5)
     est = LinearRegression() if estimator == "linear" else MLPRegressor(
@@ -55,7 +55,10 @@ def test_every_pipeline_the_trainer_may_export_keeps_its_function(tmp_path, prec
     np.testing.assert_allclose(model.predict(Xt), pipe.predict(Xt), rtol=0,
                                atol=1e-9 if precision == "float64" else rt.PARITY_TOL_NM)
     if estimator != "linear":
-        act = estimator.removeprefix("mlp_").capitalize()
+        act = {"tanh": "Tanh", "relu": "Relu", "logistic": "Sigmoid"}.get(estimator.removeprefix("mlp_"))
+        if act is None:  # identity: no activation node
+            assert ops in (["Gemm"] * 3, ["Sub"] + ["Gemm"] * 3)
+            return
         assert ops in (["Gemm", act, "Gemm", act, "Gemm"], ["Sub", "Gemm", act, "Gemm", act, "Gemm"])
         assert {"fold_scaler", "fold_scale"} & set(card["onnx_rewrites"]) and card["onnx_rewrites"].count("gemm") == 3
     elif precision == "float64":
@@ -64,25 +67,63 @@ def test_every_pipeline_the_trainer_may_export_keeps_its_function(tmp_path, prec
         assert "LinearRegressor" in ops and "fold_scaler" not in card["onnx_rewrites"]
 
 
-def test_a_centre_far_from_zero_keeps_its_subtraction(tmp_path):
-    """In float32, folding centres far from zero against the spread (20 spreads here) into the bias
-    (x W' + (b - c W')) cancels large terms; the export then keeps the centring as one Sub (``fold_scale``), as
-    exact as the converted graph, where the full fold is less exact."""
-    X, Y = _data(300, 0, centre=2.0)
+def _fit(X: np.ndarray, Y: np.ndarray, scaler: str = "robust") -> Pipeline:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        pipe = Pipeline([("scaler", RobustScaler()), ("est", MLPRegressor(
+        return Pipeline([("scaler", SCALERS[scaler]()), ("est", MLPRegressor(
             hidden_layer_sizes=(16, 8), activation="tanh", solver="lbfgs", max_iter=40, alpha=100.0,
             random_state=0))]).fit(X, Y)
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_a_centre_far_from_zero_keeps_its_subtraction(tmp_path, precision):
+    """A feature centred 20 spreads from zero: folding its centre into the bias (x W' + (b - c W')) would sum terms
+    ~20 times the centred ones and lose float32 digits; the rewrite keeps the centring as one Sub (``fold_scale``),
+    decided from the weights alone, and the graph stays as exact as the converted one."""
+    X, Y = _data(300, 0, centre=2.0)
+    pipe = _fit(X, Y)
+    w = ex.pipeline_weights(pipe)
+    c, s_ = np.array(w["center"]), np.array(w["scale"])
+    assert fold_amplification(-c / s_, np.array(w["layers"][0]["W"]), np.array(w["layers"][0]["b"])) \
+        > MAX_FOLD_AMPLIFICATION
     Xt, _ = _data(400, 1, centre=2.0)
-    card = ex.export_pipeline(pipe, N, tmp_path / "m.onnx", card_extra={"inputs": list(cat.INPUTS)}, parity_X=Xt)
+    card = ex.export_pipeline(pipe, N, tmp_path / "m.onnx", card_extra={"inputs": list(cat.INPUTS)}, parity_X=Xt,
+                              precision=precision)
     assert "fold_scale" in card["onnx_rewrites"]
     assert [n.op_type for n in onnx.load(tmp_path / "m.onnx").graph.node] == ["Sub", "Gemm", "Tanh", "Gemm",
                                                                               "Tanh", "Gemm"]
-    full = ex._convert(pipe, N, 2, "float32", ex.TARGET_OPSET, cat.INPUTS, ex._outputs(None, 2))
-    assert "fold_scaler" in lean_graph(full)
-    folded_err = np.abs(_run(full, Xt, np.float32) - pipe.predict(Xt)).max()
-    assert folded_err > card["parity_max_abs_nm"]  # the full fold was the less exact
+    plain = ex.export_pipeline(pipe, N, tmp_path / "p.onnx", card_extra={"inputs": list(cat.INPUTS)}, parity_X=Xt,
+                               precision=precision, lean=False)
+    assert plain["onnx_rewrites"] == [] and "Scaler" in [n.op_type for n in onnx.load(tmp_path / "p.onnx").graph.node] \
+        or precision == "float64"
+    assert card["parity_max_abs_nm"] <= 1.1 * plain["parity_max_abs_nm"] + (1e-12 if precision == "float64" else 1e-6)
+    if precision == "float32":  # forcing the full fold here is the less exact graph
+        full = ex._convert(pipe, N, 2, "float32", ex.TARGET_OPSET, cat.INPUTS, ex._outputs(None, 2))
+        assert "fold_scaler" in lean_graph(full, fold_centre=True)
+        assert np.abs(_run(full, Xt, np.float32) - pipe.predict(Xt)).max() > card["parity_max_abs_nm"]
+
+
+def test_a_float64_graph_stays_exact_with_a_centre_of_1e8(tmp_path):
+    X, Y = _data(200, 2, centre=0.5)
+    X[:, 0] = 1e8 + X[:, 0]
+    pipe = _fit(X, Y, "standard")
+    card = ex.export_pipeline(pipe, N, tmp_path / "m.onnx", card_extra={"inputs": list(cat.INPUTS)}, parity_X=X,
+                              precision="float64")
+    assert "fold_scale" in card["onnx_rewrites"] and card["parity_max_abs_nm"] < 1e-9
+
+
+def test_a_rewrite_the_checker_refuses_leaves_the_converted_graph(tmp_path, monkeypatch):
+    import virtsensor.model.leangraph as lg
+
+    def broken(model, **kw):
+        model.graph.node[0].input[0] = "nowhere"
+        onnx.checker.check_model(model, full_check=True)
+
+    monkeypatch.setattr(lg, "lean_graph", broken)
+    X, Y = _data(100, 3, centre=0.5)
+    card = ex.export_pipeline(_fit(X, Y), N, tmp_path / "m.onnx", card_extra={"inputs": list(cat.INPUTS)},
+                              parity_X=X)
+    assert card["onnx_rewrites"] == [] and onnx.load(tmp_path / "m.onnx").graph.node[0].op_type == "Scaler"
 
 
 def _graph(nodes, inits, n_out=2) -> onnx.ModelProto:
@@ -124,6 +165,44 @@ def test_reverse_subtraction_and_division_are_not_taken_for_a_scaler():
         np.testing.assert_allclose(_run(m, X, np.float32), before, rtol=1e-6, atol=1e-5)
 
 
+def test_a_scaler_output_that_is_also_a_graph_output_is_not_folded():
+    m = _graph([helper.make_node("Sub", ["features", "c"], ["xs"]), helper.make_node("MatMul", ["xs", "W"], ["mm"]),
+                helper.make_node("Add", ["mm", "b"], ["sat"])], {"c": [1.0, 2.0, 3.0], "W": W, "b": [0.1, 0.2]})
+    m.graph.output.append(helper.make_tensor_value_info("xs", TensorProto.FLOAT, ["N", 3]))
+    assert lean_graph(m) == []  # two outputs: left as it is
+    del m.graph.output[1]
+    m.graph.output.append(helper.make_tensor_value_info("mm", TensorProto.FLOAT, ["N", 2]))
+    assert lean_graph(m) == []
+
+
+def test_single_value_scaler_and_a_zero_scale_keep_their_function():
+    """ai.onnx.ml Scaler with one offset and one scale for every feature; and a Mul by a constant with a zero
+    entry (a feature the layer ignores) through the centre-keeping fold."""
+    sc = helper.make_node("Scaler", ["features"], ["xs"], domain="ai.onnx.ml", offset=[2.0], scale=[0.5])
+    m = _graph([sc, helper.make_node("MatMul", ["xs", "W"], ["mm"]), helper.make_node("Add", ["mm", "b"], ["sat"])],
+               {"W": W, "b": [0.1, 0.2]})
+    m.opset_import.append(helper.make_opsetid("ai.onnx.ml", 3))
+    X = np.random.default_rng(3).normal(size=(6, 3)) * 3
+    before = _run(m, X, np.float32)
+    assert lean_graph(m)[:1] == ["fold_scaler"]
+    np.testing.assert_allclose(_run(m, X, np.float32), before, rtol=1e-6, atol=1e-5)
+    m = _graph([helper.make_node("Add", ["features", "o"], ["a1"]), helper.make_node("Mul", ["a1", "k"], ["a2"]),
+                helper.make_node("MatMul", ["a2", "W"], ["mm"]), helper.make_node("Add", ["mm", "b"], ["sat"])],
+               {"o": [1.0, -2.0, 3.0], "k": [2.0, 0.0, 0.5], "W": W, "b": [0.1, 0.2]})
+    before = _run(m, X, np.float32)
+    assert lean_graph(m, fold_centre=False) == ["fold_scale", "gemm"]
+    np.testing.assert_allclose(_run(m, X, np.float32), before, rtol=1e-6, atol=1e-5)
+
+
+def test_fold_amplification():
+    Wt = np.array(W)
+    assert fold_amplification(np.zeros(3), Wt, np.array([0.1, 0.2])) == pytest.approx(1.0)
+    # a centre of 10 spreads on the first feature: its weights summed 11 times over
+    amp = fold_amplification(np.array([10.0, 0.0, 0.0]), Wt, np.zeros(2))
+    expect = max((11 * abs(Wt[0, j]) + abs(Wt[1:, j]).sum() + abs(10 * Wt[0, j])) / abs(Wt[:, j]).sum() for j in (0, 1))
+    assert amp == pytest.approx(expect)
+
+
 def test_affine_chain_is_folded_exactly():
     """(x - c) / s * k + m, then MatMul + Add: one Gemm of the same function."""
     m = _graph([helper.make_node("Sub", ["features", "c"], ["a1"]), helper.make_node("Div", ["a1", "s"], ["a2"]),
@@ -133,7 +212,7 @@ def test_affine_chain_is_folded_exactly():
                 "b": [[0.1, 0.2]]})
     X = np.random.default_rng(2).normal(size=(7, 3))
     before = _run(m, X, np.float32)
-    assert lean_graph(m) == ["fold_scaler", "gemm"]
+    assert lean_graph(m, fold_centre=True) == ["fold_scaler", "gemm"]
     assert [n.op_type for n in m.graph.node] == ["Gemm"] and len(m.graph.initializer) == 2
     np.testing.assert_allclose(_run(m, X, np.float32), before, rtol=1e-6, atol=1e-5)
 

@@ -54,7 +54,7 @@ GRAPH_NAME = "virtsensor_sat"
 COMPUTED_KEYS = (
     "onnx_file", "sha256", "onnx_input", "onnx_output", "input_dtype", "feature_names", "n_features",
     "outputs", "n_outputs", "opset", "target_opset", "created_utc", "tool_versions", "parity_max_abs_nm",
-    "parity_rows", "parity_inputs", "card_sha256", "onnx_rewrites",
+    "parity_rows", "parity_inputs", "card_sha256", "onnx_rewrites", "rewritten_from",
 )
 
 Precision = Literal["float32", "float64"]
@@ -70,6 +70,7 @@ def export_pipeline(
     output_names: Sequence[str] | None = None,
     precision: Precision = "float32",
     target_opset: Mapping[str, int] | None = None,
+    lean: bool = True,
 ) -> ModelCard:
     """Convert a fitted pipeline to one ONNX file and write its sealed model card beside it.
 
@@ -95,6 +96,8 @@ def export_pipeline(
         precision: ``float32`` (default, what the real-time runtime uses) or ``float64``
             (input, weights and arithmetic in double).
         target_opset: opsets asked of skl2onnx, default :data:`TARGET_OPSET`.
+        lean: rewrite the graph with :func:`~virtsensor.model.leangraph.lean_graph` (default); False writes
+            skl2onnx's graph as converted (as exports before the rewrite existed).
 
     Returns:
         The card as written.
@@ -104,24 +107,15 @@ def export_pipeline(
             :data:`~virtsensor.model.onnx.PARITY_TOL_NM` Nm, or ``weights`` that do not reproduce
             the graph (nothing is written then).
     """
-    from sklearn.utils.validation import check_is_fitted
-
-    check_is_fitted(pipeline)
     n_features = int(n_features)
-    if getattr(pipeline, "n_features_in_", n_features) != n_features:
-        raise ValueError(f"pipeline was fitted on {pipeline.n_features_in_} features, n_features={n_features}")
-    if precision not in ("float32", "float64"):
-        raise ValueError(f"precision must be 'float32' or 'float64', not {precision!r}")
-    clash = sorted(set(card_extra) & set(COMPUTED_KEYS))
-    if clash:
-        raise ValueError(f"card_extra may not set computed card keys: {', '.join(clash)}")
+    _check_args(pipeline, n_features, card_extra, precision)
     feature_names = _feature_names(card_extra, n_features)
     probe = np.zeros((3, n_features))
     n_outputs = int(np.asarray(pipeline.predict(probe)).reshape(3, -1).shape[1])
     outputs = _outputs(output_names, n_outputs)
     opset = dict(TARGET_OPSET if target_opset is None else target_opset)
     model = _convert(pipeline, n_features, n_outputs, precision, opset, feature_names, outputs)
-    model, rewrites = _lean(model, pipeline, precision)
+    model, rewrites = _lean(model) if lean else (model, [])
     onnx_bytes = model.SerializeToString()
     parity = _parity(onnx_bytes, pipeline, probe, parity_X, n_outputs, precision)
     if "parity_inputs" not in parity:
@@ -140,6 +134,21 @@ def export_pipeline(
     atomic_write_bytes(path, onnx_bytes)
     sealed.write(card_path_for(path))
     return sealed
+
+
+def _check_args(pipeline: Any, n_features: int, card_extra: Mapping[str, Any], precision: str) -> None:
+    """ValueError unless ``pipeline`` is fitted on ``n_features``, ``precision`` is known and ``card_extra`` sets
+    none of :data:`COMPUTED_KEYS`."""
+    from sklearn.utils.validation import check_is_fitted
+
+    check_is_fitted(pipeline)
+    if getattr(pipeline, "n_features_in_", n_features) != n_features:
+        raise ValueError(f"pipeline was fitted on {pipeline.n_features_in_} features, n_features={n_features}")
+    if precision not in ("float32", "float64"):
+        raise ValueError(f"precision must be 'float32' or 'float64', not {precision!r}")
+    clash = sorted(set(card_extra) & set(COMPUTED_KEYS))
+    if clash:
+        raise ValueError(f"card_extra may not set computed card keys: {', '.join(clash)}")
 
 
 def _computed_fields(model: Any, onnx_bytes: bytes, path: Path, precision: str, feature_names: Sequence[str],
@@ -178,49 +187,21 @@ def _convert(pipeline: Any, n_features: int, n_outputs: int, precision: str, ops
     return model
 
 
-#: A rewritten graph is kept when its largest error against scikit-learn is within this factor of the converted
-#: graph's, or below :data:`LEAN_EXACT_NM` (Nm: a tenth of the parity tolerance, a thousandth of the SAT's
-#: resolution on the bus) whatever the converted graph's.
-LEAN_SLACK = 1.1
-LEAN_EXACT_NM = 1e-4
-
-
-def _lean(model: Any, pipeline: Any, precision: str) -> tuple[Any, list[str]]:
-    """:func:`lean_as_exact` against scikit-learn on 200 rows drawn around the pipeline's scaler
-    (:func:`~virtsensor.model.onnx.default_parity_inputs`: the choice depends on the fitted pipeline only, so an
-    export stays byte-reproducible)."""
-    n_features = int(model.graph.input[0].type.tensor_type.shape.dim[1].dim_value)
-    try:
-        weights = pipeline_weights(pipeline)
-    except TypeError:  # a pipeline the numpy back-end does not know: rows around 0
-        weights = None
-    rows = np.asarray(rt.default_parity_inputs(weights, n_features, 200), dtype=np.float64)
-    return lean_as_exact(model, lambda X: pipeline.predict(X), rows, precision)
-
-
-def lean_as_exact(model: Any, reference: Any, rows: np.ndarray, precision: str) -> tuple[Any, list[str]]:
-    """The lean rewrite of ``model`` (:func:`~virtsensor.model.leangraph.lean_graph`) that is as exact as ``model``
-    against ``reference(rows) -> (N, n_outputs)`` Nm: within :data:`LEAN_SLACK` times its largest error, or below
-    :data:`LEAN_EXACT_NM`. Tried in order: the scaler fully folded, its scale only; else ``model`` itself.
-    Returns the graph (``model`` is not modified) and the rewrites applied."""
+def _lean(model: Any) -> tuple[Any, list[str]]:
+    """The lean rewrite of a copy of ``model`` (:func:`~virtsensor.model.leangraph.lean_graph`; decided from the
+    weights alone, so an export stays byte-reproducible) and the rewrites applied; ``model`` itself, and no
+    rewrite, should the rewritten graph fail the ONNX checker."""
     import copy
+
+    import onnx
 
     from virtsensor.model.leangraph import lean_graph
 
-    dtype = np.float32 if precision == "float32" else np.float64
-    ref = np.asarray(reference(rows), dtype=np.float64).reshape(len(rows), -1)
-
-    def error(m: Any) -> float:
-        got = rt.make_session(m.SerializeToString())[0].run([OUTPUT_NAME], {INPUT_NAME: rows.astype(dtype)})[0]
-        return float(np.max(np.abs(np.asarray(got, dtype=np.float64) - ref)))
-
-    limit = max(LEAN_SLACK * error(model), LEAN_EXACT_NM)
-    for keep_centre in (False, True):
-        lean = copy.deepcopy(model)
-        done = lean_graph(lean, keep_centre=keep_centre)
-        if done and error(lean) <= limit:
-            return lean, done
-    return model, []
+    lean = copy.deepcopy(model)
+    try:
+        return lean, lean_graph(lean)
+    except onnx.checker.ValidationError:
+        return model, []
 
 
 def _parity(onnx_bytes: bytes, pipeline: Any, probe: np.ndarray, parity_X: np.ndarray | None, n_outputs: int,

@@ -11,17 +11,20 @@ daemon's 20 Hz ticks. :func:`lean_graph` rewrites, in place, what it recognises:
 1. **the scaler folded into the first layer**: skl2onnx writes the scaler as an ``ai.onnx.ml`` ``Scaler``
    (float32 graphs) or as ``Sub``/``Div`` (Robust, Standard) and ``Mul``/``Add`` (MinMax) by constants; any such
    chain is ``x * a + d`` per feature, and ``(x * a + d) W + b = x (a[:, None] * W) + (b + d W)``, computed in
-   float64 and stored in the graph's type;
+   float64 and stored in the graph's type. Folding the centre into the bias makes the first layer add terms
+   larger than the centred ones it replaces, so its rounding error grows by the factor :func:`fold_amplification`
+   (from the weights alone: the choice is the same on every machine and for every data set); beyond
+   :data:`MAX_FOLD_AMPLIFICATION` only the scale is folded and the centring stays one ``Sub`` (``fold_scale``);
 2. **MatMul + Add -> Gemm**: a ``MatMul`` by a 2-D initializer whose only consumer adds a bias initializer
    (``[n]`` or ``[1, n]``);
 3. **identities dropped**: a ``Cast`` to the type its input already has, and the final ``Reshape`` to
    ``[-1, n]`` of a ``Gemm`` that already gives ``[N, n]``.
 
 onnxruntime then fuses each ``Gemm`` + activation into one ``FusedGemm``: three kernels for two hidden layers.
-A step whose pattern is not there (a linear regressor, another converter's graph) changes nothing, so the
-result is always a graph of the same function; :func:`virtsensor.model.export.export_pipeline` checks it
-against scikit-learn (``parity_max_abs_nm``) and the model card's plain weights before writing it. What it
-saves per inference: README, "Where the CPU at 20 Hz goes".
+A step whose pattern is not there (a linear regressor, another converter's graph, a tensor that is also a graph
+output or is read twice) changes nothing, so the result is a graph of the same function up to float rounding;
+:func:`virtsensor.model.export.export_pipeline` checks it against scikit-learn (``parity_max_abs_nm``) and the
+model card's plain weights before writing it. What it saves per inference: README, "Measured figures".
 
 Needs ``onnx`` (the export side; the daemon never imports this module).
 """
@@ -35,27 +38,36 @@ import numpy as np
 __all__ = ["lean_graph"]
 
 _FLOAT_TYPES = {1: np.float32, 11: np.float64}  # TensorProto.FLOAT, DOUBLE
+#: The most :func:`fold_amplification` may be for the centre to fold into the bias: 8 costs the first layer at
+#: most 3 of float32's 24 bits (the shipped models: 1.7, 1.7 and 4.1).
+MAX_FOLD_AMPLIFICATION = 8.0
 #: element-wise ops by a constant that :func:`_fold_scaler` composes: y = x * a + d
 _AFFINE_OPS = ("Sub", "Div", "Mul", "Add")
 
 
-def lean_graph(model: Any, *, keep_centre: bool = False) -> list[str]:
-    """Rewrite ``model`` (an ``onnx.ModelProto`` with one input and one output) in place; returns the names of
-    the rewrites applied (``drop_cast``, ``fold_scaler`` or ``fold_scale``, ``gemm`` per fused layer,
-    ``drop_reshape``), in order. The graph is checked with the ONNX checker (full shape inference) afterwards.
+def lean_graph(model: Any, *, fold_centre: bool | None = None) -> list[str]:
+    """Rewrite ``model`` (an ``onnx.ModelProto``) in place; returns the names of the rewrites applied
+    (``drop_cast``, ``fold_scaler`` or ``fold_scale``, ``gemm`` per fused layer, ``drop_reshape``), in order. A
+    graph without exactly one input and one output is left as it is (``[]``).
 
-    ``keep_centre``: fold only the scaler's scale and keep its centring as one ``Sub`` (``fold_scale``). In
-    float32, ``x W' + (b - c W')`` loses the digits ``(x - c)`` keeps where a feature's centre is large against
-    its spread; :func:`virtsensor.model.export.export_pipeline` falls back to it when the full fold is less
-    exact than the unfolded graph."""
+    ``fold_centre``: fold the scaler's centre into the bias too (True), keep it as a ``Sub`` (False), or decide by
+    :func:`fold_amplification` against :data:`MAX_FOLD_AMPLIFICATION` (None, the default).
+
+    Raises:
+        onnx.checker.ValidationError: the rewritten graph fails the ONNX checker (full shape inference): a bug
+            here, never a property of the model (the caller keeps its unrewritten copy).
+    """
     import onnx
 
-    done: list[str] = []
     g = model.graph
+    if len(g.input) != 1 or len(g.output) != 1:
+        return []
+    done: list[str] = []
     done += _drop_identity_casts(g)
-    if _fold_scaler(g, keep_centre):
-        done.append("fold_scale" if keep_centre else "fold_scaler")
-    done += _matmul_add_to_gemm(g)
+    folded = _fold_scaler(g, fold_centre)
+    if folded:
+        done.append(folded)
+    done += _matmul_add_to_gemm(model)
     if _drop_final_reshape(g):
         done.append("drop_reshape")
     _drop_unused_initializers(g)
@@ -63,11 +75,28 @@ def lean_graph(model: Any, *, keep_centre: bool = False) -> list[str]:
     return done
 
 
+def fold_amplification(d: np.ndarray, W: np.ndarray, b: np.ndarray) -> float:
+    """How much folding a scaler's centre into the bias grows the first layer's rounding error, for the scaler
+    ``y = x * a + d`` (per feature) before ``y W + b``: the largest, over the layer's units ``j``, of
+    ``(sum_i (|d_i| + 1) |W_ij| + |b_j + (d W)_j|) / (sum_i |W_ij| + |b_j|)``: the magnitudes the folded layer
+    sums (``x a`` within one spread of ``-d``, and the folded bias) over those the centred one sums (scaled
+    inputs of about one, and the bias). 1 when nothing is centred (``d = 0``)."""
+    W64 = np.asarray(W, np.float64)
+    d64 = np.asarray(d, np.float64).reshape(-1)
+    b64 = np.asarray(b, np.float64).reshape(-1)
+    aW = np.abs(W64)
+    folded = ((np.abs(d64) + 1.0)[:, None] * aW).sum(0) + np.abs(b64 + d64 @ W64)
+    centred = aW.sum(0) + np.abs(b64)
+    return float(np.max(folded / np.maximum(centred, np.finfo(np.float64).tiny)))
+
+
 def _consumers(g: Any, name: str) -> list[Any]:
+    """The nodes that read tensor ``name``."""
     return [n for n in g.node if name in n.input]
 
 
 def _init(g: Any, name: str) -> np.ndarray | None:
+    """Initializer ``name`` as an array (None: no such initializer)."""
     from onnx import numpy_helper
 
     for i in g.initializer:
@@ -77,6 +106,7 @@ def _init(g: Any, name: str) -> np.ndarray | None:
 
 
 def _set_init(g: Any, name: str, value: np.ndarray) -> None:
+    """Set (replace or add) initializer ``name``."""
     from onnx import numpy_helper
 
     for i in g.initializer:
@@ -87,6 +117,7 @@ def _set_init(g: Any, name: str, value: np.ndarray) -> None:
 
 
 def _fresh(g: Any, base: str) -> str:
+    """A tensor or node name starting with ``base`` that the graph does not use yet."""
     taken = {v for n in g.node for v in (*n.input, *n.output)} | {i.name for i in g.initializer}
     k, name = 0, base
     while name in taken:
@@ -171,16 +202,19 @@ def _affine_step(g: Any, n: Any, src: str, a: np.ndarray, d: np.ndarray) -> bool
     return True
 
 
-def _fold_scaler(g: Any, keep_centre: bool) -> bool:
+def _fold_scaler(g: Any, fold_centre: bool | None) -> str | None:
     """Fold the element-wise affine chain on the graph input (an ``ai.onnx.ml`` ``Scaler``, or ``Sub``/``Div``/
     ``Mul``/``Add`` by constants, as skl2onnx writes the Robust, Standard and MinMax scalers; an identity
     ``Cast`` already dropped) into the ``MatMul`` + ``Add`` that alone reads its end: with ``y = x * a + d``,
-    ``y W + b = x (a[:, None] * W) + (b + d W)``; ``keep_centre``: ``y W + b = (x - c) (a[:, None] * W) + b``
-    with ``c = -d / a``, one ``Sub`` kept."""
+    ``y W + b = x (a[:, None] * W) + (b + d W)`` (``fold_scaler``); or, the centre kept (``fold_centre`` False, or
+    None and :func:`fold_amplification` above :data:`MAX_FOLD_AMPLIFICATION`), ``y W + b = (x - c) (a[:, None] *
+    W) + b`` with ``c = -d / a``, one ``Sub`` (``fold_scale``). Returns the rewrite's name, None when there is no
+    such chain (or one of its tensors is a graph output or read twice)."""
     inp = g.input[0]
     dtype = _FLOAT_TYPES.get(int(inp.type.tensor_type.elem_type))
     if dtype is None:
-        return False
+        return None
+    outputs = {v.name for v in g.output}
     chain: list[Any] = []
     src, nxt = inp.name, _consumers(g, inp.name)
     a = d = None
@@ -189,27 +223,30 @@ def _fold_scaler(g: Any, keep_centre: bool) -> bool:
         if a is None or d is None:
             n_in = _first_matmul_rows(g)
             if n_in is None:
-                return False
+                return None
             a, d = np.ones(n_in), np.zeros(n_in)
-        if not _affine_step(g, n, src, a, d):
-            return False
+        if n.output[0] in outputs or not _affine_step(g, n, src, a, d):
+            return None
         chain.append(n)
         src, nxt = n.output[0], _consumers(g, n.output[0])
     if not chain or a is None or d is None or len(nxt) != 1:
-        return False
+        return None
     mm = nxt[0]
     W = _init(g, mm.input[1])
     adds = _consumers(g, mm.output[0])
     if (mm.input[0] != src or W is None or W.ndim != 2 or W.dtype != dtype or W.shape[0] != a.size
-            or len(_consumers(g, mm.input[1])) != 1 or len(adds) != 1 or adds[0].op_type != "Add"):
-        return False
+            or len(_consumers(g, mm.input[1])) != 1 or len(adds) != 1 or adds[0].op_type != "Add"
+            or mm.output[0] in outputs):
+        return None
     add = adds[0]
     b_name = add.input[1] if add.input[0] == mm.output[0] else add.input[0]
     b = _init(g, b_name)
     if b is None or b.size != W.shape[1] or len(_consumers(g, b_name)) != 1:
-        return False
+        return None
     W64, b64 = W.astype(np.float64), b.astype(np.float64).reshape(-1)
-    if keep_centre:  # x * a + d = (x - c) * a with c = -d / a: the centring stays a Sub, a folds into W
+    if fold_centre is None:
+        fold_centre = fold_amplification(d, W64, b64) <= MAX_FOLD_AMPLIFICATION
+    if not fold_centre:  # x * a + d = (x - c) * a with c = -d / a: the centring stays a Sub, a folds into W
         live = a != 0.0
         c = np.where(live, -d / np.where(live, a, 1.0), 0.0)
         b64 = b64 + np.where(live, 0.0, d) @ W64
@@ -225,10 +262,11 @@ def _fold_scaler(g: Any, keep_centre: bool) -> bool:
     _set_init(g, b_name, b64.reshape(b.shape).astype(dtype))
     for n in chain:
         g.node.remove(n)
-    return True
+    return "fold_scaler" if fold_centre else "fold_scale"
 
 
 def _sub_node(x: str, c: str, out: str) -> Any:
+    """``out = x - c``."""
     from onnx import helper
 
     return helper.make_node("Sub", [x, c], [out], name=out)
@@ -241,14 +279,20 @@ def _first_matmul_rows(g: Any) -> int | None:
     return None if W is None or W.ndim != 2 else int(W.shape[0])
 
 
-def _matmul_add_to_gemm(g: Any) -> list[str]:
-    """Each ``MatMul(X, W)`` (W a 2-D initializer) whose only consumer is ``Add`` of a 1-D bias initializer
-    becomes ``Gemm(X, W, b)`` writing the ``Add``'s output."""
+def _matmul_add_to_gemm(model: Any) -> list[str]:
+    """Each ``MatMul(X, W)`` (``X`` of rank 2 by ONNX shape inference, ``W`` a 2-D initializer) whose only
+    consumer is ``Add`` of a bias initializer (``[n]`` or ``[1, n]``, read by nothing else) becomes ``Gemm(X, W,
+    b)`` writing the ``Add``'s output."""
+    import onnx
     from onnx import helper
 
+    g = model.graph
+    inferred = onnx.shape_inference.infer_shapes(model).graph
+    rank = {v.name: len(v.type.tensor_type.shape.dim) for v in (*inferred.input, *inferred.value_info)
+            if v.type.tensor_type.HasField("shape")}
     out: list[str] = []
     for mm in list(g.node):
-        if mm.op_type != "MatMul" or mm.domain not in ("", "ai.onnx"):
+        if mm.op_type != "MatMul" or mm.domain not in ("", "ai.onnx") or rank.get(mm.input[0]) != 2:
             continue
         W = _init(g, mm.input[1])
         adds = _consumers(g, mm.output[0])
@@ -292,6 +336,7 @@ def _drop_final_reshape(g: Any) -> bool:
 
 
 def _drop_unused_initializers(g: Any) -> None:
+    """Remove the initializers no node reads (the scaler's constants, the final Reshape's shape)."""
     used = {v for n in g.node for v in n.input}
     for i in list(g.initializer):
         if i.name not in used:
