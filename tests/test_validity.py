@@ -184,12 +184,9 @@ def test_implausible_input_is_bad_not_stale():
 # the catalogue's checks as the daemon builds them, on the 12 inputs in catalogue order
 def _catalogue_rules():
     from virtsensor import signals as cat
-    from virtsensor.daemon.layout import InputLayout
+    from virtsensor.daemon.layout import plausibility_rules
 
-    class _Inputs:
-        signals = cat.INPUTS
-
-    return cat, {r.name: r for r in InputLayout.plausibility_rules(_Inputs)}  # type: ignore[arg-type]
+    return cat, {r.name: r for r in plausibility_rules(cat.INPUTS)}
 
 
 def _row(cat, **values) -> list[float]:
@@ -254,8 +251,11 @@ def test_assist_torque_against_the_boost_curve():
     assert p.implausible[i_as] and p.failing == [True]
     q = Plausibility([rule], 12)
     for k in range(100):  # the same torques while the wheel turns fast (EPAS damping, back-EMF): not judged
-        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, steer_angle_rad=0.05 * (k % 2)))
-        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, ax_mps2=-7.0))  # locked wheels
+        steer = 0.05 * (k % 2)  # (1 rad/s back and forth, every tick)
+        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, steer_angle_rad=steer))
+        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, steer_angle_rad=steer,
+                      ax_mps2=-7.0))  # locked wheels
+        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=0.3, assist_torque_nm=5.0, steer_angle_rad=steer))  # < 3 Nm
     assert not any(q.implausible)
 
 
@@ -291,33 +291,30 @@ def test_the_catalogue_car_facts_are_the_simulated_car_s():
 
 def _reference_update(rules, state, values, stale, prev):
     """The checks' semantics as written in PlausibilityRule's docstring, interpreted rule by rule (an oracle for
-    the generated code). ``state`` = (failing, run); returns (newly failed, new, implausible)."""
-    from virtsensor.daemon.validity import _boost
+    the generated code; ``judge`` interprets one tick). ``state`` = (failing, run, window rings); returns (newly
+    failed, new, implausible)."""
+    from virtsensor.daemon.validity import judge
 
-    failing, run = state
+    failing, run, rings = state
     new, n_new = [False] * len(rules), 0
     for k, r in enumerate(rules):
-        judged = not any(stale[i] for i in (r.subject, *r.refs))
-        judged = judged and all(abs(values[i] - prev[i]) <= step for i, step in r.steady)
-        judged = judged and all(abs(values[i]) <= bound for i, bound in r.within)
-        judged = judged and all(values[i] >= bound for i, bound in r.above)
-        if judged and r.turn is not None:
-            yaw, vx, steer, kk, min_yaw, lo, hi = r.turn
-            rk = kk * values[vx] * values[steer]
-            judged = abs(rk) >= min_yaw and values[yaw] * rk > 0 and lo * abs(rk) <= abs(values[yaw]) <= hi * abs(rk)
-        if r.relation == "product":
-            e = r.scale * math.prod(values[i] for i in r.refs)
-        elif r.relation == "boost":
-            e = _boost(r.boost, values[r.refs[0]], values[r.refs[1]])
-        elif r.relation == "ratio":
-            e = r.scale * values[r.refs[0]] / values[r.refs[1]] if judged else math.nan
-        else:
-            e = r.scale * sum(values[i] for i in r.refs) / len(r.refs)
-        if not judged or abs(e) > r.max_expected:
+        judged, residual, tolerance = judge(r, values, prev, stale)
+        if r.window:
+            if not judged:
+                continue
+            rings[k].append(residual > tolerance)  # (a NaN residual passes)
+            del rings[k][:-r.window]
+            run[k] = sum(rings[k])
+            if failing[k] and len(rings[k]) - run[k] + (r.window - len(rings[k])) >= r.debounce:
+                failing[k] = False
+            elif not failing[k] and run[k] >= r.debounce:
+                failing[k] = new[k] = True
+                n_new += 1
+            continue
+        if not judged:
             run[k] = 0
             continue
-        v = values[r.subject]
-        ok = not abs(v - e) > r.tol_abs + r.tol_rel * abs(v)
+        ok = not residual > tolerance
         if ok == failing[k]:
             run[k] += 1
             if run[k] >= r.debounce:
@@ -325,37 +322,37 @@ def _reference_update(rules, state, values, stale, prev):
                 n_new += not ok
         else:
             run[k] = 0
-    imp = [any(failing[k] for k, r in enumerate(rules) if r.subject == i) for i in range(len(values))]
+    imp = [any(failing[k] for k, r in enumerate(rules) if i in (r.subject, r.minus)) for i in range(len(values))]
     return n_new, new, imp
 
 
 def test_generated_checks_match_the_rules_semantics_on_random_sequences():
     from virtsensor.daemon.validity import _boost
 
-    cat, by_name = _catalogue_rules()
+    cat, names, by_name = _check_rows()
     rules = list(by_name.values())
-    assert {r.relation for r in rules} == {"mean", "product", "ratio", "boost"} and any(r.turn for r in rules)
-    assert any(r.above for r in rules)
+    assert {r.relation for r in rules} == {"mean", "product", "ratio", "boost"}
+    assert any(r.turn for r in rules) and any(r.above for r in rules)
     rng = np.random.default_rng(15)
-    p = Plausibility(rules, len(cat.INPUTS))
-    state = ([False] * len(rules), [0] * len(rules))
-    prev = [math.nan] * len(cat.INPUTS)
+    p = Plausibility(rules, len(names))
+    state = ([False] * len(rules), [0] * len(rules), [[] for _ in rules])
+    prev = [math.nan] * len(names)
     turn = by_name["ay_vs_yaw_rate_times_speed"].turn
     yaw = turn[3] * 20.0 * 0.2  # a steady turn at the kinematic yaw rate
-    base = np.array(_row(cat, ay_mps2=yaw * 20.0, yaw_rate_radps=yaw, steer_angle_rad=0.2, steer_torque_nm=2.0,
-                         assist_torque_nm=_boost(by_name["assist_vs_boosted_steer_torque"].boost, 2.0, 20.0)))
-    straight = np.array(_row(cat, ay_mps2=0.0, yaw_rate_radps=0.0, steer_angle_rad=0.0, steer_torque_nm=2.0,
-                             assist_torque_nm=_boost(by_name["assist_vs_boosted_steer_torque"].boost, 2.0, 20.0)))
-    names = list(cat.INPUTS)
+    boost = _boost(by_name["assist_vs_boosted_steer_torque"].boost, 2.0, 20.0)
+    base = np.array(_full_row(cat, names, yaw=yaw, vx=20.0, steer_angle_rad=0.2, steer_torque_nm=2.0,
+                              assist_torque_nm=boost))
+    straight = np.array(_full_row(cat, names, yaw=0.0, vx=20.0, steer_torque_nm=2.0, assist_torque_nm=boost))
+    broken_by_stretch = (("vx_mps", 8.0), ("ay_mps2", 4.0), ("assist_torque_nm", 10.0), ("steer_angle_rad", 0.6))
     failed = [0] * len(rules)
-    for tick in range(4800):
-        # steady driving with small noise (turning, or straight in every fourth stretch); stretches where one
-        # redundancy breaks, some unsteady ticks, NaNs
-        phase, stretch = tick % 400, (tick // 400) % 4
+    for tick in range(400 * len(broken_by_stretch) * 2):
+        # steady driving with small noise (turning, or straight in one stretch in six); stretches where one
+        # redundancy breaks, some unsteady ticks, NaNs, stale signals
+        phase, stretch = tick % 400, (tick // 400) % len(broken_by_stretch)
         row = (straight if stretch == 3 else base) * (1.0 + rng.normal(0.0, 0.005, len(base)))
         if 100 <= phase < 200:
-            broken = ("vx_mps", "ay_mps2", "assist_torque_nm", "steer_angle_rad")[stretch]
-            row[names.index(broken)] += (8.0, 4.0, 10.0, 0.6)[stretch]
+            broken, by = broken_by_stretch[stretch]
+            row[names.index(broken)] += by
         if rng.random() < 0.02:
             row[rng.integers(len(row))] *= 3.0
         if rng.random() < 0.01:
@@ -368,3 +365,81 @@ def test_generated_checks_match_the_rules_semantics_on_random_sequences():
         assert (got, p.new, p.implausible, p.failing, p._run) == (want, new, imp, state[0], state[1]), tick
         failed = [a + b for a, b in zip(failed, p.new, strict=True)]
     assert all(failed), failed  # the sequence made every check fail
+
+
+# ------------------------------------------------------------------------------ windowed debounce, check references
+def test_windowed_debounce_counts_failures_over_judged_ticks_and_ignores_unjudged_ones():
+    """8 of the last 10 judged ticks: an unjudged tick (the steadiness gate) neither counts nor restarts, so
+    failures scattered through transient driving reach the verdict; a consecutive count never would."""
+    windowed = PlausibilityRule("w", subject=0, refs=(1,), scale=1.0, tol_abs=1.0, tol_rel=0.0, debounce=8,
+                                window=10, steady=((2, 0.1),))
+    consecutive = PlausibilityRule("c", subject=0, refs=(1,), scale=1.0, tol_abs=1.0, tol_rel=0.0, debounce=8,
+                                   steady=((2, 0.1),))
+    p, q = Plausibility([windowed], 3), Plausibility([consecutive], 3)
+    seen = []
+    for k in range(15):  # the gate signal steps every second tick: failing ticks judged and unjudged in turn
+        row = [5.0, 0.0, float((k // 2) % 2)]
+        q.update(row)
+        seen.append(p.update(row))
+    assert seen.count(1) == 0 and not p.failing[0]  # 7 judged failures (ticks 1, 3, ..., 13)
+    q.update([5.0, 0.0, 1.0])
+    assert p.update([5.0, 0.0, 1.0]) == 1 and p.failing == [True] and p.implausible == [True, False, False]
+    assert not q.failing[0]  # the consecutive count restarted at every unjudged tick
+    for _ in range(5):  # passing judged ticks: cleared once 8 of the last 10 passed
+        p.update([0.5, 0.0, 1.0])
+    assert p.failing == [True]
+    for _ in range(3):
+        p.update([0.5, 0.0, 1.0])
+    assert p.failing == [False]
+
+
+def _check_rows():
+    """The catalogue's checks on the 12 inputs and the check references (the daemon's decoded signals)."""
+    from virtsensor import signals as cat
+    from virtsensor.canbus.codec import CanMatrix
+    from virtsensor.daemon.layout import check_references, plausibility_rules
+
+    names = cat.INPUTS + check_references(cat.INPUTS, CanMatrix.load())
+    return cat, names, {r.name: r for r in plausibility_rules(names)}
+
+
+def _full_row(cat, names, yaw=0.1, vx=15.0, ax=0.2, roll=0.0, **values) -> list[float]:
+    """A steady turn at yaw rate ``yaw`` (rad/s) and ``vx`` (m/s), the rear wheels rolling apart by the yaw rate
+    and the body rolled by ``roll`` (rad), every catalogue check holding."""
+    w = vx / cat.ROLLING_RADIUS_M
+    half = yaw * cat.TRACK_REAR_M / 2.0 / cat.ROLLING_RADIUS_M
+    base = dict(ax_mps2=ax, ay_mps2=yaw * vx, vx_mps=vx, yaw_rate_radps=yaw, steer_angle_rad=0.0,
+                steer_torque_nm=0.0, assist_torque_nm=0.0, motor_torque_nm=15.0,
+                susp_defl_fl_m=-roll * cat.TRACK_FRONT_M / 2, susp_defl_fr_m=roll * cat.TRACK_FRONT_M / 2,
+                wheel_speed_fl_radps=w, wheel_speed_fr_radps=w, wheel_speed_rl_radps=w - half,
+                wheel_speed_rr_radps=w + half, susp_defl_rl_m=-roll * cat.TRACK_REAR_M / 2,
+                susp_defl_rr_m=roll * cat.TRACK_REAR_M / 2)
+    base.update(values)
+    return [base[n] for n in names]
+
+
+def test_a_stale_check_reference_never_changes_the_status_and_clears_only_its_own_message_bit():
+    """Signals 0-2 are the model's (as RULES); 3 is a check reference in message 1 (which carries model inputs),
+    4 one in message 2 (its own message, health bit 4)."""
+    rules = ValidityRules(sig_msg=(0, 1, 1, 1, 2), sig_timeout=(0.03, 0.06, 0.06, 0.06, 0.06), sig_hist=(2, 0, 0),
+                          critical=(True, False, True), sig_bit=(1, 2, 2, 0, 4), msg_timeout=(0.03, 0.06, 0.06),
+                          bitmap_msgs=((0, 1), (1, 2), (2, 4)))
+    st = ValidityState(5)
+    status, bitmap = assess_inputs(T, [T] * 5, [False] * 5, [T, T, T], [False] * 3, [True] * 3, rules, st)
+    assert status == VALID and bitmap == 7 and not any(st.bad)
+    status, bitmap = assess_inputs(T, [T, T, T, T, -math.inf], [False, False, False, True, False],
+                                   [T, T, -math.inf], [False] * 3, [True] * 3, rules, st)
+    assert status == VALID and st.stale == [False, False, False, True, True] and bitmap == 3
+    status, _ = assess_inputs(T, [T] * 5, [False] * 5, [T, T, T], [False, False, True], [True] * 3, rules, st)
+    assert status == VALID and st.bad[4] and not st.stale[4]  # an E2E error: bad, not stale
+
+
+def test_the_catalogue_tracks_are_the_simulated_car_s():
+    from pathlib import Path
+
+    import tomllib
+
+    from virtsensor import signals as cat
+
+    car = tomllib.loads((Path(__file__).resolve().parents[1] / "sim/data/car_c_segment.toml").read_text())
+    assert (cat.TRACK_FRONT_M, cat.TRACK_REAR_M) == (car["vehicle"]["track_front_m"], car["vehicle"]["track_rear_m"])

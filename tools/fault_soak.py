@@ -21,6 +21,10 @@ A VALID tick (either wheel) on a dead or implausible input is a violation. Also 
 daemon's ``tick_errors``) and crashes (an exception out of ``process`` or ``tick``). The daemon may be
 stricter than the oracle (INVALID after a fault's end while it recovers): that is not checked.
 
+The faults also hit the checks' references (signals the daemon reads for its plausibility checks alone, such as
+the rear wheel speeds): a dead reference is not a dead input (the estimate may stay VALID, its checks are then not
+judged), and the figures give the VALID share of the ticks on which only a reference is dead.
+
     python tools/fault_soak.py --minutes 30 --seed 1 --json soak.json
     python tools/fault_soak.py --tables data/paper      # the checks over simulated runs: how often each trips
 """
@@ -75,7 +79,8 @@ FAULTS = {
 class Stream:
     """The frames, in arrival order once :meth:`order` ran. ``true_t``: when sent; ``arrival``: when the
     daemon gets it; ``stamp``: its timestamp; ``alive``: genuine, intact content; ``flagged``: an SNA or
-    out-of-range input; ``vx_fault``: falsified vehicle speed."""
+    out-of-range input; ``ref_flagged``: an SNA or out-of-range check reference (a signal only the plausibility
+    checks read); ``vx_fault``: falsified vehicle speed."""
 
     true_t: np.ndarray
     arrival: np.ndarray
@@ -85,17 +90,19 @@ class Stream:
     dlc: np.ndarray
     alive: np.ndarray = field(init=False)
     flagged: np.ndarray = field(init=False)
+    ref_flagged: np.ndarray = field(init=False)
     vx_fault: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         n = self.true_t.size
         self.alive = np.ones(n, bool)
         self.flagged = np.zeros(n, bool)
+        self.ref_flagged = np.zeros(n, bool)
         self.vx_fault = np.zeros(n, bool)
 
     def append(self, rows: np.ndarray, arrival: np.ndarray, stamp: np.ndarray, alive: bool) -> None:
         """Add copies of frames ``rows`` (duplicates) with their own arrival and stamp."""
-        for name in ("true_t", "fid", "data", "dlc", "flagged", "vx_fault"):
+        for name in ("true_t", "fid", "data", "dlc", "flagged", "ref_flagged", "vx_fault"):
             setattr(self, name, np.concatenate([getattr(self, name), getattr(self, name)[rows]]))
         self.arrival = np.concatenate([self.arrival, arrival])
         self.stamp = np.concatenate([self.stamp, stamp])
@@ -103,7 +110,8 @@ class Stream:
 
     def order(self) -> None:
         o = np.argsort(self.arrival, kind="stable")
-        for name in ("true_t", "arrival", "stamp", "fid", "data", "dlc", "alive", "flagged", "vx_fault"):
+        for name in ("true_t", "arrival", "stamp", "fid", "data", "dlc", "alive", "flagged", "ref_flagged",
+                     "vx_fault"):
             setattr(self, name, getattr(self, name)[o])
 
 
@@ -186,12 +194,15 @@ def _get_raw(data: np.ndarray, row: int, sig: Any) -> int:
 
 
 class Injector:
-    """Draws and applies the faults of :data:`FAULTS` one after another (seeded); ``log`` lists them."""
+    """Draws and applies the faults of :data:`FAULTS` one after another (seeded) to the messages of the model's
+    ``inputs`` and of the checks' references ``refs``; ``log`` lists them."""
 
-    def __init__(self, s: Stream, matrix: CanMatrix, inputs: tuple[str, ...], rng: np.random.Generator) -> None:
+    def __init__(self, s: Stream, matrix: CanMatrix, inputs: tuple[str, ...], rng: np.random.Generator,
+                 refs: tuple[str, ...] = ()) -> None:
         self.s, self.matrix, self.rng = s, matrix, rng
         self.inputs = inputs  # model input signals
-        self.messages = sorted({matrix.messages[matrix.message_of(x)].frame_id for x in inputs})
+        self.refs = refs  # the check references (read by the plausibility checks alone)
+        self.messages = sorted({matrix.messages[matrix.message_of(x)].frame_id for x in inputs + refs})
         self.log: list[dict[str, Any]] = []
 
     def rows(self, fid: int | None, a: float, b: float) -> np.ndarray:
@@ -258,7 +269,7 @@ class Injector:
 
     def _bad_value(self, kind: str, a: float) -> float:
         rng, s, mx = self.rng, self.s, self.matrix
-        name = str(rng.choice(self.inputs))
+        name = str(rng.choice(self.inputs + self.refs))
         mc = mx.messages[mx.message_of(name)]
         sig = next(x for x in mc.signals if x.catalogue == name)
         d = float(rng.uniform(0.05, 2.0))
@@ -267,8 +278,11 @@ class Injector:
         for i in r:
             _set_raw(s.data, int(i), sig, int(raw))
         self._recrc(r)
-        s.alive[r] = False
-        s.flagged[r] = True
+        if name in self.inputs:
+            s.alive[r] = False
+            s.flagged[r] = True
+        else:  # (a check reference's bad value leaves the message's inputs alive)
+            s.ref_flagged[r] = True
         return a + d
 
     def _recrc(self, r: np.ndarray) -> None:
@@ -295,10 +309,11 @@ class Injector:
 
 
 def inject_faults(s: Stream, matrix: CanMatrix, inputs: tuple[str, ...], end: float, seed: int,
-                  warmup_s: float = 5.0) -> list[dict[str, Any]]:
-    """Faults of random kinds, one after another from ``warmup_s`` with 1-5 s between them; the log of them."""
+                  warmup_s: float = 5.0, refs: tuple[str, ...] = ()) -> list[dict[str, Any]]:
+    """Faults of random kinds, one after another from ``warmup_s`` with 1-5 s between them, on the messages of
+    ``inputs`` and of the check references ``refs``; the log of them."""
     rng = np.random.default_rng(seed)
-    inj = Injector(s, matrix, inputs, rng)
+    inj = Injector(s, matrix, inputs, rng, refs)
     kinds = sorted(FAULTS)
     t = warmup_s
     while True:
@@ -328,18 +343,39 @@ def _values(s: Stream, matrix: CanMatrix, name: str, frames: np.ndarray) -> np.n
     return np.where(frames >= 0, (raw * sig.scale + sig.offset) / sig.si_factor, np.nan)
 
 
-def oracle(s: Stream, matrix: CanMatrix, inputs: tuple[str, ...], ticks: np.ndarray,
-           timeout_cycles: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per tick: some input message is dead; the vehicle speed is implausible (see the module docstring)."""
+def _dead(s: Stream, matrix: CanMatrix, fids: list[int], ticks: np.ndarray, timeout_cycles: float | None,
+          flagged: np.ndarray) -> np.ndarray:
+    """Per tick: one of messages ``fids`` has had no genuine frame within its timeout (not judged when
+    ``timeout_cycles`` is None), or its latest frame is ``flagged``."""
     dead = np.zeros(ticks.size, bool)
-    for fid in sorted({matrix.messages[matrix.message_of(x)].frame_id for x in inputs}):
+    for fid in fids:
         mc = matrix.by_id[fid]
         rows = np.flatnonzero((s.fid == fid) & np.isfinite(s.arrival))
         alive_t = np.maximum.accumulate(np.where(s.alive[rows], s.true_t[rows], -np.inf))
         k = np.searchsorted(s.arrival[rows], ticks, side="right") - 1
         latest = np.where(k >= 0, alive_t[np.maximum(k, 0)], -np.inf)
-        dead |= latest < ticks - timeout_cycles * mc.cycle_s - 1e-4
-        dead |= (k >= 0) & s.flagged[rows[np.maximum(k, 0)]]
+        if timeout_cycles is not None:
+            dead |= latest < ticks - timeout_cycles * mc.cycle_s - 1e-4
+        dead |= (k >= 0) & flagged[rows[np.maximum(k, 0)]]
+    return dead
+
+
+def reference_dead(s: Stream, matrix: CanMatrix, inputs: tuple[str, ...], refs: tuple[str, ...],
+                   ticks: np.ndarray, timeout_cycles: float) -> np.ndarray:
+    """Per tick: a check reference is dead (its own message dead, or an SNA or out-of-range reference in its
+    message's latest frame), which must leave the estimate's status as it is."""
+    model = {matrix.messages[matrix.message_of(x)].frame_id for x in inputs}
+    own = sorted({matrix.messages[matrix.message_of(x)].frame_id for x in refs} - model)
+    shared = sorted({matrix.messages[matrix.message_of(x)].frame_id for x in refs} & model)
+    return (_dead(s, matrix, own, ticks, timeout_cycles, s.ref_flagged)
+            | _dead(s, matrix, shared, ticks, None, s.ref_flagged))
+
+
+def oracle(s: Stream, matrix: CanMatrix, inputs: tuple[str, ...], ticks: np.ndarray,
+           timeout_cycles: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per tick: some input message is dead; the vehicle speed is implausible (see the module docstring)."""
+    fids = sorted({matrix.messages[matrix.message_of(x)].frame_id for x in inputs})
+    dead = _dead(s, matrix, fids, ticks, timeout_cycles, s.flagged)
     rule = next(r for r in cat.REDUNDANCIES if r.name == "vx_vs_front_wheel_speed")
     vx_frames = _held(s, matrix.messages[matrix.message_of("vx_mps")].frame_id, ticks)
     faulty = (vx_frames >= 0) & s.vx_fault[np.maximum(vx_frames, 0)]
@@ -450,9 +486,9 @@ def soak(minutes: float, seed: int, model_path: Path = ROOT / "models" / "improv
     matrix = CanMatrix.load()
     model = OnnxModel.load(str(model_path))
     sensor = VirtualSensor(_NullBus(), model, matrix, freeze_gc=False)
-    inputs = tuple(sensor.layout.signals)
+    inputs, refs = tuple(sensor.layout.signals), tuple(sensor.layout.check_signals)
     s, end = build_stream(matrix, minutes, pool, log)
-    faults = inject_faults(s, matrix, inputs, end, seed)
+    faults = inject_faults(s, matrix, inputs, end, seed, refs=refs)
     ticks = np.arange(1, int(round(end / TICK_S)) + 1) * TICK_S + 1e-6
     for f in faults:
         f["_ticks"] = (int(np.searchsorted(ticks, f["t"])), int(np.searchsorted(ticks, f["end"] + 1.0)))
@@ -462,6 +498,7 @@ def soak(minutes: float, seed: int, model_path: Path = ROOT / "models" / "improv
             marks.setdefault(min(k, ticks.size - 1), []).append(j)
             marks.setdefault(max(k - 1, 0), []).append(j)
     dead, implausible = oracle(s, matrix, inputs, ticks, sensor.timeout_cycles)
+    ref_dead = reference_dead(s, matrix, inputs, refs, ticks, sensor.timeout_cycles)
     logger = logging.getLogger("virtsensor.daemon")
     events, old = _Events(), (logger.level, logger.propagate)
     logger.addHandler(events)
@@ -491,38 +528,79 @@ def soak(minutes: float, seed: int, model_path: Path = ROOT / "models" / "improv
         "tick_errors": int(sensor.counters["tick_errors"]), "crashes": res["crashes"],
         "first_crash": res["first_crash"],
         "valid_share_of_other_ticks": round(float(valid[clean].mean()), 4) if clean.any() else None,
+        "check_references": list(refs),
+        "reference_dead_ticks": int((ref_dead & clean).sum()),
+        "valid_share_of_reference_dead_ticks": (round(float(valid[ref_dead & clean].mean()), 4)
+                                                if (ref_dead & clean).any() else None),
         "counters": {k: v for k, v in sensor.counters.items() if v}, "log_events": dict(events.counts),
         "drive_wall_s": round(wall, 2),
         "fault_matrix": _observed_matrix(faults, ticks, st, res["snapshots"], forbidden),
     }
 
 
+def _table_with_references(path: Path, refs: tuple[str, ...]) -> tuple[dict[str, np.ndarray], tuple[str, ...]]:
+    """A recording's 20 Hz table with the inputs and those of the check references ``refs`` it has (a CAN log
+    decoded with them; a table's own columns); the references it lacks."""
+    from virtsensor.errors import UserError
+    from virtsensor.recordings.canlog import read_log
+    from virtsensor.recordings.files import LOG_SUFFIXES, read_table
+
+    if path.suffix.lower() in LOG_SUFFIXES:
+        try:
+            return dict(read_log(path, signals=cat.INPUTS + refs).table), ()
+        except UserError as exc:  # (a log without them: read as the daemon reads it, the checks unjudged)
+            if "never received" not in str(exc):
+                raise
+    table = read_table(path)
+    return table, tuple(n for n in refs if n not in table)
+
+
 def plausibility_trips(paths: list[Path]) -> dict[str, Any]:
-    """The catalogue's plausibility checks, as the daemon runs them (:class:`Plausibility` on the 12 inputs, one
-    20 Hz row per tick), over the 20 Hz tables of recordings: how often each check failed, and where."""
-    from virtsensor.daemon.layout import InputLayout
-    from virtsensor.daemon.validity import Plausibility
-    from virtsensor.recordings.files import read_table, recording_files
+    """The catalogue's plausibility checks, as the daemon runs them (:class:`Plausibility` on the 12 inputs and
+    the checks' references, one 20 Hz row per tick; a reference that is NaN, or missing from a recording, is
+    stale there: its checks are not judged), over the 20 Hz tables of recordings: how often each check failed,
+    and where; per check, its judged ticks and its largest residual against its tolerance."""
+    from virtsensor.daemon.layout import check_references, plausibility_rules
+    from virtsensor.daemon.validity import Plausibility, judge
+    from virtsensor.recordings.files import recording_files
 
-    class _Inputs:
-        signals = cat.INPUTS
-
-    rules = InputLayout.plausibility_rules(_Inputs)  # type: ignore[arg-type]
+    refs = check_references(cat.INPUTS, CanMatrix.load())
+    names = cat.INPUTS + refs
+    rules = plausibility_rules(names)
     trips: Counter[str] = Counter()
     where: list[str] = []
+    judged = [0] * len(rules)
+    worst: list[dict[str, Any]] = [{"residual": 0.0, "tolerance": math.nan, "ratio": 0.0, "at": None} for _ in rules]
+    lacking: Counter[str] = Counter()
     runs = rows = 0
     for src in recording_files(paths):
-        table = read_table(src.path)
-        p = Plausibility(rules, len(cat.INPUTS))
-        for row in np.column_stack([table[n] for n in cat.INPUTS]).tolist():
-            if p.update(row):
-                for k, r in enumerate(rules):
-                    if p.new[k]:
+        table, missing = _table_with_references(src.path, refs)
+        lacking.update(missing)
+        cols = [np.asarray(table[n], np.float64) if n in table else np.full(len(table["time_s"]), np.nan)
+                for n in names]
+        values = np.column_stack(cols)
+        stale_rows = np.isnan(values) & (np.arange(len(names)) >= len(cat.INPUTS))
+        p = Plausibility(rules, len(names))
+        prev = [math.nan] * len(names)
+        for k, (row, stale) in enumerate(zip(values.tolist(), stale_rows.tolist(), strict=True)):
+            for c, r in enumerate(rules):
+                ok, res, tol = judge(r, row, prev, stale)
+                judged[c] += ok
+                if ok and res / tol > worst[c]["ratio"]:
+                    worst[c] = {"residual": round(res, 4), "tolerance": round(tol, 4), "ratio": round(res / tol, 3),
+                                "at": f"{src.path.name} t={float(table['time_s'][k]):.2f}"}
+            prev = row
+            if p.update(row, stale):
+                for c, r in enumerate(rules):
+                    if p.new[c]:
                         trips[r.name] += 1
                         where.append(f"{src.path.name}: {r.name}")
         runs += 1
         rows += len(table["time_s"])
-    return {"runs": runs, "rows": rows, "trips": {r.name: trips[r.name] for r in rules}, "where": where[:20]}
+    return {"runs": runs, "rows": rows, "trips": {r.name: trips[r.name] for r in rules}, "where": where[:20],
+            "judged_ticks": {r.name: judged[c] for c, r in enumerate(rules)},
+            "largest_residual": {r.name: worst[c] for c, r in enumerate(rules)},
+            "runs_lacking_reference": dict(lacking)}
 
 
 def main(argv: list[str] | None = None) -> int:

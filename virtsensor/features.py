@@ -138,7 +138,8 @@ class FeatureBuilder:
     """The online path of a :class:`FeatureSpec`: one vector per tick, no array allocation.
 
     ``push(values)`` takes the latest values of :attr:`FeatureSpec.signals` (in that order; a list of
-    floats or a 1-D array) at a tick and returns the feature vector as a list of Python floats (the
+    floats or a 1-D array; items after them, such as the daemon's check references, are kept in the history
+    rows and never read) at a tick and returns the feature vector as a list of Python floats (the
     daemon's tick then calls numpy only to hand it to the model), or None until enough history exists.
 
     The history is ``depth`` Python lists, newest first, rotated per push; the vector is built by a

@@ -263,20 +263,28 @@ class SteadyTurn:
 
 @dataclass(frozen=True)
 class Redundancy:
-    """A plausibility check between redundant signals: ``subject`` must agree with the value its ``references``
-    predict within ``tolerance_abs + tolerance_rel * |subject|`` (in the subject's unit). The prediction, by
+    """A plausibility check between redundant signals: ``subject`` (or, with ``minus``, the difference
+    ``subject - minus``: both are then under test) must agree with the value its ``references`` predict within
+    ``tolerance_abs + tolerance_rel * |subject| + sum(c * |signal| for signal, c in tolerance_per)`` (in the
+    subject's unit). The prediction, by
     ``relation``: ``"mean"``, ``scale`` times the mean of the references; ``"product"``, ``scale`` times their
     product; ``"ratio"``, ``scale`` times the first over the second (judged only where ``above`` keeps the
-    second away from 0); ``"boost"``, the :class:`BoostCurve` ``boost`` of references ``(torsion-bar torque,
-    speed)``.
+    second away from 0); ``"difference"``, ``scale`` times the first minus the second; ``"boost"``, the
+    :class:`BoostCurve` ``boost`` of references ``(torsion-bar torque, speed)``.
+
+    The subject (and ``minus``) are estimator inputs. A signal a check reads that the model does not (a *check
+    reference*, such as the rear wheel speeds) is read by the daemon for the check alone: when it is stale the
+    check is not judged, and the estimate's status does not change.
 
     A receiver judges the check only on ticks where each ``steady`` signal moved by at most its rate (unit/s)
     since the previous tick, each ``within`` signal is at most its bound in magnitude, each ``above`` signal is at
-    least its bound (signed), the prediction is at most ``max_expected`` in magnitude and, with ``turn``, the car
-    turns with grip (:class:`SteadyTurn`, references ``(yaw rate, vx)`` and the steering angle); other ticks
-    hold the verdict and restart the count. It flags the subject implausible after ``debounce_ticks``
-    consecutive failing judged 20 Hz ticks and clears it after as many passing ones (a skid or a wheel spin of
-    a few ticks is not a fault).
+    least its bound (signed), the prediction is at least ``min_expected`` and at most ``max_expected`` in
+    magnitude and, with ``turn``, the car turns with grip (:class:`SteadyTurn`, references ``(yaw rate, vx)`` and
+    the steering angle). With ``window == 0`` it flags the subject implausible after ``debounce_ticks``
+    consecutive failing judged 20 Hz ticks and clears it after as many passing ones, an unjudged tick holding
+    the verdict and restarting the count (a skid or a wheel spin of a few ticks is not a fault); with
+    ``window > 0``, once ``debounce_ticks`` of the last ``window`` judged ticks failed (cleared once as many
+    passed), unjudged ticks neither counting nor restarting.
 
     Attributes:
         name: the check's name (logs, counters). subject: the signal under test.
@@ -290,13 +298,29 @@ class Redundancy:
     tolerance_abs: float
     tolerance_rel: float
     debounce_ticks: int = 3
-    relation: Literal["mean", "product", "ratio", "boost"] = "mean"
+    relation: Literal["mean", "product", "ratio", "difference", "boost"] = "mean"
     steady: tuple[tuple[str, float], ...] = ()
     within: tuple[tuple[str, float], ...] = ()
     above: tuple[tuple[str, float], ...] = ()
     turn: SteadyTurn | None = None
     boost: BoostCurve | None = None
     max_expected: float = math.inf
+    min_expected: float = 0.0
+    window: int = 0
+    minus: str | None = None
+    tolerance_per: tuple[tuple[str, float], ...] = ()
+
+    @property
+    def subjects(self) -> tuple[str, ...]:
+        """The signals under test: ``subject``, and ``minus`` when set (a failed check marks both implausible)."""
+        return (self.subject,) if self.minus is None else (self.subject, self.minus)
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """Every signal the check reads (compared, steady, bounded and, for a turn, the steering angle), once."""
+        return tuple(dict.fromkeys((*self.subjects, *self.references,
+                                    *(g for g, _ in (*self.steady, *self.within, *self.above, *self.tolerance_per)),
+                                    *(("steer_angle_rad",) if self.turn is not None else ()))))
 
 
 #: Rolling radius (m) the redundancy of vehicle speed and front wheel speeds assumes: the catalogue car's
@@ -309,6 +333,13 @@ EPAS_BOOST = BoostCurve(speeds_mps=(0.0, 8.0, 15.0, 22.0, 30.0, 45.0), gains=(10
                         knee_nm=1.0, max_nm=60.0)
 #: The catalogue car's steering ratio (steering-wheel / mean road-wheel angle) and wheelbase (m).
 STEADY_TURN = SteadyTurn(steer_ratio=14.8, wheelbase_m=2.685)
+#: The catalogue car's front and rear track (m): the lateral distance between an axle's wheel centres.
+TRACK_FRONT_M = 1.55
+TRACK_REAR_M = 1.52
+#: The largest difference of the two rear tyres' rolling radii (a share of the radius) the yaw-rate check allows
+#: for without calling it a fault: a rear tyre 0.6 bar below its partner rolls about 0.9 % smaller (a campaign
+#: draws one wheel in four down by 0.2-0.6 bar); ESCs learn this difference, the daemon does not.
+REAR_RADIUS_MISMATCH = 0.01
 
 #: Plausibility checks between redundant signals on the bus.
 REDUNDANCIES: tuple[Redundancy, ...] = (
@@ -378,8 +409,9 @@ def by_message(message: str) -> tuple[Signal, ...]:
 
 assert len(INPUTS) == 12, INPUTS
 assert OUTPUTS == ("sat_fl_nm", "sat_fr_nm"), OUTPUTS
-assert all(n in SIGNALS for r in REDUNDANCIES
-           for n in (r.subject, *r.references, *(g for g, _ in (*r.steady, *r.within, *r.above)))), REDUNDANCIES
+assert all(n in SIGNALS for r in REDUNDANCIES for n in r.reads), REDUNDANCIES
+assert all(SIGNALS[s].role == "input" for r in REDUNDANCIES for s in r.subjects), REDUNDANCIES
+assert all(0 <= r.window and (r.window == 0 or r.debounce_ticks <= r.window) for r in REDUNDANCIES), REDUNDANCIES
 assert all((r.relation == "boost") == (r.boost is not None) and len(r.references) == 2 or r.relation == "mean"
            for r in REDUNDANCIES), REDUNDANCIES
 assert all(r.relation != "ratio" or any(g == r.references[1] and b > 0 for g, b in r.above)

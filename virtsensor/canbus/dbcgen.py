@@ -221,15 +221,21 @@ def _integer(
 
 def _input_messages() -> tuple[str, ...]:
     """Messages carrying at least one estimator input, in frame-id order, then the optional input messages
-    (:data:`OPTIONAL_INPUT_MESSAGES`): the VS_Health bitmap order."""
+    (:data:`OPTIONAL_INPUT_MESSAGES`), then the check-reference messages (:data:`CHECK_MESSAGES`): the VS_Health
+    bitmap order."""
     names = {cat.SIGNALS[n].message for n in cat.INPUTS}
     ordered = tuple(m.name for m in sorted(cat.MESSAGES.values(), key=lambda m: m.frame_id) if m.name in names)
-    return ordered + OPTIONAL_INPUT_MESSAGES
+    return ordered + OPTIONAL_INPUT_MESSAGES + CHECK_MESSAGES
 
 
 #: Messages some models read (the TPMS model, issue 17), after the inputs' messages in the VS_Health bitmap; a
 #: daemon whose model does not read one leaves its bit at 0.
 OPTIONAL_INPUT_MESSAGES = ("TPMS_Pressures",)
+#: Messages that carry no estimator input but a plausibility check's reference (the rear wheel speeds of the
+#: yaw-rate check), last in the VS_Health bitmap: their bit says the checks that read them are judged; it is 0
+#: while such a message is missing, and the estimate's status does not change for it.
+CHECK_MESSAGES = tuple(sorted({str(cat.SIGNALS[s].message) for r in cat.REDUNDANCIES for s in r.reads
+                               if cat.SIGNALS[s].message is not None} - {cat.SIGNALS[n].message for n in cat.INPUTS}))
 
 
 def _payload_sat_front(rx: tuple[str, ...]) -> list[SignalLayout]:
@@ -267,11 +273,20 @@ def _payload_sat_front(rx: tuple[str, ...]) -> list[SignalLayout]:
     return sigs
 
 
+def _bitmap_text() -> str:
+    """The VS_InputStatus bit order, as its comment states it ("bit 0 IMU_Motion, ...")."""
+    notes = {**dict.fromkeys(OPTIONAL_INPUT_MESSAGES, " (only when the model reads it)"),
+             **dict.fromkeys(CHECK_MESSAGES, " (a plausibility check's reference, no estimator input: 0 = the "
+                                             "checks that read it are not judged; the SAT status is not lowered)")}
+    inputs = _input_messages()
+    assert len(inputs) <= 8, inputs  # (an 8-bit bitmap)
+    return ", ".join(f"bit {i} {m}{notes.get(m, '')}" for i, m in enumerate(inputs))
+
+
 def _payload_vs_health(rx: tuple[str, ...]) -> list[SignalLayout]:
     sigs: list[SignalLayout] = []
     bit = FREE_BIT
-    inputs = _input_messages()
-    bitmap = ", ".join(f"bit {i} {m}" for i, m in enumerate(inputs))
+    bitmap = _bitmap_text()
     sigs.append(
         _integer(
             "VS_TickOverruns",
@@ -303,7 +318,8 @@ def _payload_vs_health(rx: tuple[str, ...]) -> list[SignalLayout]:
             "",
             rx,
             "Input status bitmap, one bit per input message, 1 = received intact "
-            f"(E2E OK) within its timeout: {bitmap} (only when the model reads it); unused bits 0.",
+            f"(E2E OK) within its timeout, in order, and every signal the daemon reads from it usable: {bitmap}; "
+            "unused bits 0.",
         )
     )
     bit += 8

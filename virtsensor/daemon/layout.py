@@ -1,15 +1,16 @@
 """The daemon's input and output layout, read once at start-up from the model card and the DBC.
 
 Which signals the model reads (the card's ``feature_spec``, never code), which are critical (the card's
-``inputs[].critical``, default the catalogue's flag), which messages carry them, their cycle times and
-timeouts, which bit of ``VS_Health.VS_InputStatus`` each message owns (read from that signal's DBC
-comment), and the ``SAT_FRONT`` estimate/status signal pairs per model output.
+``inputs[].critical``, default the catalogue's flag), which other signals the plausibility checks read
+(:func:`check_references`), which messages carry them, their cycle times and timeouts, which bit of
+``VS_Health.VS_InputStatus`` each message owns (read from that signal's DBC comment), and the ``SAT_FRONT``
+estimate/status signal pairs per model output.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,8 +20,8 @@ from virtsensor.daemon.validity import PlausibilityRule, ValidityRules
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 
-__all__ = ["OUTPUT_SIGNALS", "SYNC_ID", "SYNC_OFFSET_S", "InputLayout", "Wheel", "bitmap_order", "read_feature_spec",
-           "sync_frames"]
+__all__ = ["OUTPUT_SIGNALS", "SYNC_ID", "SYNC_OFFSET_S", "InputLayout", "Wheel", "bitmap_order", "check_references",
+           "plausibility_rules", "read_feature_spec", "sync_frames"]
 
 #: Sync frame id of ``demo`` and ``bench`` (standard 11-bit id, not in the DBC; ``run --sync-id`` takes any).
 SYNC_ID = 0x7F0
@@ -99,15 +100,63 @@ def _wheels(model: Any, matrix: CanMatrix) -> tuple[Wheel, ...]:
     return tuple(wheels)
 
 
+def check_references(model_signals: Iterable[str], matrix: CanMatrix) -> tuple[str, ...]:
+    """The signals the daemon reads for its plausibility checks alone, in catalogue order: those that a check of
+    :data:`virtsensor.signals.REDUNDANCIES` reads beside its subjects, when they are model inputs, the model
+    does not read them, and the DBC carries each of them in a message with a cycle time (a check whose signals
+    the bus lacks is not run)."""
+    model = set(model_signals)
+    out: set[str] = set()
+    for r in cat.REDUNDANCIES:
+        if not all(s in model for s in r.subjects):
+            continue
+        extra = [s for s in r.reads if s not in model]
+        if all((m := matrix.message_of(s)) is not None and matrix.messages[m].cycle_s > 0 for s in extra):
+            out.update(extra)
+    return tuple(s for s in cat.SIGNALS if s in out)
+
+
+def plausibility_rules(signals: Sequence[str]) -> tuple[PlausibilityRule, ...]:
+    """The catalogue's redundancy checks (:data:`virtsensor.signals.REDUNDANCIES`) whose signals are all among
+    ``signals`` (the daemon's decoded signals), laid out on their indices; steadiness rates (unit/s) become
+    steps per 20 Hz tick."""
+    idx = {s: i for i, s in enumerate(signals)}
+    out = []
+    for r in cat.REDUNDANCIES:
+        if not all(s in idx for s in r.reads):
+            continue
+        turn = None if r.turn is None else (
+            idx[r.references[0]], idx[r.references[1]], idx["steer_angle_rad"],
+            1.0 / (r.turn.steer_ratio * r.turn.wheelbase_m), r.turn.min_yaw_radps, r.turn.lo, r.turn.hi)
+        boost = None if r.boost is None else (
+            tuple(map(float, r.boost.speeds_mps)), tuple(map(float, r.boost.gains)), float(r.boost.knee_nm),
+            float(r.boost.max_nm))
+        out.append(PlausibilityRule(
+            r.name, idx[r.subject], tuple(idx[x] for x in r.references), float(r.scale), float(r.tolerance_abs),
+            float(r.tolerance_rel), int(r.debounce_ticks), r.relation,
+            tuple((idx[g], float(rate) / cat.TABLE_RATE_HZ) for g, rate in r.steady),
+            tuple((idx[g], float(bound)) for g, bound in r.within), turn, boost,
+            tuple((idx[g], float(bound)) for g, bound in r.above), float(r.max_expected), float(r.min_expected),
+            int(r.window), idx[r.minus] if r.minus is not None else -1,
+            tuple((idx[g], float(c)) for g, c in r.tolerance_per)))
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class InputLayout:
     """What the daemon decodes and publishes (built by :meth:`from_model`; immutable).
 
+    The daemon decodes :attr:`decoded`: the model's inputs (indices ``0 .. len(signals) - 1``, in spec order),
+    then the check references (:func:`check_references`), which only the plausibility checks read: a bad one
+    leaves its checks unjudged, never changes the estimate's status, and clears its message's health bit only
+    when that message carries no model input (the bit of a message with model inputs speaks for them).
+
     Attributes:
         spec: the card's feature spec. signals: its input signals (catalogue names), in spec order.
-        critical: per signal, a bad value makes the estimate INVALID (else DEGRADED).
-        signal_messages: per signal, the DBC message carrying it.
-        input_messages: messages decoded (carrying inputs, or owning a health bit), by frame id.
+        check_signals: the check references, after the model's inputs in :attr:`decoded`.
+        critical: per model input, a bad value makes the estimate INVALID (else DEGRADED).
+        signal_messages: per decoded signal, the DBC message carrying it.
+        input_messages: messages decoded (carrying decoded signals, or owning a health bit), by frame id.
         cycles_s: per input message, its DBC cycle time (s).
         bitmap_bits: message -> its bit of ``VS_Health.VS_InputStatus``.
         wheels: the published estimates. model_id: the ``VS_ModelId`` byte.
@@ -116,6 +165,7 @@ class InputLayout:
 
     spec: FeatureSpec
     signals: tuple[str, ...]
+    check_signals: tuple[str, ...]
     critical: tuple[bool, ...]
     signal_messages: tuple[str, ...]
     input_messages: tuple[str, ...]
@@ -147,7 +197,10 @@ class InputLayout:
             if not matrix.messages[m].cycle_s > 0:
                 raise UserError(f"{matrix.source}: message {m} (carrying model input {s}) has no GenMsgCycleTime")
             sig_msgs.append(m)
-        # a message that carries none of the catalogue's inputs (the TPMS) has its bit only when the model reads it
+        checks = check_references(spec.signals, matrix)
+        sig_msgs += [str(matrix.message_of(s)) for s in checks]
+        # a message that carries none of the catalogue's inputs (the TPMS, the rear wheel speeds) has its bit only
+        # when the daemon reads it (for the model or a check)
         bit_of = {m: b for m, b in bitmap_order(matrix).items()
                   if m in sig_msgs or any(s.role == "input" for s in cat.by_message(m))}
         if not bit_of:  # no documented order: the input messages by frame id
@@ -158,56 +211,47 @@ class InputLayout:
         if model_id is None:
             cid = card.get("model_id")
             model_id = cid if isinstance(cid, int) and 0 <= cid <= 255 else int(str(card.get("sha256", "00"))[:2], 16)
-        return cls(spec=spec, signals=spec.signals, critical=_critical(card, spec.signals),
+        return cls(spec=spec, signals=spec.signals, check_signals=checks, critical=_critical(card, spec.signals),
                    signal_messages=tuple(sig_msgs), input_messages=messages,
                    cycles_s=tuple(float(matrix.messages[m].cycle_s) for m in messages),
                    bitmap_bits=dict(bit_of), wheels=_wheels(model, matrix), model_id=int(model_id),
                    timeout_cycles=float(timeout_cycles))
+
+    @property
+    def decoded(self) -> tuple[str, ...]:
+        """Every signal the daemon decodes: the model's inputs, then the check references."""
+        return self.signals + self.check_signals
 
     def message_index(self) -> dict[str, int]:
         """Input message name -> its index in :attr:`input_messages`."""
         return {m: j for j, m in enumerate(self.input_messages)}
 
     def signal_slots(self, j: int) -> list[int]:
-        """Indices (into :attr:`signals`) of the inputs carried by input message ``j``."""
+        """Indices (into :attr:`decoded`) of the signals carried by input message ``j``."""
         name = self.input_messages[j]
         return [i for i, m in enumerate(self.signal_messages) if m == name]
 
     def plausibility_rules(self) -> tuple[PlausibilityRule, ...]:
-        """The catalogue's redundancy checks (:data:`virtsensor.signals.REDUNDANCIES`) whose signals (compared,
-        steady, bounded and, for a turn, the steering angle) are all inputs of this model; steadiness rates become
-        steps per 20 Hz tick."""
-        idx = {s: i for i, s in enumerate(self.signals)}
-        out = []
-        for r in cat.REDUNDANCIES:
-            if not all(s in idx for s in (r.subject, *r.references, *(g for g, _ in (*r.steady, *r.within, *r.above)),
-                                          *(("steer_angle_rad",) if r.turn is not None else ()))):
-                continue
-            turn = None if r.turn is None else (
-                idx[r.references[0]], idx[r.references[1]], idx["steer_angle_rad"],
-                1.0 / (r.turn.steer_ratio * r.turn.wheelbase_m), r.turn.min_yaw_radps, r.turn.lo, r.turn.hi)
-            boost = None if r.boost is None else (
-                tuple(map(float, r.boost.speeds_mps)), tuple(map(float, r.boost.gains)), float(r.boost.knee_nm),
-                float(r.boost.max_nm))
-            out.append(PlausibilityRule(
-                r.name, idx[r.subject], tuple(idx[x] for x in r.references), float(r.scale), float(r.tolerance_abs),
-                float(r.tolerance_rel), int(r.debounce_ticks), r.relation,
-                tuple((idx[g], float(rate) / cat.TABLE_RATE_HZ) for g, rate in r.steady),
-                tuple((idx[g], float(bound)) for g, bound in r.within), turn, boost,
-                tuple((idx[g], float(bound)) for g, bound in r.above), float(r.max_expected)))
-        return tuple(out)
+        """The catalogue's redundancy checks on :attr:`decoded` (:func:`plausibility_rules`)."""
+        return plausibility_rules(self.decoded)
 
     def rules(self) -> ValidityRules:
         """The constants of :func:`~virtsensor.daemon.validity.assess_inputs` for this layout."""
         mi = self.message_index()
         tc = self.timeout_cycles
         cyc = dict(zip(self.input_messages, self.cycles_s, strict=True))
+        n = len(self.signals)
+        model_msgs = set(self.signal_messages[:n])
+        # a health bit speaks for the model's inputs in its message: a bad check reference clears it only in a
+        # message that carries no model input (the rear wheel speeds; not the rear deflections of the suspension)
+        bits = tuple(1 << self.bitmap_bits[m] if m in self.bitmap_bits and (i < n or m not in model_msgs) else 0
+                     for i, m in enumerate(self.signal_messages))
         return ValidityRules(
             sig_msg=tuple(mi[m] for m in self.signal_messages),
             sig_timeout=tuple(tc * cyc[m] for m in self.signal_messages),
             sig_hist=tuple(max(f.history for f in self.spec.features if f.signal == s) for s in self.signals),
             critical=self.critical,
-            sig_bit=tuple(1 << self.bitmap_bits[m] if m in self.bitmap_bits else 0 for m in self.signal_messages),
+            sig_bit=bits,
             msg_timeout=tuple(tc * c for c in self.cycles_s),
             bitmap_msgs=tuple((mi[m], 1 << b) for m, b in self.bitmap_bits.items()))
 

@@ -95,15 +95,17 @@ class ClockMap:
 class ReceivePath:
     """Frame accounting and decoding into the sample-and-hold lists (one instance per daemon).
 
-    Attributes (lists mutated in place, never rebound; ``i`` input signal, ``j`` input message):
-        values, times, flags: latest usable value per signal, its time (-inf: never), SNA/implausible flag.
+    Attributes (lists mutated in place, never rebound; ``i`` decoded signal, ``j`` input message):
+        values, times, flags: latest usable value per decoded signal (the model's inputs, then the check
+            references: :attr:`~virtsensor.daemon.layout.InputLayout.decoded`), its time (-inf: never),
+            SNA/implausible flag.
         last_ok: per message, time of the latest usable frame. errors: E2E error since :meth:`clear_errors`.
         order: the messages' :class:`~virtsensor.daemon.validity.FrameOrder`. clock: the drain's ClockMap.
     """
 
     def __init__(self, layout: InputLayout, matrix: CanMatrix, counters: dict[str, int],
                  hook: StageHook | None = None, sync_id: int | None = None) -> None:
-        n, m = len(layout.signals), len(layout.input_messages)
+        n, m = len(layout.decoded), len(layout.input_messages)
         self.values: list[float] = [math.nan] * n
         self.times: list[float] = [-_INF] * n
         self.flags: list[bool] = [False] * n
@@ -126,7 +128,7 @@ class ReceivePath:
         self.receivers: dict[int, tuple[Callable[[Any, float], None], int]] = {}
         for j, name in enumerate(layout.input_messages):
             mc = matrix.messages[name]
-            slots = [(next(s for s in mc.signals if s.catalogue == layout.signals[i]), i)
+            slots = [(next(s for s in mc.signals if s.catalogue == layout.decoded[i]), i)
                      for i in layout.signal_slots(j)]
             rx = compile_receiver(mc, matrix.receivers[name], j, slots, self.values, self.times, self.flags,
                                   self.last_ok, self.errors, counters)

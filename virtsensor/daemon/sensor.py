@@ -150,14 +150,14 @@ class VirtualSensor:
         self.fallback, self._predict_fb, self._inputs_complete = _fallback_parts(model, lay, hook, self._predict)
         self._send_sat = hook("send", self._link.send)
         self._rules = lay.rules()
-        self._state = ValidityState(len(lay.signals))
-        self._plaus = Plausibility(lay.plausibility_rules(), len(lay.signals))
+        self._state = ValidityState(len(lay.decoded))
+        self._plaus = Plausibility(lay.plausibility_rules(), len(lay.decoded))
         self._plaus_update = hook("plausibility", self._plaus.update)
         self._assess = hook("validity", assess_inputs)
         self._outside = hook("envelope", outside_envelope)
         self._fill_grip = hook("grip", self._out.grip.fill_tick)
         self.envelope = _card_envelope(model)
-        self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
+        self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.decoded)
         #: the latest tick's inputs were outside the model card's validity envelope
         self.outside_envelope = False
         self._msg_err = [False] * len(lay.input_messages)  # the tick's E2E errors (for the logs)
@@ -408,8 +408,9 @@ def _fallback_parts(model: Any, lay: InputLayout, hook: Any, predict: Any) -> tu
     the card names none), its timed inference, and the test "every required input was received once" (a TPMS
     model does not wait for the slow, optional TPMS)."""
     fb = PressureFallback.for_model(model, lay.signals)
-    if fb is None:
-        return None, predict, lambda times: min(times) > -math.inf
+    if fb is None:  # (the check references after the model's inputs are not waited for)
+        n = len(lay.signals)
+        return None, predict, lambda times: all(times[i] > -math.inf for i in range(n))
     return fb, hook("inference", fb.predict_one), fb.complete
 
 
@@ -424,12 +425,13 @@ def _model_inputs(self: VirtualSensor, x: list[float]) -> tuple[list[float], Any
 
 def _log_implausible(self: VirtualSensor, t: float) -> None:
     """Count and log the checks that just failed (their names, the values they compared)."""
-    plaus, vals, sig = self._plaus, self.inputs.values, self.layout.signals
+    plaus, vals, sig = self._plaus, self.inputs.values, self.layout.decoded
     for k, r in enumerate(plaus.rules):
         if plaus.new[k]:
             self.counters["implausible_checks"] += 1
+            minus = {} if r.minus < 0 else {"minus": sig[r.minus], "minus_value": vals[r.minus]}
             event(logging.WARNING, "implausible", t=round(t, 6), check=r.name, subject=sig[r.subject],
-                  value=vals[r.subject], references={sig[i]: vals[i] for i in r.refs},
+                  value=vals[r.subject], **minus, references={sig[i]: vals[i] for i in r.refs},
                   implausible_checks=self.counters["implausible_checks"])
 
 def _card_envelope(model: Any) -> Any:
@@ -458,7 +460,7 @@ def _log_envelope(self: VirtualSensor, t: float, outside: bool) -> None:
     if not outside:
         event(logging.INFO, "envelope_return", t=round(t, 6), envelope_ticks=self.counters["envelope_ticks"])
         return
-    vals = dict(zip(self.layout.signals, (float(v) for v in self.inputs.values), strict=True))
+    vals = dict(zip(self.layout.decoded, (float(v) for v in self.inputs.values), strict=True))
     event(logging.WARNING, "envelope_exit", t=round(t, 6), outside=self.envelope.reasons(vals),
           envelope_exits=self.counters["envelope_exits"])
 
@@ -473,8 +475,8 @@ def _log_change(self: VirtualSensor, t: float, statuses: tuple[int, ...], bitmap
     event(logging.INFO, "status_change", t=round(t, 6),
           **{w.estimate.lower(): STATUS_NAMES[s] for w, s in zip(lay.wheels, statuses, strict=True)},
           inputs=STATUS_NAMES[in_status], input_bitmap=f"0x{bitmap:02X}",
-          bad_inputs=[s for i, s in enumerate(lay.signals) if st.bad[i]],
-          stale_inputs=[s for i, s in enumerate(lay.signals) if st.stale[i]],
+          bad_inputs=[s for i, s in enumerate(lay.decoded) if st.bad[i]],
+          stale_inputs=[s for i, s in enumerate(lay.decoded) if st.stale[i]],
           e2e_error_messages=[m for j, m in enumerate(lay.input_messages) if self._msg_err[j]],
           implausible_checks=[r.name for k, r in enumerate(self._plaus.rules) if self._plaus.failing[k]],
           out_of_order_messages=[m for j, m in enumerate(lay.input_messages) if not order[j]],

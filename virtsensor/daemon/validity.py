@@ -34,8 +34,8 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
-           "PlausibilityRule", "Plausibility", "assess_inputs", "wheel_status", "EnvelopeRules", "outside_envelope",
-           "envelope_status"]
+           "PlausibilityRule", "Plausibility", "judge", "assess_inputs", "wheel_status", "EnvelopeRules",
+           "outside_envelope", "envelope_status"]
 
 #: Per-wheel status codes of ``SAT_FRONT.SAT_xx_Status`` (DBC value table).
 VALID, DEGRADED, INVALID, INIT = 0, 1, 2, 3
@@ -46,13 +46,16 @@ _INF = math.inf
 
 @dataclass(frozen=True)
 class ValidityRules:
-    """Constants of :func:`assess_inputs` (index ``i``: input signal, ``j``: input message).
+    """Constants of :func:`assess_inputs` (index ``i``: decoded signal, ``j``: input message).
+
+    The decoded signals are the model's inputs (``i < len(critical)``), then the check references (read by the
+    plausibility checks alone, :class:`~virtsensor.daemon.layout.InputLayout`).
 
     Attributes:
-        sig_msg: message ``j`` of each signal. sig_timeout: each signal's timeout (s).
-        sig_hist: ticks of history each signal's features read (recovery length).
-        critical: each signal's criticality. sig_bit: its message's health bit mask (0: none).
-        msg_timeout: each message's timeout (s). bitmap_msgs: ``(j, bit mask)`` of the health bitmap.
+        sig_msg: message ``j`` of each decoded signal. sig_timeout: each decoded signal's timeout (s).
+        sig_hist: ticks of history each model input's features read (recovery length).
+        critical: each model input's criticality. sig_bit: each decoded signal's message's health bit mask (0:
+            none). msg_timeout: each message's timeout (s). bitmap_msgs: ``(j, bit mask)`` of the health bitmap.
     """
 
     sig_msg: tuple[int, ...]
@@ -68,14 +71,14 @@ class ValidityState:
     """What :func:`assess_inputs` carries from tick to tick (``recover``) and reports (``stale``, ``bad``).
 
     Attributes:
-        recover: per signal, fresh ticks still needed before it counts as good again.
-        stale, bad: per signal, the verdicts of the latest tick.
+        recover: per model input, fresh ticks still needed before it counts as good again.
+        stale, bad: per decoded signal, the verdicts of the latest tick.
     """
 
     __slots__ = ("recover", "stale", "bad", "never")
 
     def __init__(self, n_signals: int) -> None:
-        self.recover = [0] * n_signals
+        self.recover = [0] * n_signals  # (the check references' items stay 0: they have no recovery)
         self.stale = [False] * n_signals
         self.bad = [False] * n_signals
         self.never = (False,) * n_signals  # (no signal implausible)
@@ -86,9 +89,13 @@ def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool],
                   state: ValidityState, implausible: Sequence[bool] | None = None) -> tuple[int, int]:
     """The input status and health bitmap at tick time ``t`` (s, the daemon's clock).
 
+    The model's inputs make the status; a check reference (a decoded signal after them) is only judged stale or
+    bad, which leaves the checks that read it unjudged and clears its ``sig_bit`` (0 for a reference in a message
+    that carries model inputs: :meth:`~virtsensor.daemon.layout.InputLayout.rules`).
+
     Args:
-        sig_time: per signal, the time of its latest usable value (-inf: never).
-        sig_flag: per signal, SNA or implausible in its message's latest intact frame.
+        sig_time: per decoded signal, the time of its latest usable value (-inf: never).
+        sig_flag: per decoded signal, SNA or implausible in its message's latest intact frame.
         msg_last_ok: per message, the time of its latest usable frame. msg_err: E2E error since the last tick.
         msg_in_order: per message, its frames are in order (:attr:`FrameOrder.in_order`).
         state: updated in place (recovery counters; stale/bad verdicts of this tick).
@@ -102,7 +109,8 @@ def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool],
     hist, sig_to, sig_msg, crit = rules.sig_hist, rules.sig_timeout, rules.sig_msg, rules.critical
     any_bad = crit_bad = False
     imp = implausible if implausible is not None else state.never
-    for i in range(len(sig_time)):
+    n = len(crit)
+    for i in range(n):
         j = sig_msg[i]
         # fresh: 0 <= age <= timeout (a NaN or negative age is not), in order, neither SNA nor implausible
         st = not (0.0 <= t - sig_time[i] <= sig_to[i]) or sig_flag[i] or not msg_in_order[j]
@@ -116,6 +124,14 @@ def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool],
             if crit[i]:
                 crit_bad = True
     status = INVALID if crit_bad else DEGRADED if any_bad else VALID
+    for i in range(n, len(sig_msg)):  # the check references: stale or bad, never the status
+        j = sig_msg[i]
+        st = not (0.0 <= t - sig_time[i] <= sig_to[i]) or sig_flag[i] or not msg_in_order[j]
+        b = st or msg_err[j]
+        stale[i] = st
+        bad[i] = b
+        if b:
+            any_bad = True
     bitmap = 0
     msg_to = rules.msg_timeout
     for j, bit in rules.bitmap_msgs:
@@ -198,19 +214,26 @@ class FrameOrder:
 
 @dataclass(frozen=True)
 class PlausibilityRule:
-    """One check between redundant input signals (indices into the daemon's inputs), from a catalogue
-    :class:`~virtsensor.signals.Redundancy`: ``|v[subject] - expected| <= tol_abs + tol_rel * |v[subject]|``,
-    failed after ``debounce`` consecutive failing judged ticks, passed after as many passing ones.
+    """One check between redundant input signals (indices into the daemon's decoded signals: the model's inputs,
+    then the checks' own references), from a catalogue :class:`~virtsensor.signals.Redundancy`: a judged tick
+    passes when ``|x - expected| <= tol_abs + tol_rel * |x| + sum(c * |v[i]| for i, c in tol_per)``, ``x =
+    v[subject]``, or ``v[subject] - v[minus]`` when ``minus >= 0`` (a failed check then marks both implausible).
 
     ``expected`` by ``relation``: ``"mean"``, ``scale * mean(v[refs])``; ``"product"``, ``scale * prod(v[refs])``;
     ``"ratio"``, ``scale * v[refs[0]] / v[refs[1]]`` (the rule's ``above`` keeps the divisor positive);
-    ``"boost"``, ``boost = (speeds, gains, knee, max)`` of ``refs = (torque, speed)`` (see
-    :class:`~virtsensor.signals.BoostCurve`). A tick is judged only when every ``(i, max_step)`` of ``steady``
-    moved by at most ``max_step`` since the previous tick, every ``(i, bound)`` of ``within`` has ``|v[i]| <=
-    bound``, every ``(i, bound)`` of ``above`` has ``v[i] >= bound``, ``|expected| <= max_expected`` (a NaN
-    prediction is judged and passes) and, with ``turn = (yaw, vx, steer, k, min_yaw, lo, hi)``,
-    ``|r_kin| >= min_yaw`` and ``lo*|r_kin| <= |v[yaw]| <= hi*|r_kin|``, ``r_kin = k * v[vx] * v[steer]``
-    (the same sign). An unjudged tick holds the verdict and restarts the count."""
+    ``"difference"``, ``scale * (v[refs[0]] - v[refs[1]])``; ``"boost"``, ``boost = (speeds, gains, knee, max)``
+    of ``refs = (torque, speed)`` (see :class:`~virtsensor.signals.BoostCurve`). A tick is judged only when no
+    signal it compares is stale, every ``(i, max_step)`` of ``steady`` moved by at most ``max_step`` since the
+    previous tick, every ``(i, bound)`` of ``within`` has ``|v[i]| <= bound``, every ``(i, bound)`` of ``above``
+    has ``v[i] >= bound``, ``min_expected <= |expected| <= max_expected`` (a NaN prediction is judged and
+    passes) and, with ``turn = (yaw, vx, steer, k, min_yaw, lo, hi)``, ``|r_kin| >= min_yaw`` and
+    ``lo*|r_kin| <= |v[yaw]| <= hi*|r_kin|``, ``r_kin = k * v[vx] * v[steer]`` (the same sign).
+
+    Debounce. With ``window == 0``, the check fails after ``debounce`` consecutive failing judged ticks and
+    passes after as many passing ones; an unjudged tick holds the verdict and restarts the count. With
+    ``window > 0``, it fails once ``debounce`` of the last ``window`` judged ticks failed and passes once
+    ``debounce`` of them passed; an unjudged tick holds the verdict and the window (it neither counts nor
+    restarts), so a check judged on scattered ticks of transient driving still reaches its verdict."""
 
     name: str
     subject: int
@@ -226,6 +249,14 @@ class PlausibilityRule:
     boost: tuple[tuple[float, ...], tuple[float, ...], float, float] | None = None
     above: tuple[tuple[int, float], ...] = ()
     max_expected: float = math.inf
+    min_expected: float = 0.0
+    window: int = 0
+    minus: int = -1
+    tol_per: tuple[tuple[int, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.debounce < 1 or self.window < 0 or (self.window and self.debounce > self.window):
+            raise ValueError(f"{self.name}: debounce {self.debounce} with window {self.window}")
 
 
 def _boost(curve: tuple[tuple[float, ...], tuple[float, ...], float, float], t: float, v: float) -> float:
@@ -244,6 +275,39 @@ def _boost(curve: tuple[tuple[float, ...], tuple[float, ...], float, float], t: 
     return top if y > top else -top if y < -top else y
 
 
+def judge(r: PlausibilityRule, values: Sequence[float], prev: Sequence[float],
+          stale: Sequence[bool]) -> tuple[bool, float, float]:
+    """One tick of check ``r`` as its docstring states it, interpreted: ``(judged, residual, tolerance)``, the
+    residual ``|v[subject] - expected|`` (nan when not judged, or a NaN among the values) and the tolerance at
+    ``v[subject]``; the tick fails when judged and ``residual > tolerance``. For tools and tests: the daemon runs
+    the same semantics compiled (:func:`compile_checks`), which the tests hold equal to this."""
+    judged = not any(stale[i] for i in (r.subject, *r.refs)) and not (r.minus >= 0 and stale[r.minus])
+    judged = judged and all(abs(values[i] - prev[i]) <= step for i, step in r.steady)
+    judged = judged and all(abs(values[i]) <= bound for i, bound in r.within)
+    judged = judged and all(values[i] >= bound for i, bound in r.above)
+    if judged and r.turn is not None:
+        yaw, vx, steer, kk, min_yaw, lo, hi = r.turn
+        rk = kk * values[vx] * values[steer]
+        judged = abs(rk) >= min_yaw and values[yaw] * rk > 0 and lo * abs(rk) <= abs(values[yaw]) <= hi * abs(rk)
+    if not judged:
+        return False, math.nan, math.nan
+    a = values[r.refs[0]]
+    if r.relation == "product":
+        e = r.scale * math.prod(values[i] for i in r.refs)
+    elif r.relation == "boost" and r.boost is not None:
+        e = _boost(r.boost, a, values[r.refs[1]])
+    elif r.relation == "ratio":
+        e = r.scale * a / values[r.refs[1]]
+    elif r.relation == "difference":
+        e = r.scale * (a - values[r.refs[1]])
+    else:
+        e = r.scale * sum(values[i] for i in r.refs) / len(r.refs)
+    if abs(e) < r.min_expected or abs(e) > r.max_expected:
+        return False, math.nan, math.nan
+    v = values[r.subject] - (values[r.minus] if r.minus >= 0 else 0.0)
+    return True, abs(v - e), r.tol_abs + r.tol_rel * abs(v) + sum(c * abs(values[i]) for i, c in r.tol_per)
+
+
 def _lit(x: float, env: dict[str, Any]) -> str:
     """A float as source text (exact: ``repr`` round-trips), or the name of an ``env`` entry when not finite."""
     x = float(x)
@@ -254,10 +318,28 @@ def _lit(x: float, env: dict[str, Any]) -> str:
     return name
 
 
-def _rule_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> list[str]:
-    """Straight-line source of check ``k`` inside the generated ``update`` (see :func:`compile_checks`)."""
+def _expected_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> str:
+    """Source of check ``k``'s prediction from ``values`` (see :class:`PlausibilityRule`)."""
     v = "values"
-    skip = [f"stale[{i}]" for i in dict.fromkeys((r.subject, *r.refs))]
+    if r.relation == "product":
+        return " * ".join([_lit(r.scale, env), *(f"{v}[{i}]" for i in r.refs)])
+    if r.relation == "ratio":
+        return f"{_lit(r.scale, env)} * {v}[{r.refs[0]}] / {v}[{r.refs[1]}]"
+    if r.relation == "difference":
+        return f"{_lit(r.scale, env)} * ({v}[{r.refs[0]}] - {v}[{r.refs[1]}])"
+    if r.relation == "boost" and r.boost is not None:
+        env[f"_B{k}"] = r.boost
+        return f"_boost(_B{k}, {v}[{r.refs[0]}], {v}[{r.refs[1]}])"
+    if r.relation != "mean":
+        raise ValueError(f"{r.name}: unknown relation {r.relation!r}")
+    return f"{_lit(r.scale, env)} * ({' + '.join(f'{v}[{i}]' for i in r.refs)}) / {len(r.refs)}"
+
+
+def _skip_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> tuple[list[str], str]:
+    """The conditions that leave check ``k`` unjudged (any true: not judged), and the name its prediction has
+    in the judged branch (``e``, computed once by the bounds on it) or its source when no bound needs it."""
+    v = "values"
+    skip = [f"stale[{i}]" for i in dict.fromkeys((r.subject, *((r.minus,) if r.minus >= 0 else ()), *r.refs))]
     skip += [f"not abs({v}[{i}] - prev[{i}]) <= {_lit(step, env)}" for i, step in r.steady]
     skip += [f"not abs({v}[{i}]) <= {_lit(bound, env)}" for i, bound in r.within]
     skip += [f"not {v}[{i}] >= {_lit(bound, env)}" for i, bound in r.above]
@@ -266,23 +348,49 @@ def _rule_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> list[str]:
         skip.append(f"not (abs(rk := {_lit(kk, env)} * {v}[{vx}] * {v}[{steer}]) >= {_lit(min_yaw, env)} "
                     f"and {v}[{yaw}] * rk > 0.0 and {_lit(lo, env)} * abs(rk) <= abs({v}[{yaw}]) "
                     f"<= {_lit(hi, env)} * abs(rk))")
-    if r.relation == "product":
-        expected = " * ".join([_lit(r.scale, env), *(f"{v}[{i}]" for i in r.refs)])
-    elif r.relation == "ratio":
-        expected = f"{_lit(r.scale, env)} * {v}[{r.refs[0]}] / {v}[{r.refs[1]}]"
-    elif r.relation == "boost" and r.boost is not None:
-        env[f"_B{k}"] = r.boost
-        expected = f"_boost(_B{k}, {v}[{r.refs[0]}], {v}[{r.refs[1]}])"
+    expected = _expected_source(k, r, env)
+    # (a NaN prediction is judged, and passes, as without the bounds)
+    if r.min_expected > 0.0 and math.isfinite(r.max_expected):
+        skip.append(f"abs(e := {expected}) < {_lit(r.min_expected, env)} or abs(e) > {_lit(r.max_expected, env)}")
+    elif r.min_expected > 0.0:
+        skip.append(f"abs(e := {expected}) < {_lit(r.min_expected, env)}")
+    elif math.isfinite(r.max_expected):
+        skip.append(f"abs(e := {expected}) > {_lit(r.max_expected, env)}")
     else:
-        expected = f"{_lit(r.scale, env)} * ({' + '.join(f'{v}[{i}]' for i in r.refs)}) / {len(r.refs)}"
-    if math.isfinite(r.max_expected):  # (a NaN prediction is judged, and passes, as without the bound)
-        skip.append(f"abs({expected}) > {_lit(r.max_expected, env)}")
+        return skip, expected
+    return skip, "e"
+
+
+def _rule_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> list[str]:
+    """Straight-line source of check ``k`` inside the generated ``update`` (see :func:`compile_checks`)."""
+    skip, expected = _skip_source(k, r, env)
+    minus = f" - values[{r.minus}]" if r.minus >= 0 else ""
+    per = "".join(f" + {_lit(c, env)} * abs(values[{i}])" for i, c in r.tol_per)
+    judge = [f"        v = values[{r.subject}]{minus}",
+             f"        ok = not (abs(v - {expected}) > {_lit(r.tol_abs, env)} + {_lit(r.tol_rel, env)} * abs(v){per})"]
+    if r.window:  # the failures among the last `window` judged ticks (a ring of 0/1 and its sum)
+        return [f"    new[{k}] = False",
+                f"    if not ({' or '.join(skip)}):",
+                *judge,
+                f"        w = ring[{k}]",
+                f"        p = pos[{k}]",
+                "        b = 0 if ok else 1",
+                f"        n = run[{k}] + b - w[p]",
+                "        w[p] = b",
+                f"        pos[{k}] = p + 1 if p < {int(r.window) - 1} else 0",
+                f"        run[{k}] = n",
+                f"        if failing[{k}]:",
+                f"            if n <= {int(r.window) - int(r.debounce)}:",
+                f"                failing[{k}] = False",
+                f"        elif n >= {int(r.debounce)}:",
+                f"            failing[{k}] = True",
+                f"            new[{k}] = True",
+                "            n_new += 1"]
     return [f"    new[{k}] = False",
             f"    if {' or '.join(skip)}:",
             f"        run[{k}] = 0",
             "    else:",
-            f"        v = {v}[{r.subject}]",
-            f"        ok = not (abs(v - {expected}) > {_lit(r.tol_abs, env)} + {_lit(r.tol_rel, env)} * abs(v))",
+            *judge,
             f"        if ok == failing[{k}]:",
             f"            n = run[{k}] + 1",
             f"            if n >= {int(r.debounce)}:",
@@ -296,19 +404,22 @@ def _rule_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> list[str]:
 
 
 def compile_checks(rules: Sequence[PlausibilityRule]) -> Any:
-    """The checks as one generated function ``update(values, stale, prev, failing, run, new, implausible) ->
-    newly failed``: every rule's judging conditions, expected value and debounce unrolled with its constants
-    inlined (the semantics of :class:`PlausibilityRule`, without a per-rule interpretation each tick);
+    """The checks as one generated function ``update(values, stale, prev, failing, run, ring, pos, new,
+    implausible) -> newly failed``: every rule's judging conditions, expected value and debounce unrolled with its
+    constants inlined (the semantics of :class:`PlausibilityRule`, without a per-rule interpretation each tick).
+    Per rule ``k``: ``run[k]``, the consecutive judged ticks against its verdict (``window == 0``) or the failures
+    in its window; ``ring[k]``, its window's last judged ticks (1: failed), ``pos[k]`` the slot of the next one.
     ``prev`` is then overwritten with ``values``, and each rule subject's ``implausible`` item is whether one of
     its checks fails."""
     env: dict[str, Any] = {"_boost": _boost}
-    lines = ["def update(values, stale, prev, failing, run, new, implausible):", "    n_new = 0"]
+    lines = ["def update(values, stale, prev, failing, run, ring, pos, new, implausible):", "    n_new = 0"]
     for k, r in enumerate(rules):
         lines += _rule_source(k, r, env)
     lines.append("    prev[:] = values")
     subjects: dict[int, list[int]] = {}
     for k, r in enumerate(rules):
-        subjects.setdefault(r.subject, []).append(k)
+        for i in (r.subject, r.minus) if r.minus >= 0 else (r.subject,):
+            subjects.setdefault(i, []).append(k)
     for i, ks in subjects.items():
         lines.append(f"    implausible[{i}] = {' or '.join(f'failing[{k}]' for k in ks)}")
     lines.append("    return n_new")
@@ -327,23 +438,27 @@ class Plausibility:
         new: per check, it failed at the latest :meth:`update`.
     """
 
-    __slots__ = ("rules", "failing", "implausible", "new", "_run", "_prev", "_never", "_update")
+    __slots__ = ("rules", "failing", "implausible", "new", "_run", "_ring", "_pos", "_prev", "_never", "_update")
 
     def __init__(self, rules: Sequence[PlausibilityRule], n_signals: int) -> None:
         self.rules = tuple(rules)
         self.failing = [False] * len(self.rules)
         self.implausible = [False] * n_signals
         self.new = [False] * len(self.rules)
-        self._run = [0] * len(self.rules)  # consecutive judged ticks disagreeing with the current verdict
+        # per check: consecutive judged ticks against its verdict, or (windowed) the failures in its window
+        self._run = [0] * len(self.rules)
+        self._ring = [[0] * r.window for r in self.rules]  # windowed checks: their last judged ticks (1: failed)
+        self._pos = [0] * len(self.rules)
         self._prev = [math.nan] * n_signals  # the values of the previous update (steadiness)
         self._never = [False] * n_signals
         self._update = compile_checks(self.rules)
 
     def update(self, values: Sequence[float], stale: Sequence[bool] | None = None) -> int:
-        """Run every check on ``values`` (per input signal); returns how many checks newly failed. A check that
-        compares a ``stale`` signal (a held value, not news) is not judged at this tick."""
+        """Run every check on ``values`` (per decoded signal, as the rules' indices); returns how many checks
+        newly failed. A check that compares a ``stale`` signal (a held value, not news) is not judged at this
+        tick. Allocates nothing but float temporaries."""
         return self._update(values, self._never if stale is None else stale, self._prev, self.failing, self._run,
-                            self.new, self.implausible)
+                            self._ring, self._pos, self.new, self.implausible)
 
 
 @dataclass(frozen=True)
