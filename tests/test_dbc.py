@@ -134,7 +134,8 @@ def test_vsens_messages(db):
         "CHS_Suspension",
     ):
         assert m in hn["VS_InputStatus"].comment
-    assert "ESC_WheelSpeeds_R" not in hn["VS_InputStatus"].comment  # carries no estimator input
+    # carries no estimator input, but the yaw-rate check's reference: last, bit 7
+    assert "bit 7 ESC_WheelSpeeds_R (a plausibility check's reference" in hn["VS_InputStatus"].comment
     te = db.get_message_by_name("TE_WheelForceTransducer")
     assert [s.name for s in te.signals][2:] == ["Mz_FL", "Mz_FR"]
 

@@ -118,7 +118,8 @@ def test_time_base_stepping_back_with_a_silent_message_is_not_valid(model, frame
     assert len(after) > 50
     assert not any(s[0] == VALID or s[1] == VALID for _, t, s in after if t > t_last + EPAS_TIMEOUT_S)
     assert all(s == (INVALID, INVALID) for *_, s in after)
-    assert vs.counters["time_step_back"] == len(vs.input_messages) - 1  # every message but the silent one
+    sent = {m.arbitration_id for m in merged if m.arbitration_id in vs.inputs.receivers}  # (no rear wheel speeds)
+    assert vs.counters["time_step_back"] == len(sent) - 1  # every message but the silent one
 
 
 def test_time_base_step_back_recovers_once_frames_run_in_order(model, frames):
@@ -369,7 +370,7 @@ def _steady_left_turn(duration_s: float):
     """Synthetic streams of a steady left turn with grip at 20 m/s (every catalogue check holds): yaw rate
     0.2 rad/s, ay = r vx, the steering a little above the kinematic angle, the assist on the boost curve."""
     t, sig = synthetic_streams(duration_s, seed=5)
-    vx, r = 20.0, 0.2 + 0.01 * np.sin(0.5 * t)
+    vx, r = 20.0, 0.15 + 0.01 * np.sin(0.5 * t)
     sig["vx_mps"] = np.full_like(t, vx)
     sig["yaw_rate_radps"] = r
     sig["ay_mps2"] = r * vx
@@ -383,7 +384,15 @@ def _steady_left_turn(duration_s: float):
     gain = np.interp(vx, b.speeds_mps, b.gains)
     tb = sig["steer_torque_nm"]
     sig["assist_torque_nm"] = gain * tb * np.abs(tb) / (np.abs(tb) + b.knee_nm)
+    _rear_wheels(sig)
     return t, sig
+
+
+def _rear_wheels(sig) -> None:
+    """The rear wheels (undriven, unsteered) rolling at ``vx`` apart by the yaw rate times the rear track."""
+    half = sig["yaw_rate_radps"] * cat.TRACK_REAR_M / 2.0
+    sig["wheel_speed_rl_radps"] = (sig["vx_mps"] - half) / cat.ROLLING_RADIUS_M
+    sig["wheel_speed_rr_radps"] = (sig["vx_mps"] + half) / cat.ROLLING_RADIUS_M
 
 
 def _straight(duration_s: float):
@@ -393,6 +402,7 @@ def _straight(duration_s: float):
     sig["yaw_rate_radps"] = np.zeros_like(t)
     sig["ay_mps2"] = 0.05 * np.sin(0.3 * t)
     sig["steer_angle_rad"] = 0.02 * np.sin(0.2 * t)
+    _rear_wheels(sig)
     return t, sig
 
 
@@ -400,6 +410,7 @@ def _straight(duration_s: float):
     ("ay_vs_yaw_rate_times_speed", "ay_mps2", 0, lambda s: 0.0 * s, _steady_left_turn),  # the accelerometer reads 0
     ("assist_vs_boosted_steer_torque", "assist_torque_nm", 1, lambda s: -s, _steady_left_turn),  # assist reversed
     ("steer_angle_vs_straight_yaw", "steer_angle_rad", 1, lambda s: s + 0.6, _straight),  # a 34 deg sensor offset
+    ("yaw_rate_vs_rear_wheel_speeds", "yaw_rate_radps", 0, lambda s: s + 0.4, _straight),  # a gyro's offset
 ])
 def test_daemon_trips_a_redundancy_check_and_names_it(model, check, subject, bit, fault, drive):
     """Plausible for 6 s (VALID), then the subject disagrees from 6 s on: INVALID once the check's debounce
@@ -419,6 +430,30 @@ def test_daemon_trips_a_redundancy_check_and_names_it(model, check, subject, bit
     assert vs.counters["implausible_checks"] == 1
     bad = [e for e in handler.events if e["event"] == "implausible"]
     assert len(bad) == 1 and bad[0]["check"] == check and bad[0]["subject"] == subject
+
+
+def test_a_missing_rear_wheel_speed_message_leaves_the_estimate_valid_and_shows_in_its_bit(model):
+    """The rear wheel speeds are a check's reference, not a model input: when their message stops, the yaw-rate
+    check is not judged, the estimate stays VALID, VS_InputStatus bit 7 (ESC_WheelSpeeds_R) goes to 0 and the
+    log names the stale reference; a yaw-rate offset then goes unseen by that check."""
+    t, sig = _straight(10.0)
+    sig["yaw_rate_radps"] = np.where(t >= 6.0, sig["yaw_rate_radps"] + 0.4, sig["yaw_rate_radps"])
+    rear = MATRIX.messages["ESC_WheelSpeeds_R"].frame_id
+    frames = [m for m in iter_frames(t, sig) if not (m.arbitration_id == rear and m.timestamp >= 5.0)]
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    with daemon_events() as handler:
+        ticks, vs = _drive_sync(model, merged)
+    assert "wheel_speed_rl_radps" in vs.layout.check_signals and vs.layout.bitmap_bits["ESC_WheelSpeeds_R"] == 7
+    cut = next(i for i, m in enumerate(merged) if m.timestamp >= 5.0)
+    _valid_before(ticks, cut)
+    assert all(b & 0x80 for _, _, _, b in [x for x in ticks if x[0] < cut][-10:])  # bit 7: the references live
+    late = [(s, b) for p, tt, s, b in ticks if tt > 5.2]
+    assert late and all(s == (VALID, VALID) for s, _ in late) and not any(b & 0x80 for _, b in late)
+    assert all(b & 0x7F == 0x3F for _, b in late)  # the model's messages all there
+    assert vs.counters["implausible_checks"] == 0
+    changes = [e for e in handler.events if e["event"] == "status_change" and e["t"] > 5.0]
+    assert changes and "ESC_WheelSpeeds_R" in changes[0]["missing_messages"]
+    assert "wheel_speed_rl_radps" in changes[0]["stale_inputs"]
 
 
 def test_the_straight_steering_check_leaves_a_turn_and_a_slow_car_alone(model):

@@ -331,8 +331,10 @@ def test_generated_checks_match_the_rules_semantics_on_random_sequences():
 
     cat, names, by_name = _check_rows()
     rules = list(by_name.values())
-    assert {r.relation for r in rules} == {"mean", "product", "ratio", "boost"}
-    assert any(r.turn for r in rules) and any(r.above for r in rules)
+    assert {r.relation for r in rules} == {"mean", "product", "ratio", "boost", "difference"}
+    assert any(r.turn for r in rules)
+    assert any(r.above for r in rules) and any(r.window for r in rules) and any(r.minus >= 0 for r in rules)
+    assert any(r.tol_per for r in rules) and any(r.min_expected > 0 for r in rules)
     rng = np.random.default_rng(15)
     p = Plausibility(rules, len(names))
     state = ([False] * len(rules), [0] * len(rules), [[] for _ in rules])
@@ -343,7 +345,8 @@ def test_generated_checks_match_the_rules_semantics_on_random_sequences():
     base = np.array(_full_row(cat, names, yaw=yaw, vx=20.0, steer_angle_rad=0.2, steer_torque_nm=2.0,
                               assist_torque_nm=boost))
     straight = np.array(_full_row(cat, names, yaw=0.0, vx=20.0, steer_torque_nm=2.0, assist_torque_nm=boost))
-    broken_by_stretch = (("vx_mps", 8.0), ("ay_mps2", 4.0), ("assist_torque_nm", 10.0), ("steer_angle_rad", 0.6))
+    broken_by_stretch = (("vx_mps", 8.0), ("ay_mps2", 4.0), ("assist_torque_nm", 10.0), ("steer_angle_rad", 0.6),
+                         ("yaw_rate_radps", 0.5), ("susp_defl_fl_m", 0.05))
     failed = [0] * len(rules)
     for tick in range(400 * len(broken_by_stretch) * 2):
         # steady driving with small noise (turning, or straight in one stretch in six); stretches where one
@@ -416,6 +419,45 @@ def _full_row(cat, names, yaw=0.1, vx=15.0, ax=0.2, roll=0.0, **values) -> list[
                 susp_defl_rr_m=roll * cat.TRACK_REAR_M / 2)
     base.update(values)
     return [base[n] for n in names]
+
+
+def test_yaw_rate_against_the_rear_wheel_speeds():
+    cat, names, rules = _check_rows()
+    rule = rules["yaw_rate_vs_rear_wheel_speeds"]
+    i_yaw = names.index("yaw_rate_radps")
+    p = Plausibility([rule], len(names))
+    fast = Plausibility([rule], len(names))
+    for _ in range(40):  # the rear wheels and the IMU agree; a rear tyre 1 % smaller still agrees at 30 m/s
+        assert p.update(_full_row(cat, names, yaw=0.12)) == 0
+        assert fast.update(_full_row(cat, names, yaw=0.12, vx=30.0,
+                                     wheel_speed_rl_radps=30.0 / cat.ROLLING_RADIUS_M * 1.0099)) == 0
+    for _ in range(rule.debounce + 1):  # the IMU's yaw rate 0.3 rad/s off at 15 m/s (its step is not judged)
+        p.update(_full_row(cat, names, yaw=0.12, yaw_rate_radps=0.42))
+    assert p.implausible[i_yaw] and p.failing == [True]
+    q = Plausibility([rule], len(names))
+    stale = [n in ("wheel_speed_rl_radps", "wheel_speed_rr_radps") for n in names]
+    for _ in range(50):  # the same 0.3 rad/s while braking hard (rear wheels slip apart), cornering at 6 m/s^2, or
+        # with the rear wheel speeds stale: not judged
+        q.update(_full_row(cat, names, yaw=0.12, yaw_rate_radps=0.42, ax=-3.0))
+        q.update(_full_row(cat, names, yaw=0.4, yaw_rate_radps=0.7))
+        q.update(_full_row(cat, names, yaw=0.12, yaw_rate_radps=0.42), stale)
+    assert not any(q.implausible)
+
+
+def test_front_roll_against_rear_roll_marks_both_front_deflections():
+    cat, names, rules = _check_rows()
+    rule = rules["front_roll_vs_rear_roll"]
+    p = Plausibility([rule], len(names))
+    i_fl, i_fr = names.index("susp_defl_fl_m"), names.index("susp_defl_fr_m")
+    for k in range(40):  # a rigid body rolling up to 0.05 rad
+        assert p.update(_full_row(cat, names, roll=0.05 * math.sin(k / 5))) == 0
+    for _ in range(rule.debounce):  # the front-left sensor 20 mm off
+        p.update(_full_row(cat, names, roll=0.01, susp_defl_fl_m=-0.01 * cat.TRACK_FRONT_M / 2 + 0.02))
+    assert p.implausible[i_fl] and p.implausible[i_fr] and p.failing == [True]
+    q = Plausibility([rule], len(names))
+    for _ in range(50):  # a car at walking pace with a wheel on a kerb: not judged
+        q.update(_full_row(cat, names, vx=3.0, susp_defl_fl_m=0.05))
+    assert not any(q.implausible)
 
 
 def test_a_stale_check_reference_never_changes_the_status_and_clears_only_its_own_message_bit():

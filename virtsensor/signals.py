@@ -369,8 +369,8 @@ REDUNDANCIES: tuple[Redundancy, ...] = (
     # that the ESC's speed, which sets the gain the check expects, reads a third below the car's (braking in a
     # turn at 120 km/h on mu 1 tripped it in 4 of 1160 simulated runs)
     Redundancy("assist_vs_boosted_steer_torque", "assist_torque_nm", ("steer_torque_nm", "vx_mps"), 1.0,
-               tolerance_abs=2.0, tolerance_rel=0.2, debounce_ticks=10, relation="boost",
-               steady=(("steer_angle_rad", 0.25),), within=(("ax_mps2", 4.0),), boost=EPAS_BOOST),
+               tolerance_abs=2.0, tolerance_rel=0.2, debounce_ticks=8, window=10, relation="boost",
+               steady=(("steer_angle_rad", 0.25),), within=(("ax_mps2", 4.0),), boost=EPAS_BOOST, min_expected=3.0),
     # the steering-wheel angle against the yaw rate when the car drives straight: the kinematic angle
     # ``i L r / vx`` is then near 0, and a car held straight (|r| <= 0.05 rad/s, |ay| <= 0.5 m/s^2, steering
     # within 0.25 rad/s and the yaw rate within 0.1 rad/s^2, at 8 m/s or more) by a road wheel turned 1.4 deg
@@ -383,6 +383,30 @@ REDUNDANCIES: tuple[Redundancy, ...] = (
                STEADY_TURN.steer_ratio * STEADY_TURN.wheelbase_m, tolerance_abs=0.35, tolerance_rel=0.0,
                debounce_ticks=10, relation="ratio", steady=(("steer_angle_rad", 0.25), ("yaw_rate_radps", 0.1)),
                within=(("yaw_rate_radps", 0.05), ("ay_mps2", 0.5)), above=(("vx_mps", 8.0),)),
+    # the yaw rate against the rear wheel speeds' difference: the rear wheels are undriven and unsteered, so
+    # (w_rr - w_rl) r / track is the yaw rate whatever the side-slip. Judged at 5 m/s or more, braking or
+    # accelerating at most 1.5 m/s^2 (no ABS: braked rear wheels slip apart, and lock), cornering at most 4 m/s^2
+    # (the outer tyre's load shrinks its rolling radius: the rear-wheel yaw reads high by about 6e-4 x ay x vx, and
+    # an unloaded inner wheel of a car spinning on mu 1 slows down), with the yaw rate changing by at most
+    # 1 rad/s^2 (the wheel speeds lag the IMU by some 80 ms) and each rear wheel by at most 2 m/s^2. Tolerance:
+    # 0.08 rad/s + 15 % + the yaw rate a 1 % difference of the rear rolling radii reads at vx. Debounced on 8 of
+    # the last 10 judged ticks: unjudged ticks do not restart it. A rear wheel-speed message that is missing
+    # leaves it unjudged, never the estimate INVALID
+    Redundancy("yaw_rate_vs_rear_wheel_speeds", "yaw_rate_radps", ("wheel_speed_rr_radps", "wheel_speed_rl_radps"),
+               ROLLING_RADIUS_M / TRACK_REAR_M, tolerance_abs=0.08, tolerance_rel=0.15,
+               tolerance_per=(("vx_mps", REAR_RADIUS_MISMATCH / TRACK_REAR_M),), debounce_ticks=8, window=10,
+               relation="difference",
+               steady=(("yaw_rate_radps", 1.0), ("wheel_speed_rl_radps", 2.0 / ROLLING_RADIUS_M),
+                       ("wheel_speed_rr_radps", 2.0 / ROLLING_RADIUS_M)),
+               within=(("ax_mps2", 1.5), ("ay_mps2", 4.0)), above=(("vx_mps", 5.0),)),
+    # the front suspension's roll against the rear's: a rigid body rolls as one, so the front deflections'
+    # difference is the rear's times the ratio of the tracks. Tolerance 8 mm + 20 % (tyres' compliance under the
+    # lateral load transfer, which the simulator does not have); judged at 8 m/s or more (a car standing with a
+    # wheel on a kerb twists its body); debounced on 8 of the last 10 judged ticks (a bump under one wheel twists
+    # it for a tick or two). Both front deflections are under test
+    Redundancy("front_roll_vs_rear_roll", "susp_defl_fr_m", ("susp_defl_rr_m", "susp_defl_rl_m"),
+               TRACK_FRONT_M / TRACK_REAR_M, tolerance_abs=0.008, tolerance_rel=0.2, debounce_ticks=8, window=10,
+               relation="difference", minus="susp_defl_fl_m", above=(("vx_mps", 8.0),)),
 )
 
 
