@@ -236,9 +236,10 @@ def test_lateral_acceleration_check_is_not_judged_outside_steady_turns_with_grip
     assert not any(p.implausible)
 
 
-def test_assist_torque_against_the_boost_curve():
+@pytest.mark.parametrize("name", ["assist_vs_boosted_steer_torque", "assist_vs_boost_above_3nm"])
+def test_assist_torque_against_the_boost_curve(name):
     cat, rules = _catalogue_rules()
-    rule = rules["assist_vs_boosted_steer_torque"]
+    rule = rules[name]
     p = Plausibility([rule], 12)
     i_as = cat.INPUTS.index("assist_torque_nm")
     gain_at_15 = cat.EPAS_BOOST.gains[cat.EPAS_BOOST.speeds_mps.index(15.0)]

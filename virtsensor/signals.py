@@ -369,6 +369,12 @@ REDUNDANCIES: tuple[Redundancy, ...] = (
     # that the ESC's speed, which sets the gain the check expects, reads a third below the car's (braking in a
     # turn at 120 km/h on mu 1 tripped it in 4 of 1160 simulated runs)
     Redundancy("assist_vs_boosted_steer_torque", "assist_torque_nm", ("steer_torque_nm", "vx_mps"), 1.0,
+               tolerance_abs=2.0, tolerance_rel=0.2, debounce_ticks=10, relation="boost",
+               steady=(("steer_angle_rad", 0.25),), within=(("ax_mps2", 4.0),), boost=EPAS_BOOST),
+    # the same judged only where the boost is 3 Nm or more (near zero torque a gain of the assist is invisible:
+    # the check above, at 10 ticks in a row, sees an offset there but almost never a gain), on 8 of the last 10
+    # judged ticks (unjudged ticks do not restart it, so a steering that rests now and then still adds up)
+    Redundancy("assist_vs_boost_above_3nm", "assist_torque_nm", ("steer_torque_nm", "vx_mps"), 1.0,
                tolerance_abs=2.0, tolerance_rel=0.2, debounce_ticks=8, window=10, relation="boost",
                steady=(("steer_angle_rad", 0.25),), within=(("ax_mps2", 4.0),), boost=EPAS_BOOST, min_expected=3.0),
     # the steering-wheel angle against the yaw rate when the car drives straight: the kinematic angle
