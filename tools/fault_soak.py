@@ -23,7 +23,7 @@ stricter than the oracle (INVALID after a fault's end while it recovers): that i
 
 The faults also hit the checks' references (signals the daemon reads for its plausibility checks alone, such as
 the rear wheel speeds): a dead reference is not a dead input (the estimate may stay VALID, its checks are then not
-judged), and the figures give the VALID share of the ticks on which only a reference is dead.
+judged), and the figures give the VALID share of the ticks on which only a reference's message is faulted.
 
     python tools/fault_soak.py --minutes 30 --seed 1 --json soak.json
     python tools/fault_soak.py --tables data/paper      # the checks over simulated runs: how often each trips
@@ -79,8 +79,8 @@ FAULTS = {
 class Stream:
     """The frames, in arrival order once :meth:`order` ran. ``true_t``: when sent; ``arrival``: when the
     daemon gets it; ``stamp``: its timestamp; ``alive``: genuine, intact content; ``flagged``: an SNA or
-    out-of-range input; ``ref_flagged``: an SNA or out-of-range check reference (a signal only the plausibility
-    checks read); ``vx_fault``: falsified vehicle speed."""
+    out-of-range input (not a check reference's, which leaves the message's inputs alive); ``vx_fault``:
+    falsified vehicle speed."""
 
     true_t: np.ndarray
     arrival: np.ndarray
@@ -90,19 +90,17 @@ class Stream:
     dlc: np.ndarray
     alive: np.ndarray = field(init=False)
     flagged: np.ndarray = field(init=False)
-    ref_flagged: np.ndarray = field(init=False)
     vx_fault: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         n = self.true_t.size
         self.alive = np.ones(n, bool)
         self.flagged = np.zeros(n, bool)
-        self.ref_flagged = np.zeros(n, bool)
         self.vx_fault = np.zeros(n, bool)
 
     def append(self, rows: np.ndarray, arrival: np.ndarray, stamp: np.ndarray, alive: bool) -> None:
         """Add copies of frames ``rows`` (duplicates) with their own arrival and stamp."""
-        for name in ("true_t", "fid", "data", "dlc", "flagged", "ref_flagged", "vx_fault"):
+        for name in ("true_t", "fid", "data", "dlc", "flagged", "vx_fault"):
             setattr(self, name, np.concatenate([getattr(self, name), getattr(self, name)[rows]]))
         self.arrival = np.concatenate([self.arrival, arrival])
         self.stamp = np.concatenate([self.stamp, stamp])
@@ -110,8 +108,7 @@ class Stream:
 
     def order(self) -> None:
         o = np.argsort(self.arrival, kind="stable")
-        for name in ("true_t", "arrival", "stamp", "fid", "data", "dlc", "alive", "flagged", "ref_flagged",
-                     "vx_fault"):
+        for name in ("true_t", "arrival", "stamp", "fid", "data", "dlc", "alive", "flagged", "vx_fault"):
             setattr(self, name, getattr(self, name)[o])
 
 
@@ -278,11 +275,9 @@ class Injector:
         for i in r:
             _set_raw(s.data, int(i), sig, int(raw))
         self._recrc(r)
-        if name in self.inputs:
+        if name in self.inputs:  # (a check reference's bad value leaves the message's inputs alive)
             s.alive[r] = False
             s.flagged[r] = True
-        else:  # (a check reference's bad value leaves the message's inputs alive)
-            s.ref_flagged[r] = True
         return a + d
 
     def _recrc(self, r: np.ndarray) -> None:
@@ -343,10 +338,10 @@ def _values(s: Stream, matrix: CanMatrix, name: str, frames: np.ndarray) -> np.n
     return np.where(frames >= 0, (raw * sig.scale + sig.offset) / sig.si_factor, np.nan)
 
 
-def _dead(s: Stream, matrix: CanMatrix, fids: list[int], ticks: np.ndarray, timeout_cycles: float | None,
+def _dead(s: Stream, matrix: CanMatrix, fids: list[int], ticks: np.ndarray, timeout_cycles: float,
           flagged: np.ndarray) -> np.ndarray:
-    """Per tick: one of messages ``fids`` has had no genuine frame within its timeout (not judged when
-    ``timeout_cycles`` is None), or its latest frame is ``flagged``."""
+    """Per tick: one of messages ``fids`` has had no genuine frame within its timeout, or its latest frame is
+    ``flagged``."""
     dead = np.zeros(ticks.size, bool)
     for fid in fids:
         mc = matrix.by_id[fid]
@@ -354,21 +349,9 @@ def _dead(s: Stream, matrix: CanMatrix, fids: list[int], ticks: np.ndarray, time
         alive_t = np.maximum.accumulate(np.where(s.alive[rows], s.true_t[rows], -np.inf))
         k = np.searchsorted(s.arrival[rows], ticks, side="right") - 1
         latest = np.where(k >= 0, alive_t[np.maximum(k, 0)], -np.inf)
-        if timeout_cycles is not None:
-            dead |= latest < ticks - timeout_cycles * mc.cycle_s - 1e-4
+        dead |= latest < ticks - timeout_cycles * mc.cycle_s - 1e-4
         dead |= (k >= 0) & flagged[rows[np.maximum(k, 0)]]
     return dead
-
-
-def reference_dead(s: Stream, matrix: CanMatrix, inputs: tuple[str, ...], refs: tuple[str, ...],
-                   ticks: np.ndarray, timeout_cycles: float) -> np.ndarray:
-    """Per tick: a check reference is dead (its own message dead, or an SNA or out-of-range reference in its
-    message's latest frame), which must leave the estimate's status as it is."""
-    model = {matrix.messages[matrix.message_of(x)].frame_id for x in inputs}
-    own = sorted({matrix.messages[matrix.message_of(x)].frame_id for x in refs} - model)
-    shared = sorted({matrix.messages[matrix.message_of(x)].frame_id for x in refs} & model)
-    return (_dead(s, matrix, own, ticks, timeout_cycles, s.ref_flagged)
-            | _dead(s, matrix, shared, ticks, None, s.ref_flagged))
 
 
 def oracle(s: Stream, matrix: CanMatrix, inputs: tuple[str, ...], ticks: np.ndarray,
@@ -477,6 +460,22 @@ def _observed_matrix(faults: list[dict[str, Any]], ticks: np.ndarray, statuses: 
     return {k: {**v, "statuses": dict(v["statuses"]), "counters": dict(v["counters"])} for k, v in sorted(out.items())}
 
 
+def _reference_fault_ticks(faults: list[dict[str, Any]], matrix: CanMatrix, inputs: tuple[str, ...],
+                           refs: tuple[str, ...], n: int) -> np.ndarray:
+    """Per tick: a fault of a message that carries only check references lasts (+1 s), and no other fault does
+    (the kinds that hit one message; a step back, a burst or a falsified speed hit others too)."""
+    model = {matrix.message_of(x) for x in inputs}
+    own = {matrix.message_of(x) for x in refs} - model
+    solo, other = np.zeros(n, bool), np.zeros(n, bool)
+    for f in faults:
+        k0, k1 = f["_ticks"]
+        if f["message"] in own and f["kind"] not in ("step_back", "burst", "implausible_vx"):
+            solo[k0:k1] = True
+        else:
+            other[k0:k1] = True
+    return solo & ~other
+
+
 def soak(minutes: float, seed: int, model_path: Path = ROOT / "models" / "improved.onnx",
          pool: tuple = POOL, log=print) -> dict[str, Any]:
     """Build, inject, drive, check; the figures (see :func:`main`)."""
@@ -498,7 +497,7 @@ def soak(minutes: float, seed: int, model_path: Path = ROOT / "models" / "improv
             marks.setdefault(min(k, ticks.size - 1), []).append(j)
             marks.setdefault(max(k - 1, 0), []).append(j)
     dead, implausible = oracle(s, matrix, inputs, ticks, sensor.timeout_cycles)
-    ref_dead = reference_dead(s, matrix, inputs, refs, ticks, sensor.timeout_cycles)
+    ref_only = _reference_fault_ticks(faults, matrix, inputs, refs, ticks.size)
     logger = logging.getLogger("virtsensor.daemon")
     events, old = _Events(), (logger.level, logger.propagate)
     logger.addHandler(events)
@@ -529,9 +528,9 @@ def soak(minutes: float, seed: int, model_path: Path = ROOT / "models" / "improv
         "first_crash": res["first_crash"],
         "valid_share_of_other_ticks": round(float(valid[clean].mean()), 4) if clean.any() else None,
         "check_references": list(refs),
-        "reference_dead_ticks": int((ref_dead & clean).sum()),
-        "valid_share_of_reference_dead_ticks": (round(float(valid[ref_dead & clean].mean()), 4)
-                                                if (ref_dead & clean).any() else None),
+        "reference_fault_ticks": int((ref_only & clean).sum()),
+        "valid_share_of_reference_fault_ticks": (round(float(valid[ref_only & clean].mean()), 4)
+                                                 if (ref_only & clean).any() else None),
         "counters": {k: v for k, v in sensor.counters.items() if v}, "log_events": dict(events.counts),
         "drive_wall_s": round(wall, 2),
         "fault_matrix": _observed_matrix(faults, ticks, st, res["snapshots"], forbidden),
