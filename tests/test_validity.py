@@ -486,3 +486,17 @@ def test_the_catalogue_tracks_are_the_simulated_car_s():
 
     car = tomllib.loads((Path(__file__).resolve().parents[1] / "sim/data/car_c_segment.toml").read_text())
     assert (cat.TRACK_FRONT_M, cat.TRACK_REAR_M) == (car["vehicle"]["track_front_m"], car["vehicle"]["track_rear_m"])
+
+
+def test_a_check_is_not_judged_while_a_signal_of_its_conditions_is_stale():
+    """A steering angle held while its sensor reports out of range reads as a wheel at rest: the assist checks,
+    whose condition it is, wait for it (seen in the fault soak: a held angle tripped the assist check)."""
+    cat, rules = _catalogue_rules()
+    rule = rules["assist_vs_boost_above_3nm"]
+    p = Plausibility([rule], 12)
+    stale = [n == "steer_angle_rad" for n in cat.INPUTS]
+    for _ in range(30):  # the assist far off the boost curve, the steering angle stale
+        assert p.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-9.0), stale) == 0
+    assert not p.failing[0]
+    assert sum(p.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-9.0))
+               for _ in range(rule.debounce)) == 1  # the same, the angle fresh: judged

@@ -276,12 +276,13 @@ class Redundancy:
     reference*, such as the rear wheel speeds) is read by the daemon for the check alone: when it is stale the
     check is not judged, and the estimate's status does not change.
 
-    A receiver judges the check only on ticks where each ``steady`` signal moved by at most its rate (unit/s)
-    since the previous tick, each ``within`` signal is at most its bound in magnitude, each ``above`` signal is at
-    least its bound (signed), the prediction is at least ``min_expected`` and at most ``max_expected`` in
-    magnitude and, with ``turn``, the car turns with grip (:class:`SteadyTurn`, references ``(yaw rate, vx)`` and
-    the steering angle). With ``window == 0`` it flags the subject implausible after ``debounce_ticks``
-    consecutive failing judged 20 Hz ticks and clears it after as many passing ones, an unjudged tick holding
+    A receiver judges the check only on ticks where none of the signals it reads is stale, each ``steady``
+    signal moved by at most its rate (unit/s) since the previous tick, each ``within`` signal is at most its
+    bound in magnitude, each ``above`` signal is at least its bound (signed), the prediction is at least
+    ``min_expected`` and at most ``max_expected`` in magnitude and, with ``turn``, the car turns with grip
+    (:class:`SteadyTurn`, references ``(yaw rate, vx)`` and the steering angle). With ``window == 0`` it flags
+    the subject implausible after ``debounce_ticks`` consecutive failing judged 20 Hz ticks and clears it after
+    as many passing ones, an unjudged tick holding
     the verdict and restarting the count (a skid or a wheel spin of a few ticks is not a fault); with
     ``window > 0``, once ``debounce_ticks`` of the last ``window`` judged ticks failed (cleared once as many
     passed), unjudged ticks neither counting nor restarting.

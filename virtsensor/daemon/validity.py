@@ -223,11 +223,12 @@ class PlausibilityRule:
     ``"ratio"``, ``scale * v[refs[0]] / v[refs[1]]`` (the rule's ``above`` keeps the divisor positive);
     ``"difference"``, ``scale * (v[refs[0]] - v[refs[1]])``; ``"boost"``, ``boost = (speeds, gains, knee, max)``
     of ``refs = (torque, speed)`` (see :class:`~virtsensor.signals.BoostCurve`). A tick is judged only when no
-    signal it compares is stale, every ``(i, max_step)`` of ``steady`` moved by at most ``max_step`` since the
-    previous tick, every ``(i, bound)`` of ``within`` has ``|v[i]| <= bound``, every ``(i, bound)`` of ``above``
-    has ``v[i] >= bound``, ``min_expected <= |expected| <= max_expected`` (a NaN prediction is judged and
-    passes) and, with ``turn = (yaw, vx, steer, k, min_yaw, lo, hi)``, ``|r_kin| >= min_yaw`` and
-    ``lo*|r_kin| <= |v[yaw]| <= hi*|r_kin|``, ``r_kin = k * v[vx] * v[steer]`` (the same sign).
+    signal it reads is stale (compared, gating or scaling the tolerance), every ``(i, max_step)`` of ``steady``
+    moved by at most ``max_step`` since the previous tick, every ``(i, bound)`` of ``within`` has ``|v[i]| <=
+    bound``, every ``(i, bound)`` of ``above`` has ``v[i] >= bound``, ``min_expected <= |expected| <=
+    max_expected`` (a NaN prediction is judged and passes) and, with ``turn = (yaw, vx, steer, k, min_yaw, lo,
+    hi)``, ``|r_kin| >= min_yaw`` and ``lo*|r_kin| <= |v[yaw]| <= hi*|r_kin|``, ``r_kin = k * v[vx] * v[steer]``
+    (the same sign).
 
     Debounce. With ``window == 0``, the check fails after ``debounce`` consecutive failing judged ticks and
     passes after as many passing ones; an unjudged tick holds the verdict and restarts the count. With
@@ -275,13 +276,21 @@ def _boost(curve: tuple[tuple[float, ...], tuple[float, ...], float, float], t: 
     return top if y > top else -top if y < -top else y
 
 
+def _reads(r: PlausibilityRule) -> tuple[int, ...]:
+    """Every signal check ``r`` reads (compared, gating, or scaling its tolerance), once: a check is not judged
+    while one of them is stale (a held steering angle looks like a wheel at rest)."""
+    turn = r.turn[:3] if r.turn is not None else ()
+    return tuple(dict.fromkeys((r.subject, *((r.minus,) if r.minus >= 0 else ()), *r.refs,
+                                *(i for i, _ in (*r.steady, *r.within, *r.above, *r.tol_per)), *turn)))
+
+
 def judge(r: PlausibilityRule, values: Sequence[float], prev: Sequence[float],
           stale: Sequence[bool]) -> tuple[bool, float, float]:
     """One tick of check ``r`` as its docstring states it, interpreted: ``(judged, residual, tolerance)``, the
     residual ``|v[subject] - expected|`` (nan when not judged, or a NaN among the values) and the tolerance at
     ``v[subject]``; the tick fails when judged and ``residual > tolerance``. For tools and tests: the daemon runs
     the same semantics compiled (:func:`compile_checks`), which the tests hold equal to this."""
-    judged = not any(stale[i] for i in (r.subject, *r.refs)) and not (r.minus >= 0 and stale[r.minus])
+    judged = not any(stale[i] for i in _reads(r))
     judged = judged and all(abs(values[i] - prev[i]) <= step for i, step in r.steady)
     judged = judged and all(abs(values[i]) <= bound for i, bound in r.within)
     judged = judged and all(values[i] >= bound for i, bound in r.above)
@@ -339,7 +348,7 @@ def _skip_source(k: int, r: PlausibilityRule, env: dict[str, Any]) -> tuple[list
     """The conditions that leave check ``k`` unjudged (any true: not judged), and the name its prediction has
     in the judged branch (``e``, computed once by the bounds on it) or its source when no bound needs it."""
     v = "values"
-    skip = [f"stale[{i}]" for i in dict.fromkeys((r.subject, *((r.minus,) if r.minus >= 0 else ()), *r.refs))]
+    skip = [f"stale[{i}]" for i in _reads(r)]
     skip += [f"not abs({v}[{i}] - prev[{i}]) <= {_lit(step, env)}" for i, step in r.steady]
     skip += [f"not abs({v}[{i}]) <= {_lit(bound, env)}" for i, bound in r.within]
     skip += [f"not {v}[{i}] >= {_lit(bound, env)}" for i, bound in r.above]
@@ -431,7 +440,8 @@ class Plausibility:
     """Debounced plausibility checks, fed the latest input values once per tick (:meth:`update`).
 
     A failing check marks its *subject* implausible (:attr:`implausible`); a NaN among the compared values (an
-    input never received) passes, and a check on a stale input is not judged: staleness is judged elsewhere.
+    input never received) passes, and a check that reads a stale input is not judged: staleness is judged
+    elsewhere.
 
     Attributes:
         rules: the checks. failing: per check, its debounced verdict. implausible: per input signal.
