@@ -558,7 +558,8 @@ def plausibility_trips(paths: list[Path]) -> dict[str, Any]:
     """The catalogue's plausibility checks, as the daemon runs them (:class:`Plausibility` on the 12 inputs and
     the checks' references, one 20 Hz row per tick; a reference that is NaN, or missing from a recording, is
     stale there: its checks are not judged), over the 20 Hz tables of recordings: how often each check failed,
-    and where; per check, its judged ticks and its largest residual against its tolerance."""
+    and where; per check, its judged ticks and its largest residual against its tolerance, and per check
+    debounced on its last judged ticks, the most failures one of its windows held."""
     from virtsensor.daemon.layout import check_references, plausibility_rules
     from virtsensor.daemon.validity import Plausibility, judge
     from virtsensor.recordings.files import recording_files
@@ -571,6 +572,7 @@ def plausibility_trips(paths: list[Path]) -> dict[str, Any]:
     judged = [0] * len(rules)
     worst: list[dict[str, Any]] = [{"residual": 0.0, "tolerance": math.nan, "ratio": 0.0, "at": None} for _ in rules]
     lacking: Counter[str] = Counter()
+    crowded = [0] * len(rules)  # windowed checks: the most failures any window held
     runs = rows = 0
     for src in recording_files(paths):
         table, missing = _table_with_references(src.path, refs)
@@ -589,7 +591,12 @@ def plausibility_trips(paths: list[Path]) -> dict[str, Any]:
                     worst[c] = {"residual": round(res, 4), "tolerance": round(tol, 4), "ratio": round(res / tol, 3),
                                 "at": f"{src.path.name} t={float(table['time_s'][k]):.2f}"}
             prev = row
-            if p.update(row, stale):
+            n_new = p.update(row, stale)
+            counts = p.counts
+            for c, r in enumerate(rules):
+                if r.window and counts[c] > crowded[c]:
+                    crowded[c] = counts[c]
+            if n_new:
                 for c, r in enumerate(rules):
                     if p.new[c]:
                         trips[r.name] += 1
@@ -599,6 +606,8 @@ def plausibility_trips(paths: list[Path]) -> dict[str, Any]:
     return {"runs": runs, "rows": rows, "trips": {r.name: trips[r.name] for r in rules}, "where": where[:20],
             "judged_ticks": {r.name: judged[c] for c, r in enumerate(rules)},
             "largest_residual": {r.name: worst[c] for c, r in enumerate(rules)},
+            "most_failures_in_a_window": {r.name: f"{crowded[c]} of {r.window}" for c, r in enumerate(rules)
+                                          if r.window},
             "runs_lacking_reference": dict(lacking)}
 
 

@@ -157,7 +157,7 @@ class VirtualSensor:
         self._outside = hook("envelope", outside_envelope)
         self._fill_grip = hook("grip", self._out.grip.fill_tick)
         self.envelope = _card_envelope(model)
-        self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.decoded)
+        self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
         #: the latest tick's inputs were outside the model card's validity envelope
         self.outside_envelope = False
         self._msg_err = [False] * len(lay.input_messages)  # the tick's E2E errors (for the logs)

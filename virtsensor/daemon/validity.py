@@ -463,6 +463,12 @@ class Plausibility:
         self._never = [False] * n_signals
         self._update = compile_checks(self.rules)
 
+    @property
+    def counts(self) -> Sequence[int]:
+        """Per check, its debounce count: consecutive judged ticks against its verdict, or (windowed) the failures
+        among its last ``window`` judged ticks (read-only; for tools and tests)."""
+        return tuple(self._run)
+
     def update(self, values: Sequence[float], stale: Sequence[bool] | None = None) -> int:
         """Run every check on ``values`` (per decoded signal, as the rules' indices); returns how many checks
         newly failed. A check that compares a ``stale`` signal (a held value, not news) is not judged at this
@@ -508,10 +514,12 @@ class EnvelopeRules:
 
 
 def outside_envelope(values: Sequence[float], rules: EnvelopeRules) -> bool:
-    """Whether the input ``values`` (per signal, finite; best a list of floats) lie outside the envelope
-    ``rules``. Allocates nothing but float temporaries."""
-    for v, lo, hi in zip(values, rules.lo, rules.hi, strict=True):
-        if not lo <= v <= hi:
+    """Whether the input ``values`` (per model input, finite; best a list of floats; items after the model's
+    inputs, such as the daemon's check references, are not read) lie outside the envelope ``rules``. Allocates
+    nothing but float temporaries."""
+    lo, hi = rules.lo, rules.hi
+    for i in range(len(lo)):
+        if not lo[i] <= values[i] <= hi[i]:
             return True
     caps = rules.ay_max
     if not caps:
