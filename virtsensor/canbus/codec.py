@@ -619,6 +619,18 @@ def _decode_signal(
                   f"{ind}else:", *_indent(ind + "    ", on_implausible)]
 
 
+def _to_raw_expr(s: SignalCodec) -> str:
+    """Python expression of ``(v * si_factor - offset) / scale`` (the unrounded raw of SI value ``v``) without the
+    operations that are identities in IEEE arithmetic (``* 1.0``, ``- 0.0``, ``/ 1.0``): the same float for every
+    ``v``, fewer operations per signal on the daemon's output path."""
+    x = "v" if s.si_factor == 1.0 else f"v * {float(s.si_factor)!r}"
+    if s.offset:
+        x = f"{x} - {float(s.offset)!r}"
+    if s.scale == 1.0:
+        return x
+    return f"{x} / {float(s.scale)!r}" if x == "v" else f"({x}) / {float(s.scale)!r}"
+
+
 def compile_encoder(message: MessageCodec) -> Callable[[Mapping[str, float], int], bytes]:
     """``encode(values, counter) -> bytes`` of a compiled :class:`MessageCodec` (see :meth:`CanMatrix.encode`
     for the contract: catalogue names first, then DBC names; missing or nan -> SNA (0 without one); clipped to
@@ -637,7 +649,7 @@ def compile_encoder(message: MessageCodec) -> Callable[[Mapping[str, float], int
         lines += ["    if v is None or v != v:",
                   f"        r = {sna}",
                   "    else:",
-                  f"        x = (v * {float(s.si_factor)!r} - {float(s.offset)!r}) / {float(s.scale)!r}",
+                  f"        x = {_to_raw_expr(s)}",
                   f"        r = {lo} if x <= {lo} else {hi} if x >= {hi} else round(x)",
                   f"    p |= (r & {s.mask:#x}) << {int(s.start)}"]
     rest = ", ".join(f"b{i}" for i in range(1, L))
