@@ -165,7 +165,17 @@ def car_params() -> dict:
             "yaw_inertia_kgm2": v["yaw_inertia_kgm2"], "gear_ratio": p["powertrain"]["gear_ratio"],
             "rolling_radius_m": ROLLING_RADIUS_M, "brake_front_share": p["brakes"]["front_share"],
             "drag_n_per_m2ps2": round(0.5 * a["air_density_kgpm3"] * a["drag_coefficient"] * a["frontal_area_m2"], 4),
-            "steer_ratio": p["steering"]["ratio"]}
+            "steer_ratio": p["steering"]["ratio"], **pressure_terms(p)}
+
+
+def pressure_terms(p: dict) -> dict:
+    """The calibration's front pressure (the car's own, gauge) and its tyre's MF 6.1 ``PPZ1`` (the trail's
+    pressure term, from the car's tyre property file): where the TPMS gives the pressure, the estimate reads the
+    trail at the calibration's pressure (:meth:`virtsensor.grip.GripEstimator.set_front_pressure`)."""
+    from sim.vehicle import tyre_for
+
+    return {"pressure_nominal_pa": float(p["tyres"]["pressure_front_pa"]),
+            "trail_pressure_coeff": float(tyre_for(p, "front").params["PPZ1"])}
 
 
 def _initial() -> grip.GripParams:

@@ -79,13 +79,16 @@ import numpy as np
 from virtsensor.errors import UserError
 from virtsensor.signals import SIGNALS
 
-__all__ = ["GRIP_INPUTS", "GripParams", "GripEstimator", "GripState", "estimate_run", "load_params", "PARAMS_FILE"]
+__all__ = ["GRIP_INPUTS", "PRESSURE_INPUTS", "GripParams", "GripEstimator", "GripState", "estimate_run",
+           "front_pressure", "load_params", "PARAMS_FILE"]
 
 #: the catalogue car's grip parameters, package data beside this module
 PARAMS_FILE = "grip_car.json"
 #: the estimator inputs :meth:`GripEstimator.step` reads, in its argument order (after the two SATs)
 GRIP_INPUTS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "motor_torque_nm",
                "wheel_speed_fl_radps", "wheel_speed_fr_radps")
+#: the front tyres' TPMS pressures the estimate reads the trail at, where the bus carries them
+PRESSURE_INPUTS = ("tyre_pressure_fl_pa", "tyre_pressure_fr_pa")
 G = 9.81
 #: the held friction's median is retaken after this many new given estimates (0.25 s of them at 20 Hz)
 MEDIAN_EVERY = 5
@@ -160,6 +163,11 @@ class GripParams:
             its pooled error is evidence of the limit too (a wet road once measured: the combined-slip
             corner the trail cannot read is seen by the force it already uses of that road's grip); 0: not (the
             older files' meaning).
+        pressure_nominal_pa, trail_pressure_coeff: the front tyres' inflation pressure (gauge, Pa) of the
+            calibration's data, and the pneumatic trail's relative change per relative pressure change (MF 6.1
+            ``PPZ1``: the trail's peak ``Dt`` scales with ``1 - PPZ1 dpi``, ``dpi = (p - p0) / p0``). Where the
+            front pressures are known (TPMS), the measured trail is read at the calibration's pressure,
+            ``t / (1 - PPZ1 dpi)``; unknown, or a coefficient of 0 (the older files' meaning): as measured.
         source: where the numbers come from (free text).
     """
 
@@ -206,6 +214,8 @@ class GripParams:
     interval_at_trail: tuple[tuple[float, ...], ...] = ()
     interval_max: float = math.inf
     evidence_long_ratio: float = 0.0
+    pressure_nominal_pa: float = 0.0
+    trail_pressure_coeff: float = 0.0
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -222,6 +232,9 @@ class GripParams:
             raise ValueError("grip params: interval_at_trail values must be finite and >= 0")
         if not self.interval_max > 0.0:  # (also refuses nan)
             raise ValueError("grip params: interval_max must be > 0 (inf: no limit)")
+        if not (0.0 <= self.trail_pressure_coeff < 2.0 and 0.0 <= self.pressure_nominal_pa < math.inf) or (
+                self.trail_pressure_coeff > 0.0 and self.pressure_nominal_pa <= 0.0):
+            raise ValueError("grip params: need 0 <= trail_pressure_coeff < 2 and a pressure_nominal_pa > 0 with it")
         if not 0.0 <= self.evidence_long_ratio < math.inf:  # (also refuses nan)
             raise ValueError("grip params: evidence_long_ratio must be finite and >= 0")
         if min(self.use_at_trail) <= 0:
@@ -255,7 +268,7 @@ class GripParams:
 
 #: fields a parameter file may leave out (their defaults: the older files' meaning)
 _OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer", "evidence_mu_held", "interval_at_trail",
-             "interval_max", "evidence_long_ratio")
+             "interval_max", "evidence_long_ratio", "pressure_nominal_pa", "trail_pressure_coeff")
 
 
 def _tuples(v: Any) -> Any:
@@ -337,6 +350,7 @@ class GripEstimator:
         self._bands, self._abs = tuple(p.mu_bands), tuple(tuple(c) for c in p.abs_err90_at_trail)
         self._pub = tuple(tuple(c) for c in p.interval_at_trail) if p.interval_at_trail else self._abs
         self.state = GripState()
+        self._trail_gain = 1.0
         self.reset()
 
     @property
@@ -364,6 +378,18 @@ class GripEstimator:
             self._hwp_held = math.inf  # (the published half-width of the latest given)
             self._recent: deque[float] = deque(maxlen=max(int(self.params.hold_count), 1))
             self._fresh = MEDIAN_EVERY  # (given estimates since the held median was last taken)
+
+    def set_front_pressure(self, pressure_pa: float) -> None:
+        """The front tyres' mean inflation pressure (gauge, Pa; nan: unknown) for the following steps: the measured
+        trail is read at the calibration's pressure, ``t / (1 - PPZ1 dpi)`` (``GripParams.trail_pressure_coeff``,
+        ``pressure_nominal_pa``; the factor ``1 - PPZ1 dpi`` held at 0.25 or more, a tyre far above its rated
+        pressure). Unknown, or a calibration without the coefficient: the trail as measured."""
+        p = self.params
+        if p.trail_pressure_coeff > 0.0 and pressure_pa > 0.0:  # (nan fails the comparison: unknown)
+            f = 1.0 - p.trail_pressure_coeff * (pressure_pa - p.pressure_nominal_pa) / p.pressure_nominal_pa
+            self._trail_gain = 1.0 / max(f, 0.25)
+        else:
+            self._trail_gain = 1.0
 
     def _lp(self, prev: float, x: float) -> float:
         return x if prev != prev else prev + self._a * (x - prev)  # (prev != prev: nan, the first tick)
@@ -397,11 +423,11 @@ class GripEstimator:
         lateral = abs(fx) <= p.max_long_ratio * fz  # (under drive or braking the trail reads combined slip)
         ev = 0.0  # the limit's own evidence, whatever the road: the trail's collapse, the wheels' slip
         if lateral and abs(fy) >= p.min_force_ratio * fz:
-            ev = self._read_trail(n, -mz / fy, steady)
+            ev = self._read_trail(n, -mz / fy * self._trail_gain, steady)
         else:
             s.trail_m = s.mu = s.halfwidth = math.nan
             if abs(fx) <= p.evidence_long_ratio * fz and abs(fy) >= p.min_force_ratio * fz:
-                ev = self._evidence(-mz / fy)[2]  # (combined slip: the evidence only, no friction)
+                ev = self._evidence(-mz / fy * self._trail_gain)[2]  # (combined slip: the evidence only, no friction)
         self._held_m += vx * self.dt
         if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
             widen = p.hold_widen_per_m * self._held_m  # (the road met since may differ)
@@ -528,12 +554,21 @@ class GripEstimator:
             self._below = 0.0
 
 
+def front_pressure(table: Mapping[str, Any], n: int) -> np.ndarray:
+    """Per row, the mean of a run's two front TPMS pressures (gauge, Pa; :data:`PRESSURE_INPUTS`), nan where either
+    is unknown or the table has none (the estimate then reads the trail as measured)."""
+    if not all(k in table for k in PRESSURE_INPUTS):
+        return np.full(n, np.nan)
+    return 0.5 * (np.asarray(table[PRESSURE_INPUTS[0]], float) + np.asarray(table[PRESSURE_INPUTS[1]], float))
+
+
 def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np.ndarray,
                  params: GripParams | None = None) -> dict[str, np.ndarray]:
     """The grip estimate over one run's 20 Hz table (rows in time order), tick by tick with the daemon's code.
 
     Args:
-        table: the run's columns of the estimator inputs :meth:`GripEstimator.step` reads (catalogue names).
+        table: the run's columns of the estimator inputs :meth:`GripEstimator.step` reads (catalogue names), and
+            the front TPMS pressures where it has them (:func:`front_pressure`).
         sat_fl, sat_fr: the estimated front SATs per row (Nm; nan where the model gave none).
 
     Returns:
@@ -542,10 +577,12 @@ def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np
     est = GripEstimator(params)
     ax, ay, vx, r, sw, tm, wl, wr = (np.asarray(table[k], dtype=float).tolist() for k in GRIP_INPUTS)
     n = len(sat_fl)
+    press = front_pressure(table, n).tolist()
     out = {k: np.full(n, np.nan) for k in ("util", "mu", "halfwidth", "trail_m", "force_ratio")}
     warn = np.zeros(n, dtype=bool)
     fl, fr = np.asarray(sat_fl, float).tolist(), np.asarray(sat_fr, float).tolist()
     for i in range(n):
+        est.set_front_pressure(press[i])
         s = est.step(fl[i], fr[i], ax[i], ay[i], vx[i], r[i], sw[i], tm[i], wl[i], wr[i])
         out["util"][i], out["mu"][i], out["halfwidth"][i] = s.util, s.mu, s.halfwidth
         out["trail_m"][i], out["force_ratio"][i] = s.trail_m, s.force_ratio
