@@ -22,7 +22,7 @@ from virtsensor.canbus.e2e import USABLE
 from virtsensor.daemon import DEGRADED, INIT, INVALID, VALID, VirtualSensor
 from virtsensor.daemon.gripout import worse_status
 from virtsensor.errors import UserError
-from virtsensor.grip import GripEstimator, GripParams, estimate_run, load_params
+from virtsensor.grip import PRESSURE_INPUTS, GripEstimator, GripParams, estimate_run, load_params
 from virtsensor.learning import gripscore as gs
 from virtsensor.model import OnnxModel
 from virtsensor.recordings.canlog import iter_frames, simulated_recording
@@ -332,6 +332,34 @@ def test_non_finite_input_gives_nan_and_restarts():
     assert math.isnan(s.util) and math.isnan(s.mu) and not s.warning
 
 
+def test_the_trail_is_read_at_the_calibrations_pressure():
+    """A harder tyre has a shorter trail at the same utilisation (MF 6.1: ``Dt`` scales with ``1 - PPZ1 dpi``): with its
+    TPMS pressure the estimate reads the trail it would have at the calibration's pressure, so it gives what the
+    nominal tyre gives; without the pressure, or with a calibration that lacks the coefficient, it reads it as is."""
+    p = load_params()
+    c, p0 = p.trail_pressure_coeff, p.pressure_nominal_pa
+    assert p0 == 220_000.0 and 0.5 < c < 1.2  # (the car's own pressure; its tyre file's PPZ1)
+    hard = 290_000.0
+    shorter = 1.0 - c * (hard - p0) / p0
+
+    def state(trail_m: float, pressure: float, params: GripParams = p) -> tuple[float, float, float]:
+        est = GripEstimator(params)
+        est.set_front_pressure(pressure)
+        _steady(est, 40, 0.45 * 9.81, trail_m)
+        return est.state.util, est.state.mu, est.state.trail_m
+
+    nominal = state(0.012, p0)
+    assert math.isfinite(nominal[1])
+    assert state(0.012 * shorter, hard) == pytest.approx(nominal, rel=1e-9)
+    assert state(0.012, math.nan) == pytest.approx(nominal, rel=1e-12)  # unknown: as measured
+    as_is = state(0.012 * shorter, math.nan)
+    assert as_is[2] == pytest.approx(0.012 * shorter) and as_is[1] < nominal[1] - 0.05  # a hard tyre read as a wet road
+    assert state(0.012 * shorter, hard, replace(p, trail_pressure_coeff=0.0)) == pytest.approx(as_is, rel=1e-12)
+    est = GripEstimator(p)
+    est.set_front_pressure(5.1e5)  # far above any rating: the factor is held at 0.25
+    assert est._trail_gain == pytest.approx(4.0)
+
+
 def test_params_are_checked():
     doc = load_params().to_json()
     with pytest.raises(UserError, match="grip params"):
@@ -589,6 +617,57 @@ def test_offline_estimate_is_the_daemons(model, run_frames):
     assert np.abs(on[ok, 0] - est["util"][ok]).max() <= 0.0025 + 1e-9  # (VS_GripUtil resolution 0.005)
     assert (on[:, 3] == est["warning"]).all()
     assert (np.isfinite(on[:, 1]) == np.isfinite(est["mu"])).all()
+
+
+@pytest.fixture(scope="module")
+def hard_tyre_run():
+    """A double lane change on a wet road with the front tyres at 2.9 bar (the car's own: 2.2): its frames and its
+    offline table (with the TPMS pressures)."""
+    from sim.api import Request, simulate_many
+
+    (run,) = simulate_many([Request("double-lane-change", 80.0, 0.5, 3, pressures_bar=(2.9, 2.9, 2.2, 2.2))])
+    ts = run.streams["time_s"]
+    sig = {k: v for k, v in run.streams.items() if k != "time_s"}
+    return list(iter_frames(ts, sig)), simulated_recording(ts, sig)
+
+
+def test_the_tpms_pressure_corrects_the_friction_of_a_hard_tyre(model, hard_tyre_run):
+    _, rec = hard_tyre_run
+    fl, fr = gs.model_sats(model, rec.table)
+    with_p = estimate_run(rec.table, fl, fr)
+    without = estimate_run({k: v for k, v in rec.table.items() if k not in PRESSURE_INPUTS}, fl, fr)
+    share = {}
+    for name, e in (("with", with_p), ("without", without)):
+        given = np.isfinite(e["mu"])
+        assert given.sum() >= 50
+        share[name] = float(np.mean(np.abs(e["mu"][given] - 0.5) <= 0.1))
+    assert share["with"] >= 0.85 and share["with"] >= share["without"] + 0.15, share
+
+
+def test_the_daemon_reads_the_front_pressures_as_offline(model, hard_tyre_run):
+    """The daemon decodes the TPMS for its grip estimate (the model does not read it) and publishes, tick for tick,
+    what ``estimate_run`` gives with the table's pressures; with the TPMS off the bus, what it gives without them."""
+    from virtsensor.daemon.layout import InputLayout
+
+    lay = InputLayout.from_model(model, MATRIX)
+    assert "tyre_pressure_fl_pa" not in lay.signals and lay.grip_signals == PRESSURE_INPUTS
+    tpms = OnnxModel.load(str(model_path("tpms")))
+    assert InputLayout.from_model(tpms, MATRIX).grip_signals == ()  # (its model reads them)
+    frames, rec = hard_tyre_run
+    fl, fr = gs.model_sats(model, rec.table)
+    off = rec.dropped_ticks
+    tpms_id = MATRIX.messages["TPMS_Pressures"].frame_id
+    for kept, table in ((frames, rec.table),
+                        ([f for f in frames if f.arbitration_id != tpms_id],
+                         {k: v for k, v in rec.table.items() if k not in PRESSURE_INPUTS})):
+        sat, grip, ticks = _drive(model, kept)
+        _, vals, _ = _decode(sat, grip)
+        est = estimate_run(table, fl, fr)
+        on = vals[off:]
+        assert len(ticks) == off + len(fl)
+        given = np.isfinite(est["mu"])
+        assert given.sum() >= 50 and (np.isfinite(on[:, 1]) == given).all()
+        assert np.abs(on[given, 1] - est["mu"][given]).max() <= 0.0025 + 1e-9  # (VS_GripMu resolution 0.005)
 
 
 def test_replace_keeps_params_valid():

@@ -159,8 +159,9 @@ def test_sync_replay_equals_offline_and_tracks_truth(model, test_frames):
 
     hv = _decode_health(health)
     assert all(h["VS_ModelId"] == int(model.card["sha256"][:2], 16) for h in hv)
-    # bits 0-5: the model's messages; 7: the rear wheel speeds (the yaw-rate check's reference); 6: no TPMS model
-    assert all(h["VS_InputStatus"] == 0xBF for h in hv[first:])
+    # bits 0-5: the model's messages; 7: the rear wheel speeds (the yaw-rate check's reference); 6: the TPMS (the
+    # grip estimate's front pressures)
+    assert all(h["VS_InputStatus"] == 0xFF for h in hv[first:])
     assert all(h["VS_TickLatency"] > 0 for h in hv)
     print(f"\n[a] {len(ticks)} ticks; online-offline max |dev| {dev.max():.4f} Nm (resolution {res}); "
           f"tracking MAE FL {mae[0]:.2f} Nm, FR {mae[1]:.2f} Nm (band {TRACK_MAE_NM} Nm; true peak "

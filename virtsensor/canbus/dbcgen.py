@@ -275,7 +275,8 @@ def _payload_sat_front(rx: tuple[str, ...]) -> list[SignalLayout]:
 
 def _bitmap_text() -> str:
     """The VS_InputStatus bit order, as its comment states it ("bit 0 IMU_Motion, ...")."""
-    notes = {**dict.fromkeys(OPTIONAL_INPUT_MESSAGES, " (only when the model reads it)"),
+    notes = {**dict.fromkeys(OPTIONAL_INPUT_MESSAGES, " (only when the daemon reads it: a model input, or the grip "
+                                                      "estimate's front pressures)"),
              **dict.fromkeys(CHECK_MESSAGES, " (a plausibility check's reference, no estimator input: 0 = the "
                                              "checks that read it are not judged; the SAT status is not lowered)")}
     inputs = _input_messages()

@@ -1,11 +1,12 @@
 """The daemon's ``VS_Grip`` frame: the grip margin (:mod:`virtsensor.grip`) from the tick's SAT estimate.
 
 Each tick, after ``SAT_FRONT`` is filled, :meth:`GripOutput.fill` runs one step of the grip estimate on the
-published SATs and the tick's input values and encodes ``VS_Grip`` with its own E2E alive counter (Profile 11,
-data ID from the catalogue). Every field's status is the worse of the two SAT statuses it derives from (INVALID
-before INIT before DEGRADED before VALID), so VS_Grip times out, degrades and recovers exactly as SAT_FRONT:
-while INVALID or INIT its values are SNA, the warning 0 and the estimate's filters restart. The friction is SNA
-whenever it is unknown (the tyres not excited enough), whatever its status.
+published SATs and the tick's input values (the front TPMS pressures too, where the daemon decodes them and both
+are usable: :meth:`~virtsensor.grip.GripEstimator.set_front_pressure`) and encodes ``VS_Grip`` with its own E2E
+alive counter (Profile 11, data ID from the catalogue). Every field's status is the worse of the two SAT statuses
+it derives from (INVALID before INIT before DEGRADED before VALID), so VS_Grip times out, degrades and recovers
+exactly as SAT_FRONT: while INVALID or INIT its values are SNA, the warning 0 and the estimate's filters restart.
+The friction is SNA whenever it is unknown (the tyres not excited enough), whatever its status.
 
 A CAN matrix without ``VS_Grip`` (an older DBC) or a model whose inputs lack a signal the estimate needs gives
 a :class:`NoGrip` stand-in (:func:`grip_output`): the daemon then publishes SAT_FRONT and VS_Health only.
@@ -21,7 +22,7 @@ from virtsensor.canbus.codec import CanMatrix, compile_encoder
 from virtsensor.canbus.dbcgen import GRIP_SIGNALS, GRIP_STATUS
 from virtsensor.canbus.e2e import next_counter
 from virtsensor.daemon.validity import DEGRADED, INIT, INVALID, VALID
-from virtsensor.grip import GRIP_INPUTS, GripEstimator, GripParams
+from virtsensor.grip import GRIP_INPUTS, PRESSURE_INPUTS, GripEstimator, GripParams
 
 __all__ = ["GRIP_INPUTS", "GripOutput", "NoGrip", "grip_output", "worse_status"]
 
@@ -38,7 +39,8 @@ class GripOutput:
 
     Args:
         matrix: the daemon's CAN matrix (with ``VS_Grip``).
-        signals: the daemon's input signals (the order of the values :meth:`fill` gets).
+        signals: the daemon's decoded signals (the order of the values :meth:`fill` gets; the front pressures
+            are read where they are among them).
         wheels: the daemon's two published wheels (front left, front right; their ``estimate``/``status``
             SAT_FRONT signal names), read by :meth:`fill_tick`.
         params: the car's grip parameters (default: the catalogue car's, shipped with the package).
@@ -52,6 +54,8 @@ class GripOutput:
         self._encode = compile_encoder(m)
         self.msg = out_message(m.frame_id, m.length)
         self._idx = tuple(list(signals).index(s) for s in GRIP_INPUTS)
+        self._press = tuple(list(signals).index(s) for s in PRESSURE_INPUTS) if all(
+            s in signals for s in PRESSURE_INPUTS) else ()
         self.estimator = GripEstimator(params)
         self._names = tuple(GRIP_SIGNALS)  # util, mu, half-width
         #: VS_Grip signal -> value (nan -> SNA), status codes
@@ -65,10 +69,12 @@ class GripOutput:
     #: this output publishes VS_Grip (the :class:`NoGrip` stand-in does not)
     enabled = True
 
-    def fill_tick(self, sat_values: Any, inputs: Sequence[float]) -> Any:
-        """:meth:`fill` from the tick's SAT_FRONT values (signal -> value) and input values; returns the message."""
+    def fill_tick(self, sat_values: Any, inputs: Sequence[float], bad: Sequence[bool] = ()) -> Any:
+        """:meth:`fill` from the tick's SAT_FRONT values (signal -> value), decoded values and their verdicts
+        (``bad``: per decoded signal, stale, SNA, implausible or E2E-faulted this tick; empty: all usable);
+        returns the message."""
         (e_fl, s_fl), (e_fr, s_fr) = self._sat
-        return self.fill(sat_values[e_fl], sat_values[e_fr], sat_values[s_fl], sat_values[s_fr], inputs)
+        return self.fill(sat_values[e_fl], sat_values[e_fr], sat_values[s_fl], sat_values[s_fr], inputs, bad)
 
     def send(self, send: Any) -> None:
         """Hand the latest filled frame to ``send`` (the bus link's)."""
@@ -78,8 +84,10 @@ class GripOutput:
     def frame_id(self) -> int:
         return int(self.msg.arbitration_id)
 
-    def fill(self, sat_fl: float, sat_fr: float, st_fl: float, st_fr: float, inputs: Sequence[float]) -> Any:
-        """One estimate step and the encoded frame (next alive counter); returns the message."""
+    def fill(self, sat_fl: float, sat_fr: float, st_fl: float, st_fr: float, inputs: Sequence[float],
+             bad: Sequence[bool] = ()) -> Any:
+        """One estimate step and the encoded frame (next alive counter); returns the message. The front pressures
+        count only where both are decoded and neither is ``bad``."""
         v = self.values
         status = worse_status(st_fl, st_fr)
         util, mu, hw = self._names
@@ -88,6 +96,11 @@ class GripOutput:
             v[util] = v[mu] = v[hw] = math.nan
             v["VS_GripWarning"] = 0
         else:
+            pi = self._press
+            if pi:
+                a, b = pi
+                ok = not bad or not (bad[a] or bad[b])
+                self.estimator.set_front_pressure(0.5 * (inputs[a] + inputs[b]) if ok else math.nan)
             i = self._idx
             s = self.estimator.step(sat_fl, sat_fr, inputs[i[0]], inputs[i[1]], inputs[i[2]], inputs[i[3]],
                                     inputs[i[4]], inputs[i[5]], inputs[i[6]], inputs[i[7]])
@@ -106,7 +119,7 @@ class NoGrip:
 
     enabled = False
 
-    def fill_tick(self, sat_values: Any, inputs: Sequence[float]) -> None:
+    def fill_tick(self, sat_values: Any, inputs: Sequence[float], bad: Sequence[bool] = ()) -> None:
         return None
 
     def send(self, send: Any) -> None:
@@ -114,9 +127,11 @@ class NoGrip:
 
 
 def grip_output(matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any],
-                params: GripParams | None = None) -> GripOutput | NoGrip:
-    """A :class:`GripOutput`, or a :class:`NoGrip` when the matrix lacks VS_Grip, the inputs lack a signal it
-    needs or the model does not give both front SATs."""
-    if "VS_Grip" not in matrix.messages or any(s not in signals for s in GRIP_INPUTS) or len(wheels) != 2:
+                params: GripParams | None = None, model_signals: Sequence[str] | None = None) -> GripOutput | NoGrip:
+    """A :class:`GripOutput` reading ``signals`` (the daemon's decoded signals), or a :class:`NoGrip` when the
+    matrix lacks VS_Grip, the model's inputs (``model_signals``, default ``signals``) lack a signal the estimate
+    needs (whose status the SATs' would not carry) or the model does not give both front SATs."""
+    model = signals if model_signals is None else model_signals
+    if "VS_Grip" not in matrix.messages or any(s not in model for s in GRIP_INPUTS) or len(wheels) != 2:
         return NoGrip()
     return GripOutput(matrix, signals, wheels, params)

@@ -21,7 +21,7 @@ from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 
 __all__ = ["OUTPUT_SIGNALS", "SYNC_ID", "SYNC_OFFSET_S", "InputLayout", "Wheel", "bitmap_order", "check_references",
-           "plausibility_rules", "read_feature_spec", "sync_frames"]
+           "grip_references", "plausibility_rules", "read_feature_spec", "sync_frames"]
 
 #: Sync frame id of ``demo`` and ``bench`` (standard 11-bit id, not in the DBC; ``run --sync-id`` takes any).
 SYNC_ID = 0x7F0
@@ -116,6 +116,20 @@ def check_references(model_signals: Iterable[str], matrix: CanMatrix) -> tuple[s
     return tuple(s for s in cat.SIGNALS if s in out)
 
 
+def grip_references(model_signals: Iterable[str], matrix: CanMatrix) -> tuple[str, ...]:
+    """The signals the daemon reads for its grip estimate alone (VS_Grip): the front TPMS pressures
+    (:data:`virtsensor.grip.PRESSURE_INPUTS`) when the model does not read them and the DBC carries VS_Grip and
+    both pressures in messages with a cycle time (else none: the estimate reads the trail as measured)."""
+    from virtsensor.grip import PRESSURE_INPUTS
+
+    model = set(model_signals)
+    extra = [s for s in PRESSURE_INPUTS if s not in model]
+    if "VS_Grip" not in matrix.messages or not all(
+            (m := matrix.message_of(s)) is not None and matrix.messages[m].cycle_s > 0 for s in extra):
+        return ()
+    return tuple(extra)
+
+
 def plausibility_rules(signals: Sequence[str]) -> tuple[PlausibilityRule, ...]:
     """The catalogue's redundancy checks (:data:`virtsensor.signals.REDUNDANCIES`) whose signals are all among
     ``signals`` (the daemon's decoded signals), laid out on their indices; steadiness rates (unit/s) become
@@ -147,13 +161,15 @@ class InputLayout:
     """What the daemon decodes and publishes (built by :meth:`from_model`; immutable).
 
     The daemon decodes :attr:`decoded`: the model's inputs (indices ``0 .. len(signals) - 1``, in spec order),
-    then the check references (:func:`check_references`), which only the plausibility checks read: a bad one
-    leaves its checks unjudged, never changes the estimate's status, and clears its message's health bit only
-    when that message carries no model input (the bit of a message with model inputs speaks for them).
+    then the check references (:func:`check_references`), which only the plausibility checks read, then the grip
+    references (:func:`grip_references`), which only the grip estimate reads. A bad reference leaves its checks
+    unjudged (its grip input unknown), never changes the estimate's status, and clears its message's health bit
+    only when that message carries no model input (the bit of a message with model inputs speaks for them).
 
     Attributes:
         spec: the card's feature spec. signals: its input signals (catalogue names), in spec order.
         check_signals: the check references, after the model's inputs in :attr:`decoded`.
+        grip_signals: the grip references, after the check references in :attr:`decoded`.
         critical: per model input, a bad value makes the estimate INVALID (else DEGRADED).
         signal_messages: per decoded signal, the DBC message carrying it.
         input_messages: messages decoded (carrying decoded signals, or owning a health bit), by frame id.
@@ -174,6 +190,7 @@ class InputLayout:
     wheels: tuple[Wheel, ...]
     model_id: int
     timeout_cycles: float
+    grip_signals: tuple[str, ...] = ()
 
     @classmethod
     def from_model(cls, model: Any, matrix: CanMatrix, timeout_cycles: float = 3.0,
@@ -198,9 +215,10 @@ class InputLayout:
                 raise UserError(f"{matrix.source}: message {m} (carrying model input {s}) has no GenMsgCycleTime")
             sig_msgs.append(m)
         checks = check_references(spec.signals, matrix)
-        sig_msgs += [str(matrix.message_of(s)) for s in checks]
+        grips = tuple(s for s in grip_references(spec.signals, matrix) if s not in checks)
+        sig_msgs += [str(matrix.message_of(s)) for s in checks + grips]
         # a message that carries none of the catalogue's inputs (the TPMS, the rear wheel speeds) has its bit only
-        # when the daemon reads it (for the model or a check)
+        # when the daemon reads it (for the model, a check or the grip estimate)
         bit_of = {m: b for m, b in bitmap_order(matrix).items()
                   if m in sig_msgs or any(s.role == "input" for s in cat.by_message(m))}
         if not bit_of:  # no documented order: the input messages by frame id
@@ -215,12 +233,12 @@ class InputLayout:
                    signal_messages=tuple(sig_msgs), input_messages=messages,
                    cycles_s=tuple(float(matrix.messages[m].cycle_s) for m in messages),
                    bitmap_bits=dict(bit_of), wheels=_wheels(model, matrix), model_id=int(model_id),
-                   timeout_cycles=float(timeout_cycles))
+                   timeout_cycles=float(timeout_cycles), grip_signals=grips)
 
     @property
     def decoded(self) -> tuple[str, ...]:
-        """Every signal the daemon decodes: the model's inputs, then the check references."""
-        return self.signals + self.check_signals
+        """Every signal the daemon decodes: the model's inputs, then the check references, then the grip's."""
+        return self.signals + self.check_signals + self.grip_signals
 
     def message_index(self) -> dict[str, int]:
         """Input message name -> its index in :attr:`input_messages`."""

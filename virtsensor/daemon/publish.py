@@ -76,7 +76,7 @@ class Publisher:
         self._sat_ctr = 0
         self._health_ctr = 0
         #: the VS_Grip frame and the grip estimate (a stand-in that sends nothing when the DBC has no VS_Grip)
-        self.grip = grip_output(matrix, layout.signals, layout.wheels)
+        self.grip = grip_output(matrix, layout.decoded, layout.wheels, model_signals=layout.signals)
 
     def fill_sat(self) -> Any:
         """Encode :attr:`sat_values` into :attr:`sat_msg` with the next alive counter; returns the message."""

@@ -106,7 +106,8 @@ class Runner:
         lay = vs.layout
         event(logging.INFO, "started", mode=vs.mode, tick_hz=1e9 / TICK_NS, timeout_cycles=vs.timeout_cycles,
               inputs=list(lay.signals), critical=[s for s, c in zip(lay.signals, lay.critical, strict=True) if c],
-              check_inputs=list(lay.check_signals), input_messages=list(lay.input_messages), model_id=lay.model_id,
+              check_inputs=list(lay.check_signals),
+              grip_inputs=list(lay.grip_signals), input_messages=list(lay.input_messages), model_id=lay.model_id,
               validity_envelope=vs.envelope is not None,
               bus=str(getattr(self._link.bus, "channel_info", self._link.bus)))
 
