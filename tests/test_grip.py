@@ -370,6 +370,13 @@ def test_params_are_checked():
         with pytest.raises(UserError, match="evidence_long_ratio"):
             GripParams.from_json({**doc, "evidence_long_ratio": float(bad)})
     assert GripParams.from_json({k: v for k, v in doc.items() if k != "evidence_long_ratio"}).evidence_long_ratio == 0
+    for bad in ({"trail_pressure_coeff": -0.1}, {"trail_pressure_coeff": float("nan")}, {"trail_pressure_coeff": 2.5},
+                {"pressure_nominal_pa": 0.0}, {"pressure_nominal_pa": float("inf")}):
+        with pytest.raises(UserError, match="trail_pressure_coeff"):
+            GripParams.from_json({**doc, **bad})
+    older = GripParams.from_json({k: v for k, v in doc.items() if k not in ("trail_pressure_coeff",
+                                                                             "pressure_nominal_pa")})
+    assert older.trail_pressure_coeff == 0.0  # (an older file: the trail as measured)
     assert GripParams.from_json(doc) == load_params()
 
 
@@ -653,6 +660,8 @@ def test_the_daemon_reads_the_front_pressures_as_offline(model, hard_tyre_run):
     assert "tyre_pressure_fl_pa" not in lay.signals and lay.grip_signals == PRESSURE_INPUTS
     tpms = OnnxModel.load(str(model_path("tpms")))
     assert InputLayout.from_model(tpms, MATRIX).grip_signals == ()  # (its model reads them)
+    older = CanMatrix(MATRIX.db, {k: v for k, v in MATRIX.messages.items() if k != "VS_Grip"}, MATRIX.source)
+    assert InputLayout.from_model(model, older).grip_signals == ()  # (no VS_Grip: nothing reads them)
     frames, rec = hard_tyre_run
     fl, fr = gs.model_sats(model, rec.table)
     off = rec.dropped_ticks

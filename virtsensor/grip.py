@@ -17,7 +17,9 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   (what the deceleration leaves after drive and air drag ``D vx^2``); its load from the static
   front load and the longitudinal load transfer, ``Fz = m g b / L - m h ax / L``;
 * the force ratio ``n = |F| / Fz`` (the friction the axle uses) and the axle trail ``t = -Mz sgn(Fy) / |Fy|``
-  (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`);
+  (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`); where the front TPMS
+  pressures are known (:meth:`GripEstimator.set_front_pressure`), the trail is read at the calibration's
+  pressure, ``t / (1 - PPZ1 dpi)`` (a harder tyre's trail is shorter at the same utilisation);
 * the road friction ``mu = n / k(t)``, with ``k`` the calibrated force ratio per unit of friction at that
   trail (:attr:`GripParams.use_at_trail`; the axle's ``n / mu`` is below the utilisation of its more used
   tyre), and the half-width of its 90 % interval, the 90th percentile of the absolute error at that trail for
