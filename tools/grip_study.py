@@ -715,17 +715,21 @@ _PARTS = ("utilisation curve", "warning", "evidence gate", "interval")
 
 def _source(before: str, fitted: tuple[str, ...], flag: str, seed: int) -> str:
     """The calibration's provenance after a partial fit (``flag``, e.g. ``--warning-only``) of the ``fitted`` parts
-    (of :data:`_PARTS`): the full fit's, then the command that last fitted each part."""
+    (of :data:`_PARTS`): the full fit's, then the command that last fitted each part, then any other note the
+    provenance carried (the pressure terms', say), kept as it was."""
     base, *rest = before.split("; ")
     last: dict[str, str] = {}
+    other: list[str] = []
     for item in rest:
         label, _, cmd = item.partition(": ")
-        for part in _PARTS:
-            if part in label.split(" and "):
-                last[part] = cmd
+        known = [part for part in _PARTS if part in label.split(" and ")]
+        for part in known:
+            last[part] = cmd
+        if not known:
+            other.append(item)
     for part in fitted:
         last[part] = f"tools/grip_study.py fit {flag} --seed {seed}"
-    return "; ".join([base] + [f"{part}: {last[part]}" for part in _PARTS if part in last])
+    return "; ".join([base] + [f"{part}: {last[part]}" for part in _PARTS if part in last] + other)
 
 
 def main(argv: list[str] | None = None) -> int:
