@@ -118,13 +118,14 @@ def check_references(model_signals: Iterable[str], matrix: CanMatrix) -> tuple[s
 
 def grip_references(model_signals: Iterable[str], matrix: CanMatrix) -> tuple[str, ...]:
     """The signals the daemon reads for its grip estimate alone (VS_Grip): the front TPMS pressures
-    (:data:`virtsensor.grip.PRESSURE_INPUTS`) when the model does not read them and the DBC carries VS_Grip and
-    both pressures in messages with a cycle time (else none: the estimate reads the trail as measured)."""
-    from virtsensor.grip import PRESSURE_INPUTS
+    (:data:`virtsensor.grip.PRESSURE_INPUTS`) that the model does not read, when the DBC carries VS_Grip and both
+    pressures in messages with a cycle time and the model reads every other signal the estimate needs
+    (:data:`virtsensor.grip.GRIP_INPUTS`); else none (no grip estimate, or one that reads the trail as measured)."""
+    from virtsensor.grip import GRIP_INPUTS, PRESSURE_INPUTS
 
     model = set(model_signals)
     extra = [s for s in PRESSURE_INPUTS if s not in model]
-    if "VS_Grip" not in matrix.messages or not all(
+    if "VS_Grip" not in matrix.messages or not model.issuperset(GRIP_INPUTS) or not all(
             (m := matrix.message_of(s)) is not None and matrix.messages[m].cycle_s > 0 for s in extra):
         return ()
     return tuple(extra)
