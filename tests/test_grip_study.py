@@ -106,6 +106,18 @@ def test_a_partial_fit_keeps_the_provenance_of_the_parts_it_does_not_fit():
     gc = "tools/grip_study.py fit --evidence-gate-only --seed 1901"
     assert study._source(iv, ("evidence gate",), "--evidence-gate-only", 1901) == (
         f"{full}; utilisation curve: {evc}; warning: {evc}; evidence gate: {gc}; interval: {ic}")
+    note = "pressure_nominal_pa and trail_pressure_coeff: the car's and its tyre's (not fitted)"
+    assert study._source(f"{iv}; {note}", ("warning",), "--warning-only", 1901) == (
+        f"{full}; utilisation curve: {evc}; warning: {wc}; interval: {ic}; {note}")  # (a note it does not know: kept)
+
+
+def test_the_pressure_terms_are_the_cars_and_its_tyres():
+    from sim.params import car_parameters
+
+    t = study.pressure_terms(car_parameters())
+    assert t == {"pressure_nominal_pa": 220000.0, "trail_pressure_coeff": 0.8521928}
+    shipped = study.grip.load_params()
+    assert (shipped.pressure_nominal_pa, shipped.trail_pressure_coeff) == tuple(t.values())
 
 
 def test_the_evidence_gate_is_the_longest_lead_within_the_false_warning_limit(monkeypatch):
