@@ -30,8 +30,11 @@ def test_every_package_of_the_tree_is_listed_and_data_folders_are_mapped():
     found = {".".join(p.parent.relative_to(ROOT).parts) for top in ("virtsensor", "sim")
              for p in (ROOT / top).rglob("__init__.py") if "__pycache__" not in p.parts}
     mapped = {name for name, folder in tool["package-dir"].items()}
+    data = {".".join(p.relative_to(ROOT).parts) for p in (ROOT / "sim" / "data").rglob("*")
+            if p.is_dir() and "__pycache__" not in p.parts} | {"sim.data"}  # (folders of data only)
     assert found <= listed, f"packages missing from pyproject.toml: {sorted(found - listed)}"
-    assert listed - found == mapped, f"listed but not in the tree: {sorted(listed - found - mapped)}"
+    assert data <= listed and set(tool["package-data"]) >= data, f"data folders not listed: {sorted(data - listed)}"
+    assert listed - found - data == mapped, f"listed but not in the tree: {sorted(listed - found - mapped - data)}"
     for name, folder in tool["package-dir"].items():
         assert (ROOT / folder / "__init__.py").is_file(), name
 
