@@ -332,29 +332,68 @@ def test_non_finite_input_gives_nan_and_restarts():
     assert math.isnan(s.util) and math.isnan(s.mu) and not s.warning
 
 
-def test_the_trail_is_read_at_the_calibrations_pressure():
-    """A harder tyre has a shorter trail at the same utilisation (MF 6.1: ``Dt`` scales with ``1 - PPZ1 dpi``): with its
-    TPMS pressure the estimate reads the trail it would have at the calibration's pressure, so it gives what the
-    nominal tyre gives; without the pressure, or with a calibration that lacks the coefficient, it reads it as is."""
+def _without_curves(p: GripParams) -> GripParams:
+    return replace(p, pressure_grid_pa=(), trail_at_pressure=(), peak_at_pressure=())
+
+
+def _pressure_state(params: GripParams, trail_m: float, pressure: float, ay: float = 0.45 * 9.81,
+                    reads: bool = False) -> tuple[float, float, float]:
+    est = GripEstimator(params, sat_reads_pressure=reads)
+    est.set_front_pressure(pressure)
+    _steady(est, 40, ay, trail_m)
+    return est.state.util, est.state.mu, est.state.trail_m
+
+
+def test_the_trail_is_read_on_the_tyres_own_curve_at_its_pressure():
+    """A harder tyre has a shorter trail in the same slip state (MF 6.1: ``Dt`` scales with ``1 - PPZ1 dpi``, and the
+    cornering stiffness with ``1 + PPY1 dpi`` moves how far it has collapsed) and another peak force (``PPY3``,
+    ``PPY4``). For the SATs of a model that reads the TPMS pressures, the estimate locates the trail on that
+    pressure's knots and scales the curves by its peak: a hard tyre in the same slip state on the same road gives the
+    nominal tyre's friction."""
     p = load_params()
+    assert p.pressure_nominal_pa == 220_000.0 and len(p.pressure_grid_pa) >= 2
+    row = p.pressure_grid_pa.index(290_000.0)
+    j = p.trail_m.index(0.0125)
+    t_hard, r = p.trail_at_pressure[row][j], p.peak_at_pressure[row]
+    assert t_hard < 0.0125 * (1.0 - p.trail_pressure_coeff * 70 / 220) - 0.001  # (shorter than the PPZ1 scale says)
+    nominal = _pressure_state(p, 0.0125, 220_000.0, 0.3 * 9.81, reads=True)
+    hard = _pressure_state(p, t_hard, 290_000.0, 0.3 * 9.81 * r, reads=True)  # (the same slip state: r times the force)
+    assert math.isfinite(nominal[1])
+    # the same friction (to the small drive force _steady adds, not scaled), the trail as the nominal tyre has it
+    assert hard[1:] == pytest.approx(nominal[1:], rel=1e-3)
+    assert _pressure_state(p, 0.0125, math.nan, 0.3 * 9.81, reads=True) == pytest.approx(nominal, rel=1e-12)  # unknown
+    as_is = _pressure_state(p, t_hard, math.nan, 0.3 * 9.81 * r, reads=True)
+    assert as_is[2] == pytest.approx(t_hard) and as_is[1] < nominal[1] - 0.05  # a hard tyre read as a wet road
+    # between grid pressures: the knots linear in the pressure
+    mid = _pressure_state(p, 0.5 * (t_hard + p.trail_at_pressure[row + 1][j]), 295_000.0, reads=True)
+    assert mid[2] == pytest.approx(0.0125, abs=1e-9)
+    est = GripEstimator(p, sat_reads_pressure=True)
+    est.set_front_pressure(290_000.0)
+    est.set_front_pressure(math.nan)  # (the pressure lost again: the calibration's curves)
+    _steady(est, 40, 0.3 * 9.81, 0.0125)
+    assert (est.state.util, est.state.mu, est.state.trail_m) == pytest.approx(nominal, rel=1e-12)
+
+
+def test_a_model_blind_to_the_pressure_reads_the_trail_at_the_calibrations_pressure_by_ppz1():
+    """For the SATs of a model that does not read the TPMS (its trail carries only part of the pressure's effect), or
+    without the tyre's curves (an older file), the trail is scaled to the calibration's pressure by ``PPZ1`` alone,
+    ``t / (1 - PPZ1 dpi)``; without the coefficient either, it is read as measured."""
+    for reads in (False, True):
+        a = _pressure_state(load_params(), 0.009, 290_000.0)
+        assert a == pytest.approx(_pressure_state(_without_curves(load_params()), 0.009, 290_000.0, reads=reads))
+    p = _without_curves(load_params())
     c, p0 = p.trail_pressure_coeff, p.pressure_nominal_pa
     assert p0 == 220_000.0 and 0.5 < c < 1.2  # (the car's own pressure; its tyre file's PPZ1)
     hard = 290_000.0
     shorter = 1.0 - c * (hard - p0) / p0
-
-    def state(trail_m: float, pressure: float, params: GripParams = p) -> tuple[float, float, float]:
-        est = GripEstimator(params)
-        est.set_front_pressure(pressure)
-        _steady(est, 40, 0.45 * 9.81, trail_m)
-        return est.state.util, est.state.mu, est.state.trail_m
-
-    nominal = state(0.012, p0)
+    nominal = _pressure_state(p, 0.012, p0)
     assert math.isfinite(nominal[1])
-    assert state(0.012 * shorter, hard) == pytest.approx(nominal, rel=1e-9)
-    assert state(0.012, math.nan) == pytest.approx(nominal, rel=1e-12)  # unknown: as measured
-    as_is = state(0.012 * shorter, math.nan)
-    assert as_is[2] == pytest.approx(0.012 * shorter) and as_is[1] < nominal[1] - 0.05  # a hard tyre read as a wet road
-    assert state(0.012 * shorter, hard, replace(p, trail_pressure_coeff=0.0)) == pytest.approx(as_is, rel=1e-12)
+    assert _pressure_state(p, 0.012 * shorter, hard) == pytest.approx(nominal, rel=1e-9)
+    assert _pressure_state(p, 0.012, math.nan) == pytest.approx(nominal, rel=1e-12)  # unknown: as measured
+    as_is = _pressure_state(p, 0.012 * shorter, math.nan)
+    assert as_is[2] == pytest.approx(0.012 * shorter) and as_is[1] < nominal[1] - 0.05
+    assert _pressure_state(replace(p, trail_pressure_coeff=0.0), 0.012 * shorter, hard) == pytest.approx(
+        as_is, rel=1e-12)
     est = GripEstimator(p)
     est.set_front_pressure(5.1e5)  # far above any rating: the factor is held at 0.25
     assert est._trail_gain == pytest.approx(4.0)
@@ -377,6 +416,14 @@ def test_params_are_checked():
     older = GripParams.from_json({k: v for k, v in doc.items() if k not in ("trail_pressure_coeff",
                                                                              "pressure_nominal_pa")})
     assert older.trail_pressure_coeff == 0.0  # (an older file: the trail as measured)
+    rows = doc["trail_at_pressure"]
+    for bad in ({"pressure_grid_pa": doc["pressure_grid_pa"][:-1]}, {"peak_at_pressure": [0.0] * len(rows)},
+                {"trail_at_pressure": [r[::-1] for r in rows]}, {"trail_at_pressure": [r[:-1] for r in rows]},
+                {"pressure_grid_pa": doc["pressure_grid_pa"][::-1]}):
+        with pytest.raises(UserError, match="pressure"):
+            GripParams.from_json({**doc, **bad})
+    assert not GripParams.from_json({k: v for k, v in doc.items() if k not in (
+        "pressure_grid_pa", "trail_at_pressure", "peak_at_pressure")}).pressure_grid_pa  # (older: the PPZ1 scale)
     assert GripParams.from_json(doc) == load_params()
 
 
@@ -697,6 +744,21 @@ def test_no_vs_grip_in_the_dbc_publishes_none():
     assert grip_output(MATRIX, cat.INPUTS, wheels).enabled
 
 
+def test_the_daemon_reads_the_pressure_on_the_tyres_curves_only_for_a_model_that_reads_it():
+    from types import SimpleNamespace
+
+    from virtsensor.daemon.gripout import grip_output
+    from virtsensor.grip import reads_pressure
+
+    wheels = (SimpleNamespace(estimate="SAT_FL", status="SAT_FL_Status"),
+              SimpleNamespace(estimate="SAT_FR", status="SAT_FR_Status"))
+    decoded = (*cat.INPUTS, *PRESSURE_INPUTS)
+    blind = grip_output(MATRIX, decoded, wheels, model_signals=cat.INPUTS)
+    tpms = grip_output(MATRIX, decoded, wheels, model_signals=decoded)
+    assert not blind.estimator.sat_reads_pressure and tpms.estimator.sat_reads_pressure
+    assert reads_pressure(decoded) and not reads_pressure((*cat.INPUTS, PRESSURE_INPUTS[0]))
+
+
 def test_score_reports_grip_per_run_and_overall(model, run_frames, tmp_path):
     from virtsensor.learning.dataset import load_runs
     from virtsensor.learning.scoring import markdown, score_runs
@@ -713,3 +775,29 @@ def test_score_reports_grip_per_run_and_overall(model, run_frames, tmp_path):
     assert keys <= set(res["runs"][0]["grip"]) and res["runs"][1]["grip"] is None
     assert 0.9 <= g["mu_within_0_1_share"] <= 1.0
     assert "Grip (1 runs with the truth)" in markdown(res)
+
+
+def test_a_tpms_model_reads_the_hard_tyre_on_its_own_curves(hard_tyre_run):
+    """With a SAT model that reads the TPMS (its trail carries the pressure's whole effect) the estimate reads the
+    trail on the tyre's own curves at that pressure: the hard tyre's friction is right more often than by the
+    ``PPZ1`` scale, and the daemon publishes, tick for tick, what ``estimate_run`` gives."""
+    tpms = OnnxModel.load(str(model_path("tpms")))
+    assert gs.model_reads_pressure(tpms)
+    frames, rec = hard_tyre_run
+    fl, fr = gs.model_sats(tpms, rec.table)
+    share = {}
+    for name, reads in (("curves", True), ("ppz1", False)):
+        e = estimate_run(rec.table, fl, fr, sat_reads_pressure=reads)
+        given = np.isfinite(e["mu"])
+        assert given.sum() >= 50
+        err = np.abs(e["mu"][given] - 0.5)
+        share[name] = (float(np.mean(err <= 0.1)), float(np.quantile(err, 0.9)))
+    print(share)
+    assert share["curves"][0] >= 0.95 and share["curves"][1] <= 0.8 * share["ppz1"][1], share
+    est = estimate_run(rec.table, fl, fr, sat_reads_pressure=True)
+    sat, grip, ticks = _drive(tpms, frames)
+    _, vals, _ = _decode(sat, grip)
+    on = vals[rec.dropped_ticks:]
+    given = np.isfinite(est["mu"])
+    assert (np.isfinite(on[:, 1]) == given).all()
+    assert np.abs(on[given, 1] - est["mu"][given]).max() <= 0.0025 + 1e-9  # (VS_GripMu resolution 0.005)

@@ -112,12 +112,23 @@ def test_a_partial_fit_keeps_the_provenance_of_the_parts_it_does_not_fit():
 
 
 def test_the_pressure_terms_are_the_cars_and_its_tyres():
+    """The shipped pressure terms are the car's pressure and its tyre file's, not fitted: at the calibration's
+    pressure the tyre's own knots are the calibration's and its peak ratio 1; a harder tyre's trail is shorter in
+    every slip state and its knots still ascend."""
     from sim.params import car_parameters
 
     t = study.pressure_terms(car_parameters())
-    assert t == {"pressure_nominal_pa": 220000.0, "trail_pressure_coeff": 0.8521928}
+    assert (t["pressure_nominal_pa"], t["trail_pressure_coeff"]) == (220000.0, 0.8521928)
     shipped = study.grip.load_params()
-    assert (shipped.pressure_nominal_pa, shipped.trail_pressure_coeff) == tuple(t.values())
+    for k, v in t.items():
+        np.testing.assert_allclose(np.array(getattr(shipped, k), float), np.array(v, float), rtol=0, atol=1e-9)
+    grid, rows = t["pressure_grid_pa"], t["trail_at_pressure"]
+    i0 = grid.index(220000.0)
+    assert rows[i0] == pytest.approx(shipped.trail_m, abs=1e-6) and t["peak_at_pressure"][i0] == 1.0
+    for lo, hi in zip(rows, rows[1:], strict=False):
+        assert all(b > a for a, b in zip(hi, hi[1:], strict=False))
+        assert all(b <= a for a, b in zip(lo[6:], hi[6:], strict=False))  # (from the collapsed trail, 0 m, up; the
+    assert all(b < a for a, b in zip(rows[0][6:], rows[-1][6:], strict=False))  # tyre file holds below its range)
 
 
 def test_the_evidence_gate_is_the_longest_lead_within_the_false_warning_limit(monkeypatch):

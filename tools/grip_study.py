@@ -138,18 +138,21 @@ def simulate(work: Path, seed: int) -> list[Path]:
     return out
 
 
-def load(dirs: list[Path]) -> list[dict]:
-    """Each run's table with the shipped model's SATs (``sat_fl_est``/``sat_fr_est``) and its campaign."""
+def load(dirs: list[Path], model_file: Path | None = None) -> list[dict]:
+    """Each run's table with the SATs of the shipped model (or ``model_file``), its campaign and whether the model
+    reads the TPMS pressures (``reads``: how the estimate reads a known pressure, :class:`grip.GripEstimator`)."""
     from virtsensor.assets import model_path
     from virtsensor.learning.dataset import load_runs
     from virtsensor.model.onnx import OnnxModel
 
-    model = OnnxModel.load(str(model_path()))
+    model = OnnxModel.load(str(model_file or model_path()))
+    reads = gs.model_reads_pressure(model)
     runs = []
     for d in dirs:
         for r in load_runs([d]):
             fl, fr = gs.model_sats(model, r.table)
-            runs.append({"name": r.name, "set": d.name.split("_")[0], "table": r.table, "fl": fl, "fr": fr})
+            runs.append({"name": r.name, "set": d.name.split("_")[0], "table": r.table, "fl": fl, "fr": fr,
+                         "reads": reads})
     return runs
 
 
@@ -168,14 +171,70 @@ def car_params() -> dict:
             "steer_ratio": p["steering"]["ratio"], **pressure_terms(p)}
 
 
-def pressure_terms(p: dict) -> dict:
-    """The calibration's front pressure (the car's own, gauge) and its tyre's MF 6.1 ``PPZ1`` (the trail's
-    pressure term, from the car's tyre property file): where the TPMS gives the pressure, the estimate reads the
-    trail at the calibration's pressure (:meth:`virtsensor.grip.GripEstimator.set_front_pressure`)."""
+def pressure_terms(p: dict, knots: tuple[float, ...] = TRAIL_KNOTS) -> dict:
+    """The calibration's front pressure (the car's own, gauge), its tyre's MF 6.1 ``PPZ1`` (the trail's pressure
+    term, from the car's tyre property file) and the tyre's own curves at other pressures
+    (:func:`pressure_curves`): where the TPMS gives the pressure, the estimate reads the trail as the tyre at the
+    calibration's pressure would have it (:meth:`virtsensor.grip.GripEstimator.set_front_pressure`)."""
     from sim.vehicle import tyre_for
 
     return {"pressure_nominal_pa": float(p["tyres"]["pressure_front_pa"]),
-            "trail_pressure_coeff": float(tyre_for(p, "front").params["PPZ1"])}
+            "trail_pressure_coeff": float(tyre_for(p, "front").params["PPZ1"]), **pressure_curves(p, knots)}
+
+
+#: the pressures (gauge, Pa) of the tyre's own curves: 1.4 to 3.6 bar, 0.1 bar apart (the TPMS' plausible range of a
+#: car tyre; the estimate holds the ends beyond)
+PRESSURE_GRID_PA = tuple(round(1e5 * (1.4 + 0.1 * i)) for i in range(23))
+
+
+def pressure_curves(p: dict, knots: tuple[float, ...] = TRAIL_KNOTS) -> dict:
+    """The front tyre's trail at other pressures, from its MF 6.1 property file (not fitted): per pressure of
+    :data:`PRESSURE_GRID_PA`, the trail (m) at which the tyre is in the same slip state as at each knot at the
+    calibration's pressure, and its peak lateral force relative to the calibration's.
+
+    The pressure moves the cornering stiffness (``PPY1``, ``PPY2``) and the peak friction (``PPY3``, ``PPY4``) but
+    not the curve's shape (``C``, ``E``): the lateral force's share of its own peak is a function of the slip angle
+    over the peak's slip angle, ``alpha / alpha_peak``, at every pressure. The trail at that share differs twice:
+    its length scales with ``1 - PPZ1 dpi`` and its collapse follows the slip angle, whose ``Bt`` has no pressure
+    term. So a knot ``t`` of the calibration maps to ``alpha`` on the calibration's trail curve, and at pressure
+    ``p`` to the trail at ``alpha * alpha_peak(p) / alpha_peak(p0)``. Pure side slip at the front axle's static
+    wheel load, the static camber and 20 m/s; the trail is the total one, ``-Mz / Fy`` (residual torque included, as
+    the daemon reads it). Knots beyond the slip range where the trail falls monotonically keep their distance to its
+    last value."""
+    from sim.vehicle import tyre_for
+
+    tyre = tyre_for(p, "front")
+    v = p["vehicle"]
+    fz = 0.5 * v["mass_kg"] * 9.81 * v["front_axle_load_fraction"]
+    alpha = np.linspace(0.002, 0.6, 3000)
+
+    def curve(pressure: float) -> tuple[np.ndarray, float, float]:
+        o = tyre.steady_state(np.full_like(alpha, fz), 0.0, alpha, p["tyres"]["static_camber_front_rad"], 20.0,
+                              pressure=pressure, mu_scale=1.0)
+        fy = np.abs(np.asarray(o.fy))
+        trail = -np.asarray(o.mz) * np.sign(o.fy) / np.maximum(fy, 1e-9)
+        k = int(np.argmax(fy))
+        return trail, float(alpha[k]), float(fy[k] / fz)
+
+    p0 = float(p["tyres"]["pressure_front_pa"])
+    t0, a0, peak0 = curve(p0)
+    end = int(np.argmax(np.diff(t0) >= 0)) or len(t0) - 1  # (the trail falls with the slip angle up to here)
+    rows, peaks = [], []
+    for pressure in PRESSURE_GRID_PA:
+        tp, ap, peak = curve(pressure)
+        row = []
+        for t in knots:
+            if t > t0[0] or t < t0[end]:  # beyond the monotone range: the same distance to its nearest end
+                j = 0 if t > t0[0] else end
+                a = alpha[j] * ap / a0
+                row.append(float(np.interp(a, alpha, tp)) + t - float(t0[j]))
+            else:  # (t0 falls on [0, end]: interpolate alpha on the reversed curve)
+                a = float(np.interp(t, t0[end::-1], alpha[end::-1])) * ap / a0
+                row.append(float(np.interp(a, alpha, tp)))
+        rows.append(tuple(round(x, 6) for x in row))
+        peaks.append(round(peak / peak0, 5))
+    return {"pressure_grid_pa": tuple(float(x) for x in PRESSURE_GRID_PA), "trail_at_pressure": tuple(rows),
+            "peak_at_pressure": tuple(peaks)}
 
 
 def _initial() -> grip.GripParams:
@@ -273,10 +332,10 @@ def _fit_curves(runs: list[dict], seed: int, p0: grip.GripParams) -> grip.GripPa
     """The trail curves and the interval calibration for the gates of ``p0``."""
     tr, n, u, mu = [], [], [], []
     for r in runs:
-        e = grip.estimate_run(r["table"], r["fl"], r["fr"], p0)
+        e = grip.estimate_run(r["table"], r["fl"], r["fr"], p0, r["reads"])
         tr.append(_steady_trail(e, p0))
-        n.append(e["force_ratio"])
-        u.append(_lateral_util(r["table"]))
+        n.append(e["force_ratio"] / e["peak_ratio"])  # (the curves are the calibration pressure's; the estimate
+        u.append(_lateral_util(r["table"]) / e["peak_ratio"])  # scales them by the tyre's peak at its pressure)
         mu.append(np.asarray(r["table"]["road_mu"], float))
     T, N, U, MU = (np.concatenate(a) for a in (tr, n, u, mu))
     ok = np.isfinite(T)
@@ -317,9 +376,9 @@ def _trail_samples(runs: list[dict], p: grip.GripParams) -> tuple[np.ndarray, ..
     ``mu_max`` (where the friction may be given; the steadiness as :func:`_fit_curves` reads it)."""
     tr, est, mu, grp = [], [], [], []
     for r in runs:
-        e = grip.estimate_run(r["table"], r["fl"], r["fr"], p)
+        e = grip.estimate_run(r["table"], r["fl"], r["fr"], p, r["reads"])
         ok = np.isfinite(_steady_trail(e, p))
-        mu_hat = e["force_ratio"][ok] / np.interp(e["trail_m"][ok], p.trail_m, p.use_at_trail)
+        mu_hat = e["force_ratio"][ok] / (np.interp(e["trail_m"][ok], p.trail_m, p.use_at_trail) * e["peak_ratio"][ok])
         keep = mu_hat <= p.mu_max
         road = np.asarray(r["table"]["road_mu"], float)[ok][keep]
         tr.append(e["trail_m"][ok][keep])
@@ -486,7 +545,7 @@ def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
     overall."""
     per = []
     for r in runs:
-        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p)
+        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p, r["reads"])
         if res is not None:
             per.append((r, res[0]))
     out = {"overall": gs.pool([m for _, m in per]),
@@ -557,7 +616,7 @@ def bound(runs: list[dict], p: grip.GripParams | None = None) -> dict:
     rows = []
     for r in runs:
         t, u = np.asarray(r["table"]["time_s"], float), gs.true_front_util(r["table"])
-        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p)
+        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p, r["reads"])
         if res is None:
             continue
         row = {"kind": _kind(r["name"]), "mu": float(r["table"]["road_mu"][0]), "estimate": res[0],
@@ -687,7 +746,7 @@ def _kind(name: str) -> str:
     return "circuit" if name.startswith("circuit") else name.split("_")[0]
 
 
-def _md(res: dict, seed: int) -> str:
+def _md(res: dict, seed: int, model: Path | None = None) -> str:
     cols = ("mu_within_0_1_share", "mu_abs_err_p90", "mu_interval_cover_share", "mu_given_share_above_0_6",
             "warning_lead_s_median",
             "runs_reaching_limit", "limit_warned_share", "false_warnings_per_10min")
@@ -696,7 +755,9 @@ def _md(res: dict, seed: int) -> str:
         return "—" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
 
     which = "the calibration's own seed" if seed == FIT_SEED else "fresh seeds"
-    lines = [f"Grip estimate on {which} ({seed}): `python tools/grip_study.py --seed {seed}`", "",
+    cmd = f"python tools/grip_study.py --seed {seed}" + ("" if model is None else f" --model {model}")
+    what = "" if model is None else f", SATs of {model.name}"
+    lines = [f"Grip estimate on {which} ({seed}{what}): `{cmd}`", "",
              "| set | runs | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
     rows = [("overall", res["overall"]), ("paper", res.get("paper")), ("circuits", res.get("circuits")),
             ("random steers and circuits (the false-warning acceptance's driving)", res.get("acceptance"))]
@@ -732,11 +793,39 @@ def _source(before: str, fitted: tuple[str, ...], flag: str, seed: int) -> str:
     return "; ".join([base] + [f"{part}: {last[part]}" for part in _PARTS if part in last] + other)
 
 
+#: the provenance note of the pressure terms (:func:`pressure_terms`) in the shipped calibration's ``source``
+PRESSURE_NOTE = ("pressure_nominal_pa, trail_pressure_coeff and the tyre's curves at other pressures "
+                 "(pressure_grid_pa, trail_at_pressure, peak_at_pressure): the car's own front pressure and its tyre "
+                 "file's MF 6.1 (tools/grip_study.py pressure, not fitted)")
+
+
+def _write_pressure_terms() -> Path:
+    """The shipped calibration with its pressure terms from the car's and tyre's files (everything else kept; the
+    provenance's older pressure note replaced by :data:`PRESSURE_NOTE`); returns its path."""
+    from sim.params import car_parameters
+
+    p0 = grip.load_params()
+    items = p0.source.split("; ")
+    at = [i for i, x in enumerate(items) if x.startswith("pressure_nominal_pa")]
+    items = [PRESSURE_NOTE if i == at[0] else x for i, x in enumerate(items) if i not in at[1:]] if at else [
+        *items, PRESSURE_NOTE]
+    p = replace(p0, **pressure_terms(car_parameters(), p0.trail_m), source="; ".join(items))
+    path = ROOT / "virtsensor" / grip.PARAMS_FILE
+    path.write_text(json.dumps(p.to_json(), indent=1) + "\n")
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", nargs="?", default="accept", choices=("accept", "fit", "bound", "combined"))
+    ap.add_argument("what", nargs="?", default="accept", choices=("accept", "fit", "bound", "combined", "pressure"),
+                    help="accept: the figures of a held-out seed; fit: calibrate; bound: the warning's lead bound; "
+                         "combined: the combined-slip bias; pressure: refresh the shipped calibration's pressure "
+                         "terms from the car's and tyre's files (no campaign, nothing fitted)")
     ap.add_argument("--seed", type=int, default=None, help="campaign seed (accept: 1902, fit: 1901)")
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "grip_study", help="simulated data (reused)")
+    ap.add_argument("--model", type=Path, default=None,
+                    help="accept, bound: the SAT model (default: the shipped one, whose SATs the calibration is fit "
+                         "on); the figures go to docs/grip_study_<seed>_<model>.{md,json}")
     ap.add_argument("--warning-only", action="store_true",
                     help="fit: keep the shipped curves and hold, re-calibrate the warning (and its evidence gate)")
     ap.add_argument("--false-on", choices=("all", "acceptance"), default="all",
@@ -758,8 +847,16 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--warning-only, --evidence-only, --interval-only, --evidence-gate-only: choose one")
     if a.false_on != "all" and not a.warning_only:
         ap.error("--false-on goes with fit --warning-only")
+    if a.model is not None and a.what not in ("accept", "bound"):
+        ap.error("--model goes with accept and bound (the calibration is fit on the shipped model's SATs)")
+    if a.model is not None and not a.model.is_file():
+        ap.error(f"--model: no such model file {a.model}")
+    if a.what == "pressure":
+        path = _write_pressure_terms()
+        print(f"pressure terms from the car's and tyre's files -> {path}", file=sys.stderr)
+        return 0
     seed = a.seed if a.seed is not None else (FIT_SEED if a.what == "fit" else ACCEPT_SEED)
-    runs = load(simulate(a.work, seed))
+    runs = load(simulate(a.work, seed), a.model)
     if a.what == "fit":
         if a.interval_only:
             p0 = grip.load_params()
@@ -787,17 +884,19 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.what == "bound":
         md = _bound_md(bound(runs), seed)
-        (ROOT / "docs" / f"grip_bound_{seed}.md").write_text(md)
+        (ROOT / "docs" / f"grip_bound_{seed}{'' if a.model is None else '_' + a.model.stem}.md").write_text(md)
         print(md)
         return 0
     res = measure(runs)
     lim = bound(runs)
     stem = "grip_study" if seed == ACCEPT_SEED else f"grip_study_{seed}"  # (another seed: its own files beside)
+    if a.model is not None:
+        stem = f"grip_study_{seed}_{a.model.stem}"
     (ROOT / "docs" / f"{stem}.json").write_text(json.dumps({"seed": seed, **res, "bound": lim}, indent=1) + "\n")
-    md = _md(res, seed) + "\n" + _bound_md(lim, seed, BOUND_NOTE)
+    md = _md(res, seed, a.model) + "\n" + _bound_md(lim, seed, BOUND_NOTE)
     (ROOT / "docs" / f"{stem}.md").write_text(md)
     print(md)
-    if seed == ACCEPT_SEED:
+    if seed == ACCEPT_SEED and a.model is None:
         _figure(runs)
     return 0
 

@@ -19,7 +19,9 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
 * the force ratio ``n = |F| / Fz`` (the friction the axle uses) and the axle trail ``t = -Mz sgn(Fy) / |Fy|``
   (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`); where the front TPMS
   pressures are known (:meth:`GripEstimator.set_front_pressure`), the trail is read at the calibration's
-  pressure, ``t / (1 - PPZ1 dpi)`` (a harder tyre's trail is shorter at the same utilisation);
+  pressure (a harder tyre's trail is shorter at the same utilisation): for the SATs of a model that reads the
+  pressures, on the tyre's own curves at that pressure (:attr:`GripParams.trail_at_pressure`, from its MF 6.1
+  file); for a model that does not (its trail carries only part of the pressure's effect), ``t / (1 - PPZ1 dpi)``;
 * the road friction ``mu = n / k(t)``, with ``k`` the calibrated force ratio per unit of friction at that
   trail (:attr:`GripParams.use_at_trail`; the axle's ``n / mu`` is below the utilisation of its more used
   tyre), and the half-width of its 90 % interval, the 90th percentile of the absolute error at that trail for
@@ -70,7 +72,7 @@ import bisect
 import json
 import math
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from importlib.resources import as_file, files
 from pathlib import Path
@@ -82,7 +84,7 @@ from virtsensor.errors import UserError
 from virtsensor.signals import SIGNALS
 
 __all__ = ["GRIP_INPUTS", "PRESSURE_INPUTS", "GripParams", "GripEstimator", "GripState", "estimate_run",
-           "front_pressure", "load_params", "PARAMS_FILE"]
+           "reads_pressure", "front_pressure", "load_params", "PARAMS_FILE"]
 
 #: the catalogue car's grip parameters, package data beside this module
 PARAMS_FILE = "grip_car.json"
@@ -170,6 +172,18 @@ class GripParams:
             ``PPZ1``: the trail's peak ``Dt`` scales with ``1 - PPZ1 dpi``, ``dpi = (p - p0) / p0``). Where the
             front pressures are known (TPMS), the measured trail is read at the calibration's pressure,
             ``t / (1 - PPZ1 dpi)``; unknown, or a coefficient of 0 (the older files' meaning): as measured.
+        pressure_grid_pa, trail_at_pressure, peak_at_pressure: the front tyre's own curves at other pressures (from
+            its property file, not fitted; empty: the older files' ``PPZ1`` scale above). Per ascending pressure
+            (gauge, Pa), the trail (m) at which the tyre is in the same slip state as at each knot of ``trail_m``
+            at the calibration's pressure (strictly ascending), and its peak lateral force relative to the
+            calibration's. The pressure moves the trail's length (``PPZ1``) and the cornering stiffness
+            (``PPY1``, ``PPY2``: the slip angle, hence how far the trail has collapsed, at a given share of the
+            peak) and the peak friction (``PPY3``, ``PPY4``). Where the front pressures are known and the SAT model
+            reads them (its SATs then carry the pressure's whole effect on the trail), the trail is located on that
+            pressure's knots (linear between grid pressures, held beyond the grid) and the utilisation and
+            force-ratio curves are scaled by its peak. A model that does not read them carries only part of it
+            (it learns the trail of the pressures it was trained on, at the slip its inputs show): for its SATs the
+            ``PPZ1`` scale above (see the README, "The tyre pressure").
         source: where the numbers come from (free text).
     """
 
@@ -218,6 +232,9 @@ class GripParams:
     evidence_long_ratio: float = 0.0
     pressure_nominal_pa: float = 0.0
     trail_pressure_coeff: float = 0.0
+    pressure_grid_pa: tuple[float, ...] = ()
+    trail_at_pressure: tuple[tuple[float, ...], ...] = ()
+    peak_at_pressure: tuple[float, ...] = ()
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -237,6 +254,7 @@ class GripParams:
         if not (0.0 <= self.trail_pressure_coeff < 2.0 and 0.0 <= self.pressure_nominal_pa < math.inf) or (
                 self.trail_pressure_coeff > 0.0 and self.pressure_nominal_pa <= 0.0):
             raise ValueError("grip params: need 0 <= trail_pressure_coeff < 2 and a pressure_nominal_pa > 0 with it")
+        self._check_pressure_curves(k)
         if not 0.0 <= self.evidence_long_ratio < math.inf:  # (also refuses nan)
             raise ValueError("grip params: evidence_long_ratio must be finite and >= 0")
         if min(self.use_at_trail) <= 0:
@@ -249,6 +267,21 @@ class GripParams:
             raise ValueError("grip params: need 0 < warn_off <= warn_on <= 1")
         if self.filter_s < 0 or self.mass_kg <= 0 or self.wheelbase_m <= 0 or not 0 < self.front_load_fraction < 1:
             raise ValueError("grip params: filter_s >= 0, mass and wheelbase > 0, 0 < front_load_fraction < 1")
+
+    def _check_pressure_curves(self, k: int) -> None:
+        g, rows, peaks = self.pressure_grid_pa, self.trail_at_pressure, self.peak_at_pressure
+        if not (g or rows or peaks):
+            return
+        if len(g) < 2 or len(rows) != len(g) or len(peaks) != len(g) or any(len(r) != k for r in rows):
+            raise ValueError("grip params: pressure_grid_pa needs >= 2 pressures, a trail_at_pressure row (a value "
+                             "per trail knot) and a peak_at_pressure value each")
+        if not (all(0.0 < x < math.inf for x in g) and all(b > a for a, b in zip(g, g[1:], strict=False))):
+            raise ValueError("grip params: pressure_grid_pa must be finite, > 0 and strictly ascending")
+        if not all(0.0 < x < math.inf for x in peaks):
+            raise ValueError("grip params: peak_at_pressure values must be finite and > 0")
+        if not all(math.isfinite(a) and math.isfinite(b) and b > a
+                   for r in rows for a, b in zip(r, r[1:], strict=False)):
+            raise ValueError("grip params: each trail_at_pressure row must be finite and strictly ascending")
 
     @classmethod
     def from_json(cls, doc: Mapping[str, Any], where: str = "grip params") -> GripParams:
@@ -270,7 +303,8 @@ class GripParams:
 
 #: fields a parameter file may leave out (their defaults: the older files' meaning)
 _OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer", "evidence_mu_held", "interval_at_trail",
-             "interval_max", "evidence_long_ratio", "pressure_nominal_pa", "trail_pressure_coeff")
+             "interval_max", "evidence_long_ratio", "pressure_nominal_pa", "trail_pressure_coeff", "pressure_grid_pa",
+             "trail_at_pressure", "peak_at_pressure")
 
 
 def _tuples(v: Any) -> Any:
@@ -328,8 +362,12 @@ class GripEstimator:
     The returned :class:`GripState` is one object updated in place (no allocation per tick); copy what you keep.
     """
 
-    def __init__(self, params: GripParams | None = None, dt: float = 0.05) -> None:
+    def __init__(self, params: GripParams | None = None, dt: float = 0.05, sat_reads_pressure: bool = False) -> None:
         p = self.params = params if params is not None else load_params()
+        #: the SATs come from a model that reads the front TPMS pressures: a known pressure is read on the tyre's own
+        #: curves at that pressure (where the calibration has them), else by the ``PPZ1`` scale
+        self.sat_reads_pressure = bool(sat_reads_pressure)
+        self._curves = self.sat_reads_pressure and bool(p.pressure_grid_pa)
         self.dt = float(dt)
         L = p.wheelbase_m
         b = p.front_load_fraction * L  # CG to rear axle
@@ -349,6 +387,10 @@ class GripEstimator:
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
+        self._nominal = self._trail, self._util, self._use  # (the calibration pressure's knots and curves)
+        self._pressure = math.nan  # (the pressure the knots and curves are set for; nan: the calibration's)
+        #: the tyre's peak lateral force at the pressure set relative to the calibration's (the curves' scale)
+        self.peak_ratio = 1.0
         self._bands, self._abs = tuple(p.mu_bands), tuple(tuple(c) for c in p.abs_err90_at_trail)
         self._pub = tuple(tuple(c) for c in p.interval_at_trail) if p.interval_at_trail else self._abs
         self.state = GripState()
@@ -382,16 +424,48 @@ class GripEstimator:
             self._fresh = MEDIAN_EVERY  # (given estimates since the held median was last taken)
 
     def set_front_pressure(self, pressure_pa: float) -> None:
-        """The front tyres' mean inflation pressure (gauge, Pa; nan: unknown) for the following steps: the measured
-        trail is read at the calibration's pressure, ``t / (1 - PPZ1 dpi)`` (``GripParams.trail_pressure_coeff``,
-        ``pressure_nominal_pa``; the factor ``1 - PPZ1 dpi`` held at 0.25 or more, a tyre far above its rated
-        pressure). Unknown, or a calibration without the coefficient: the trail as measured."""
+        """The front tyres' mean inflation pressure (gauge, Pa; nan: unknown) for the following steps. For SATs of a
+        model that reads the pressures (``sat_reads_pressure``) and a calibration with the tyre's own curves
+        (``GripParams.pressure_grid_pa``): the trail is located on that pressure's knots and the curves scaled by
+        its peak (set again only when the pressure changes). Else the measured trail is read at the calibration's
+        pressure, ``t / (1 - PPZ1 dpi)`` (``GripParams.trail_pressure_coeff``, ``pressure_nominal_pa``; the factor
+        ``1 - PPZ1 dpi`` held at 0.25 or more, a tyre far above its rated pressure). Unknown, or a calibration
+        with neither: the trail as measured, on the calibration's curves."""
         p = self.params
+        if self._curves:
+            if pressure_pa != self._pressure and (pressure_pa > 0.0 or self._pressure == self._pressure):
+                self._set_curves(pressure_pa if pressure_pa > 0.0 else math.nan)
+            return
         if p.trail_pressure_coeff > 0.0 and pressure_pa > 0.0:  # (nan fails the comparison: unknown)
             f = 1.0 - p.trail_pressure_coeff * (pressure_pa - p.pressure_nominal_pa) / p.pressure_nominal_pa
             self._trail_gain = 1.0 / max(f, 0.25)
         else:
             self._trail_gain = 1.0
+
+    def _set_curves(self, pressure_pa: float) -> None:
+        """The knots and curves at ``pressure_pa`` (nan: the calibration's), linear between grid pressures."""
+        self._pressure = pressure_pa
+        if pressure_pa != pressure_pa:
+            self._trail, self._util, self._use = self._nominal
+            self.peak_ratio = 1.0
+            return
+        p = self.params
+        j, w = _locate(pressure_pa, p.pressure_grid_pa)
+        lo, hi = p.trail_at_pressure[j], p.trail_at_pressure[j + 1]
+        r = p.peak_at_pressure[j] + w * (p.peak_at_pressure[j + 1] - p.peak_at_pressure[j])
+        self._trail = tuple(a + w * (b - a) for a, b in zip(lo, hi, strict=True))
+        self.peak_ratio = r
+        self._util = tuple(r * u for u in self._nominal[1])
+        self._use = tuple(r * u for u in self._nominal[2])
+
+    def _nominal_trail(self, t: float, i: int, w: float) -> float:
+        """The trail ``t`` (m), located at ``(i, w)`` on the present knots, as the tyre at the calibration's pressure
+        has it in the same slip state (beyond the knots: the same distance to the end knot)."""
+        k, kp = self._nominal[0], self._trail
+        if t <= kp[0] or t >= kp[-1]:
+            e = 0 if t <= kp[0] else -1
+            return t - kp[e] + k[e]
+        return k[i] + w * (k[i + 1] - k[i])
 
     def _lp(self, prev: float, x: float) -> float:
         return x if prev != prev else prev + self._a * (x - prev)  # (prev != prev: nan, the first tick)
@@ -513,8 +587,8 @@ class GripEstimator:
         """The trail ``t`` (m) read: sets the state's trail and friction (given or nan), returns the evidence
         (the lateral utilisation at that trail)."""
         p, s = self.params, self.state
-        s.trail_m = t
         i, w, ev = self._evidence(t)
+        s.trail_m = t if self._trail is self._nominal[0] else self._nominal_trail(t, i, w)
         c = self._use
         mu = n / (c[i] + w * (c[i + 1] - c[i]))
         c = self._err
@@ -556,6 +630,12 @@ class GripEstimator:
             self._below = 0.0
 
 
+def reads_pressure(model_signals: Iterable[str]) -> bool:
+    """Whether a SAT model with these input signals reads both front TPMS pressures (:data:`PRESSURE_INPUTS`)."""
+    have = set(model_signals)
+    return all(s in have for s in PRESSURE_INPUTS)
+
+
 def front_pressure(table: Mapping[str, Any], n: int) -> np.ndarray:
     """Per row, the mean of a run's two front TPMS pressures (gauge, Pa; :data:`PRESSURE_INPUTS`), nan where either
     is unknown or the table has none (the estimate then reads the trail as measured)."""
@@ -565,29 +645,34 @@ def front_pressure(table: Mapping[str, Any], n: int) -> np.ndarray:
 
 
 def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np.ndarray,
-                 params: GripParams | None = None) -> dict[str, np.ndarray]:
+                 params: GripParams | None = None, sat_reads_pressure: bool = False) -> dict[str, np.ndarray]:
     """The grip estimate over one run's 20 Hz table (rows in time order), tick by tick with the daemon's code.
 
     Args:
         table: the run's columns of the estimator inputs :meth:`GripEstimator.step` reads (catalogue names), and
             the front TPMS pressures where it has them (:func:`front_pressure`).
         sat_fl, sat_fr: the estimated front SATs per row (Nm; nan where the model gave none).
+        sat_reads_pressure: the SATs come from a model that reads the front TPMS pressures
+            (:func:`reads_pressure`; :class:`GripEstimator`).
 
     Returns:
-        ``util``, ``mu``, ``halfwidth`` (nan where unknown), ``warning`` (bool), ``trail_m``, ``force_ratio``.
+        ``util``, ``mu``, ``halfwidth`` (nan where unknown), ``warning`` (bool), ``trail_m``, ``force_ratio``, and
+        ``peak_ratio``: the tyre's peak lateral force at the tick's pressure relative to the calibration's (1 where
+        the pressure is unknown or the calibration has no curves at other pressures; what the curves were scaled
+        by, :meth:`GripEstimator.set_front_pressure`).
     """
-    est = GripEstimator(params)
+    est = GripEstimator(params, sat_reads_pressure=sat_reads_pressure)
     ax, ay, vx, r, sw, tm, wl, wr = (np.asarray(table[k], dtype=float).tolist() for k in GRIP_INPUTS)
     n = len(sat_fl)
     press = front_pressure(table, n).tolist()
-    out = {k: np.full(n, np.nan) for k in ("util", "mu", "halfwidth", "trail_m", "force_ratio")}
+    out = {k: np.full(n, np.nan) for k in ("util", "mu", "halfwidth", "trail_m", "force_ratio", "peak_ratio")}
     warn = np.zeros(n, dtype=bool)
     fl, fr = np.asarray(sat_fl, float).tolist(), np.asarray(sat_fr, float).tolist()
     for i in range(n):
         est.set_front_pressure(press[i])
         s = est.step(fl[i], fr[i], ax[i], ay[i], vx[i], r[i], sw[i], tm[i], wl[i], wr[i])
         out["util"][i], out["mu"][i], out["halfwidth"][i] = s.util, s.mu, s.halfwidth
-        out["trail_m"][i], out["force_ratio"][i] = s.trail_m, s.force_ratio
+        out["trail_m"][i], out["force_ratio"][i], out["peak_ratio"][i] = s.trail_m, s.force_ratio, est.peak_ratio
         warn[i] = s.warning
     out["warning"] = warn
     return out

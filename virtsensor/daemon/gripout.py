@@ -22,7 +22,7 @@ from virtsensor.canbus.codec import CanMatrix, compile_encoder
 from virtsensor.canbus.dbcgen import GRIP_SIGNALS, GRIP_STATUS
 from virtsensor.canbus.e2e import next_counter
 from virtsensor.daemon.validity import DEGRADED, INIT, INVALID, VALID
-from virtsensor.grip import GRIP_INPUTS, PRESSURE_INPUTS, GripEstimator, GripParams
+from virtsensor.grip import GRIP_INPUTS, PRESSURE_INPUTS, GripEstimator, GripParams, reads_pressure
 
 __all__ = ["GRIP_INPUTS", "GripOutput", "NoGrip", "grip_output", "worse_status"]
 
@@ -44,10 +44,12 @@ class GripOutput:
         wheels: the daemon's two published wheels (front left, front right; their ``estimate``/``status``
             SAT_FRONT signal names), read by :meth:`fill_tick`.
         params: the car's grip parameters (default: the catalogue car's, shipped with the package).
+        sat_reads_pressure: the SAT model reads the front TPMS pressures (how the estimate reads a known pressure:
+            :class:`~virtsensor.grip.GripEstimator`).
     """
 
     def __init__(self, matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any] = (),
-                 params: GripParams | None = None) -> None:
+                 params: GripParams | None = None, sat_reads_pressure: bool = False) -> None:
         from virtsensor.daemon.publish import out_message
 
         m = matrix.messages["VS_Grip"]
@@ -56,7 +58,7 @@ class GripOutput:
         self._idx = tuple(list(signals).index(s) for s in GRIP_INPUTS)
         self._press = tuple(list(signals).index(s) for s in PRESSURE_INPUTS) if all(
             s in signals for s in PRESSURE_INPUTS) else ()
-        self.estimator = GripEstimator(params)
+        self.estimator = GripEstimator(params, sat_reads_pressure=sat_reads_pressure)
         self._names = tuple(GRIP_SIGNALS)  # util, mu, half-width
         #: VS_Grip signal -> value (nan -> SNA), status codes
         self.values: dict[str, float] = {n: math.nan for n in self._names}
@@ -134,4 +136,4 @@ def grip_output(matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any]
     model = signals if model_signals is None else model_signals
     if "VS_Grip" not in matrix.messages or any(s not in model for s in GRIP_INPUTS) or len(wheels) != 2:
         return NoGrip()
-    return GripOutput(matrix, signals, wheels, params)
+    return GripOutput(matrix, signals, wheels, params, sat_reads_pressure=reads_pressure(model))

@@ -37,11 +37,11 @@ from typing import Any
 
 import numpy as np
 
-from virtsensor.grip import GRIP_INPUTS, GripParams, estimate_run
+from virtsensor.grip import GRIP_INPUTS, GripParams, estimate_run, reads_pressure
 
 __all__ = ["GRIP_TRUTH", "FALSE_WINDOW_S", "LIMIT_UTIL", "EXCITED_UTIL", "CALM_UTIL", "has_grip_truth",
-           "true_front_util", "grip_metrics", "pool", "public", "grip_of_run", "model_sats", "score_grip",
-           "grip_markdown"]
+           "true_front_util", "grip_metrics", "pool", "public", "grip_of_run", "model_reads_pressure", "model_sats",
+           "score_grip", "grip_markdown"]
 
 #: the truth columns a run needs to be scored for grip
 GRIP_TRUTH = ("road_mu", "util_fl_1", "util_fr_1")
@@ -162,15 +162,25 @@ def public(m: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def grip_of_run(table: Mapping[str, Any], sat_fl: np.ndarray, sat_fr: np.ndarray,
-                params: GripParams | None = None) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
-    """The grip estimate of one run and its figures, or None when the run lacks the grip truth."""
+                params: GripParams | None = None, sat_reads_pressure: bool = False,
+                ) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
+    """The grip estimate of one run and its figures, or None when the run lacks the grip truth.
+    ``sat_reads_pressure``: the SATs are of a model that reads the front TPMS pressures (:func:`model_reads_pressure`;
+    :func:`virtsensor.grip.estimate_run`)."""
     if not has_grip_truth(table):
         return None
-    est = estimate_run(table, sat_fl, sat_fr, params)
+    est = estimate_run(table, sat_fl, sat_fr, params, sat_reads_pressure)
     t = np.asarray(table["time_s"], float)
     m = grip_metrics(t, true_front_util(table), np.asarray(table["road_mu"], float), est["mu"], est["warning"],
                      est["halfwidth"])
     return m, est
+
+
+def model_reads_pressure(model: Any) -> bool:
+    """Whether ``model`` (an :class:`~virtsensor.model.onnx.OnnxModel`) reads both front TPMS pressures."""
+    from virtsensor.features import FeatureSpec
+
+    return reads_pressure(FeatureSpec.from_json(model.card["feature_spec"]).signals)
 
 
 def model_sats(model: Any, table: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -208,7 +218,7 @@ def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None
             per[where] = None
             continue
         fl, fr = model_sats(model, run.table)
-        res = grip_of_run(run.table, fl, fr, params)
+        res = grip_of_run(run.table, fl, fr, params, model_reads_pressure(model))
         assert res is not None
         scored.append(res[0])
         per[where] = public(res[0])
