@@ -165,3 +165,26 @@ def test_feature_cost_daemons_lack_exactly_what_is_switched_off(tiny_model):
         finally:
             vs.stop()
             listener.shutdown()
+
+
+def test_the_shipped_bench_inputs_are_the_simulated_manoeuvres_frames():
+    """The bench replays shipped frames (it runs on the base install, without the simulator): they are exactly the
+    frames the simulator gives for the bench's manoeuvre in its window (``python tools/bench_inputs.py`` when not)."""
+    from virtsensor import assets
+    from virtsensor.daemon.bench import MANOEUVRE, load_frames, simulated_frames
+
+    shipped, fresh = load_frames(assets.bench_inputs_path()), simulated_frames(MANOEUVRE)
+    assert len(shipped) == len(fresh) > 1000
+    for a, b in zip(shipped, fresh, strict=True):
+        assert (a.timestamp, a.arbitration_id, a.is_extended_id, a.dlc, bytes(a.data)) == (
+            b.timestamp, b.arbitration_id, b.is_extended_id, b.dlc, bytes(b.data))
+
+
+def test_bench_inputs_that_are_not_frames_are_refused(tmp_path):
+    from virtsensor.daemon.bench import load_frames
+    from virtsensor.errors import UserError
+
+    bad = tmp_path / "x.npz"
+    bad.write_bytes(b"not an npz")
+    with pytest.raises(UserError, match="not the bench's input frames"):
+        load_frames(bad)

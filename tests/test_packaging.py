@@ -124,3 +124,14 @@ def test_the_demo_runs_on_the_base_install(tmp_path):
                        text=True, cwd=tmp_path, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "MAE" in r.stdout and "Traceback" not in r.stderr
+
+
+def test_the_bench_runs_on_the_base_install(tmp_path):
+    """The bench replays shipped input frames: no simulator (scipy), no training stack, no matplotlib."""
+    code = _BLOCK.format(blocked=("sklearn", "skl2onnx", "scipy", "joblib", "tqdm", "threadpoolctl", "shap",
+                                  "matplotlib", "sim"))
+    r = subprocess.run([sys.executable, "-c", code, "bench", "--quick", "--no-cross-process", "--no-cpu-latency",
+                        "--soak-ticks", "200", "--quiet", "--json", "b.json"], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr and sorted(p.name for p in tmp_path.iterdir()) == ["b.json"]

@@ -6,7 +6,10 @@ checkout (editable install) resolve them the same way, from any working director
 * ``virtsensor.assets.models`` is the repository's ``models/`` folder (``*.onnx`` with their
   ``*.card.json``, ``evaluation.md``/``.json``);
 * ``virtsensor.assets.dbc`` is the repository's ``dbc/`` folder (``virtsensor.dbc``);
-* the demo recording lives with the simulator's data, ``sim/data/recordings/``.
+* the demo recording lives with the simulator's data, ``sim/data/recordings/``;
+* ``bench_inputs.npz`` (beside this module): the input frames ``virtsensor bench`` replays, those of its
+  simulated manoeuvre (:data:`virtsensor.daemon.bench.MANOEUVRE`), so the bench runs on the base install,
+  without the simulator (``python tools/bench_inputs.py`` writes it; a test checks it against the simulator).
 
 A path given on the command line always wins over these defaults; these functions only name the
 bundled files. Each returns a :class:`pathlib.Path` of a file that exists, or raises
@@ -20,10 +23,13 @@ from pathlib import Path
 
 from virtsensor.errors import UserError
 
-__all__ = ["DEFAULT_MODEL_NAME", "bundled_models", "bundled_recordings_dir", "dbc_path", "model_path", "recording_path"]
+__all__ = ["DEFAULT_MODEL_NAME", "BENCH_INPUTS", "bench_inputs_path", "bundled_models", "bundled_recordings_dir",
+           "dbc_path", "model_path", "recording_path"]
 
 #: The model the daemon, the bench and the demo use when no ``--model`` is given.
 DEFAULT_MODEL_NAME = "improved"
+#: The bench's input frames, package data of this package.
+BENCH_INPUTS = "bench_inputs.npz"
 
 
 def _file(package: str, name: str, what: str) -> Path:
@@ -53,6 +59,11 @@ def bundled_models() -> tuple[str, ...]:
 def dbc_path() -> Path:
     """The bundled CAN matrix ``virtsensor.dbc`` (generated from :mod:`virtsensor.signals`)."""
     return _file("virtsensor.assets.dbc", "virtsensor.dbc", "CAN matrix")
+
+
+def bench_inputs_path() -> Path:
+    """The input frames ``virtsensor bench`` replays (:data:`BENCH_INPUTS`)."""
+    return _file("virtsensor.assets", BENCH_INPUTS, "bench input frames")
 
 
 def bundled_recordings_dir() -> Path:

@@ -45,7 +45,7 @@ import platform
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -148,26 +148,65 @@ def machine_info() -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------------------------
 # inputs
 # ---------------------------------------------------------------------------------------------------------------
+def simulated_frames(manoeuvre: tuple = MANOEUVRE) -> list[Any]:
+    """The input frames of ``manoeuvre`` (``simulate``'s arguments) stamped in the bench's window
+    ``(WINDOW_START_S, WINDOW_START_S + LOOP_S)`` (s), in time order; needs the simulator (the ``train`` extra)."""
+    from sim.api import simulate
+    from virtsensor.recordings.canlog import iter_frames
+
+    run = simulate(*manoeuvre)
+    time_s = run.streams["time_s"]
+    sig = {k: v for k, v in run.streams.items() if k != "time_s"}
+    a = WINDOW_START_S
+    b = a + LOOP_S
+    if time_s[-1] < b + 0.1:
+        raise UserError(f"the bench manoeuvre {manoeuvre} is shorter than {b} s")
+    return [m for m in iter_frames(time_s, sig) if a - 1e-9 < m.timestamp < b - 1e-9]
+
+
+def save_frames(frames: Sequence[Any], path: str | os.PathLike) -> None:
+    """Write ``frames`` (standard ``can.Message``, at most 8 data bytes) as ``.npz`` arrays, atomically:
+    ``timestamp`` (s, float64), ``arbitration_id``, ``dlc``, ``is_extended_id`` and ``data`` (n x 8 bytes)."""
+    import io
+
+    data = np.zeros((len(frames), 8), np.uint8)
+    for i, m in enumerate(frames):
+        data[i, : m.dlc] = np.frombuffer(bytes(m.data), np.uint8)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, timestamp=np.array([m.timestamp for m in frames], np.float64),
+                        arbitration_id=np.array([m.arbitration_id for m in frames], np.uint32),
+                        dlc=np.array([m.dlc for m in frames], np.uint8),
+                        is_extended_id=np.array([m.is_extended_id for m in frames], bool), data=data)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_frames(path: str | os.PathLike) -> list[Any]:
+    """The frames :func:`save_frames` wrote (new ``can.Message`` objects)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            ts, ids, dlc, ext, data = (z[k] for k in ("timestamp", "arbitration_id", "dlc", "is_extended_id",
+                                                      "data"))
+    except (OSError, ValueError, KeyError) as exc:
+        raise UserError(f"{path}: not the bench's input frames ({exc})") from None
+    import can
+
+    return [can.Message(timestamp=float(t), arbitration_id=int(i), is_extended_id=bool(e), dlc=int(n),
+                        data=bytes(d[:n])) for t, i, e, n, d in zip(ts, ids, ext, dlc, data, strict=True)]
+
+
 class Inputs:
     """One ``LOOP_S`` window of a simulated manoeuvre's frames, per tick, replayable in a loop.
 
     ``batches[k]`` is the list of input ``can.Message`` of tick ``k`` of the window (frames stamped after the
-    previous tick's grid instant up to this tick's instant), ``syncs[k]`` its sync frame.
+    previous tick's grid instant up to this tick's instant), ``syncs[k]`` its sync frame. The default
+    manoeuvre's frames are the shipped ones (:func:`virtsensor.assets.bench_inputs_path`: no simulator needed);
+    another manoeuvre is simulated (:func:`simulated_frames`).
     """
 
     def __init__(self, manoeuvre: tuple = MANOEUVRE) -> None:
-
-        from sim.api import simulate
-        from virtsensor.recordings.canlog import iter_frames
-
-        run = simulate(*manoeuvre)
-        time_s = run.streams["time_s"]
-        sig = {k: v for k, v in run.streams.items() if k != "time_s"}
         a = WINDOW_START_S
-        b = a + LOOP_S
-        if time_s[-1] < b + 0.1:
-            raise UserError(f"the bench manoeuvre {manoeuvre} is shorter than {b} s")
-        frames = [m for m in iter_frames(time_s, sig) if a - 1e-9 < m.timestamp < b - 1e-9]
+        frames = load_frames(assets.bench_inputs_path()) if tuple(manoeuvre) == MANOEUVRE else simulated_frames(
+            manoeuvre)
         n_ticks = round(LOOP_S / TICK_S)
         grid = a + np.arange(n_ticks) * TICK_S
         # frame of tick k: stamped in (grid[k-1], grid[k]]; the first window tick also gets frames at grid[0]
@@ -753,7 +792,7 @@ def _run_bench(model_path: str | os.PathLike | None, *, quick: bool, soak_ticks:
     model = OnnxModel.load(model_path)
     matrix = CanMatrix.load()
     sha = hashlib.sha256(model_path.read_bytes()).hexdigest()
-    say(f"model {model_path} ({sha[:12]}); simulating the input manoeuvre {MANOEUVRE}")
+    say(f"model {model_path} ({sha[:12]}); input frames of the manoeuvre {MANOEUVRE} (shipped)")
     inputs = Inputs()
     result: dict[str, Any] = {
         "schema": "virtsensor-bench/1", "quick": quick, "counts": counts,
