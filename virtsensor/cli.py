@@ -8,7 +8,9 @@ is one line on stderr and exit code 2: argparse's (numbers and their ranges, at
 parse time), the path arguments' kinds and roles (:func:`~virtsensor.commands._types.check_paths`,
 before the command runs: no output overwrites an input, its model card or metadata, or another
 output) and the command's own :class:`~virtsensor.errors.UserError`.
-:func:`main` returns the exit code (it does not raise ``SystemExit``).
+:func:`main` returns the exit code (it does not raise ``SystemExit``). A failure of the machine rather than of the
+request (a full disk, an I/O error while writing or reading) is one line too, naming the file, with exit code 1;
+the outputs are written all or none (:mod:`virtsensor.fileio`), so an existing one keeps its content.
 """
 
 from __future__ import annotations
@@ -116,6 +118,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"virtsensor {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # the machine, not the request: a full disk, an I/O error (a worker's, re-raised here)
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"virtsensor {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

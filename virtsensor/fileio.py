@@ -5,6 +5,9 @@ Contracts:
   of one; on any failure no partial file is left (the temporary name starts with ``.partial-``, which no
   reader of recordings ever takes for a run). The file is made readable by all (0644) and the rename is
   made durable (``fsync`` of the file and its folder, POSIX).
+* :func:`staged_files`: a command's several output files written all or none: each into a ``.partial-``
+  file beside it, renamed into place only when every one is written; on a failure or an interrupt no target
+  is touched.
 * :func:`staged_dir`: the files of a directory written all or none: into a ``.partial-`` directory beside
   it, moved into place only when every one is written; on a failure or an interrupt the target is as it was.
 * :func:`json_safe`: the same object with non-finite floats as ``None`` (JSON has no NaN/inf), numpy
@@ -32,7 +35,7 @@ import numpy as np
 from virtsensor.errors import UserError
 
 __all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "check_writable", "dumps", "json_default",
-           "json_safe", "staged_dir", "write_json"]
+           "json_safe", "name_the_file", "staged_dir", "staged_files", "write_json"]
 
 #: Prefix of the temporary file of an atomic write (readers of recordings skip such files).
 PARTIAL_PREFIX = ".partial-"
@@ -106,7 +109,8 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object]) 
     """Call ``write(tmp)`` to fill a temporary file beside ``path`` (same suffix), then rename it over ``path``.
 
     The temporary file keeps ``path``'s suffix, so writers that choose the format by suffix (python-can's
-    loggers) write the right one. Raises whatever ``write`` or the file system raises; nothing is left behind.
+    loggers) write the right one. Raises whatever ``write`` or the file system raises (an ``OSError`` without a
+    file name, a full disk say, as one naming ``path``); nothing is left behind.
     """
     path = Path(path)
     fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f"{PARTIAL_PREFIX}{path.stem}.", suffix=path.suffix)
@@ -118,10 +122,18 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object]) 
             os.fsync(f.fileno())
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        name_the_file(exc, path)
         raise
     _fsync_dir(path.parent)
+
+
+def name_the_file(exc: BaseException, path: Path | str) -> None:
+    """Raise an ``OSError`` that names no file (a full disk, an I/O error on write) again as one naming ``path``,
+    so the one line the command prints says where; any other exception: return."""
+    if isinstance(exc, OSError) and not exc.filename and exc.errno is not None:
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
@@ -132,6 +144,48 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
 def write_json(path: str | os.PathLike[str], obj: Any) -> None:
     """Write ``obj`` as indented JSON (:func:`json_safe`) with a final newline, atomically."""
     atomic_write_bytes(path, (dumps(obj) + "\n").encode())
+
+
+@contextmanager
+def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | None]]:
+    """Yield, per path (None stays None), a new empty temporary file beside it (``.partial-`` name, the same
+    suffix: writers that choose the format by suffix write the right one) to write that output into; when the
+    block ends without an error, every temporary file is made readable by all (0644), synced and renamed over
+    its target, then the folders synced. On an exception or an interrupt in the block every temporary file is
+    removed and no target is touched (an existing one keeps its content). A rename that fails part way leaves
+    the outputs renamed so far in place.
+
+    Raises:
+        OSError: a temporary file cannot be created, synced or renamed (whatever the block raises passes
+            through unchanged).
+    """
+    targets = [None if p is None else Path(p) for p in paths]
+    temps: list[Path | None] = []
+    try:
+        for t in targets:
+            if t is None:
+                temps.append(None)
+                continue
+            fd, name = tempfile.mkstemp(dir=t.parent, prefix=f"{PARTIAL_PREFIX}{t.stem}.", suffix=t.suffix)
+            os.close(fd)
+            temps.append(Path(name))
+        yield temps
+        for tmp in temps:
+            if tmp is not None:
+                with open(tmp, "rb+") as f:
+                    os.fsync(f.fileno())
+                os.chmod(tmp, 0o644)
+        for tmp, t in zip(temps, targets, strict=True):
+            if tmp is not None and t is not None:
+                os.replace(tmp, t)
+    except BaseException as exc:
+        for tmp in temps:
+            if tmp is not None:
+                tmp.unlink(missing_ok=True)
+        name_the_file(exc, ", ".join(str(t) for t in targets if t is not None))
+        raise
+    for folder in {t.parent for t in targets if t is not None}:
+        _fsync_dir(folder)
 
 
 def _staging_parent(out: Path) -> Path:

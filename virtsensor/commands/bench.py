@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from virtsensor.daemon.bench import run_bench, to_json, write_histogram, write_markdown
-    from virtsensor.fileio import atomic_write_bytes
+    from virtsensor.fileio import staged_files
 
     def say(text: str) -> None:
         if not args.quiet:
@@ -55,12 +55,13 @@ def run(args: argparse.Namespace) -> int:
                   cross_process=not args.no_cross_process, progress=say,
                   cpu_latency_us=None if args.no_cpu_latency else args.cpu_latency_us or 0)
     text = to_json(r)
-    if args.json:
-        atomic_write_bytes(args.json, text.encode())
-    if args.markdown:
-        write_markdown(r, args.markdown)
-    if args.histogram:
-        write_histogram(r, args.histogram)
+    with staged_files(args.json, args.markdown, args.histogram) as (json_tmp, md_tmp, hist_tmp):  # (all or none)
+        if json_tmp is not None:
+            json_tmp.write_text(text)
+        if md_tmp is not None:
+            write_markdown(r, md_tmp)
+        if hist_tmp is not None:
+            write_histogram(r, hist_tmp)
     t = r["targets"]
     for k, v in t.items():
         say(f"{k}: {v['value']} ({v['limit']}) {'met' if v['met'] else 'MISSED'}")

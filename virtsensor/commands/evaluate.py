@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor import signals as cat
     from virtsensor.errors import UserError
     from virtsensor.features import SPECS, FeatureSpec
-    from virtsensor.fileio import atomic_write_bytes, write_json
+    from virtsensor.fileio import dumps, staged_files
     from virtsensor.learning.dataset import build_dataset, check_disjoint, load_runs, split_track_laps
     from virtsensor.learning.evaluation import evaluate, held_out_runs, markdown_table
     from virtsensor.learning.gripscore import score_grip
@@ -104,14 +104,15 @@ def run(args: argparse.Namespace) -> int:
     result["grip"] = score_grip(model, [*runs, *([track] if track is not None else []), *circuits])
     if pressure is not None:
         result["pressure_protocol"] = _pressure(model, *pressure)
-    write_json(args.json, result)
     table = markdown_table(result)
     if args.pressure_runs:
         from virtsensor.learning.pressure import pressure_markdown
 
         table += "\n" + pressure_markdown(result["pressure_protocol"])
-    if args.markdown:
-        atomic_write_bytes(args.markdown, table.encode())
+    with staged_files(args.json, args.markdown) as (json_tmp, md_tmp):  # (both or neither)
+        json_tmp.write_text(dumps(result) + "\n")
+        if md_tmp is not None:
+            md_tmp.write_text(table)
     print(table)
     return 0
 

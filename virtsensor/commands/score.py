@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.fileio import atomic_write_bytes, write_json
+    from virtsensor.fileio import dumps, staged_files
     from virtsensor.learning.dataset import load_runs
     from virtsensor.learning.gripscore import grip_markdown
     from virtsensor.learning.scoring import markdown, needed_signals, score_runs
@@ -37,9 +37,10 @@ def run(args: argparse.Namespace) -> int:
     runs = load_runs(args.data, needed=needed_signals(model.card))
     result = score_runs(model, runs)
     table = markdown(result)
-    write_json(args.json, result)
-    if args.markdown:
-        atomic_write_bytes(args.markdown, table.encode())
+    with staged_files(args.json, args.markdown) as (json_tmp, md_tmp):  # (both or neither)
+        json_tmp.write_text(dumps(result) + "\n")
+        if md_tmp is not None:
+            md_tmp.write_text(table)
     o = result["overall"]
     print(f"{len(runs)} run(s), {o['n']} samples: R2 {o['r2']:.3f}, MAE {o['mae_nm']:.2f} Nm "
           f"(mean of both front wheels) -> {args.json}", file=sys.stderr)

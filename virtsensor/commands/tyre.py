@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.fileio import check_writable
+    from virtsensor.fileio import check_writable, staged_files
     from virtsensor.tyres import (
         check_tyre_file,
         format_report,
@@ -63,9 +63,14 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write(dumps(figures) + "\n")
     else:
         print(format_report(figures))
-    if json_path is not None:
-        write_json(figures, json_path)
+    for path in (json_path, plot_path):
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+    with staged_files(json_path, plot_path) as (json_tmp, plot_tmp):  # (both or neither)
+        if json_tmp is not None:
+            write_json(figures, json_tmp)
+        if plot_tmp is not None:
+            plot_curves(tyre, plot_tmp)
     if plot_path is not None:
-        plot_curves(tyre, plot_path)
         print(f"plot: {plot_path}", file=sys.stderr)
     return 0

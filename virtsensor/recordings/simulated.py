@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from virtsensor.errors import UserError
-from virtsensor.fileio import write_json
+from virtsensor.fileio import name_the_file, write_json
 from virtsensor.recordings.check import MIN_ROWS
 from virtsensor.recordings.files import LOG_SUFFIXES, TABLE_SUFFIXES
 
@@ -106,6 +106,9 @@ def write_run(sim_run: Any, out: Path, table: Mapping[str, np.ndarray] | None = 
     try:
         table = write_run_file(sim_run, tmp, table)
         tmp.replace(out)
+    except OSError as exc:
+        name_the_file(exc, out)  # (a full disk names no file: the line the command prints says which)
+        raise
     finally:
         tmp.unlink(missing_ok=True)
     return table
