@@ -235,3 +235,18 @@ def test_a_run_that_stops_after_a_usable_stretch_is_written_and_says_so(tmp_path
     assert main(["simulate", "recorded", "--mu", "1", "--inputs", str(inputs), "--out", str(out)]) == 0
     assert "STOPPED at t=" in capsys.readouterr().err
     assert 20 < len(read_csv(out)["time_s"]) < 80
+
+
+def test_a_run_never_takes_over_another_recordings_metadata(tmp_path, capsys):
+    """``x.blf`` beside ``x.csv`` would share ``x.json``: refused in one line, exit 2, the csv's metadata kept;
+    writing ``x.csv`` again (its own metadata) is allowed."""
+    csv, blf, meta = tmp_path / "x.csv", tmp_path / "x.blf", tmp_path / "x.json"
+    assert main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.7", "--seed", "3", "--out", str(csv)]) == 0
+    before = meta.read_bytes()
+    capsys.readouterr()
+    assert main(["simulate", "single-sine", "--speed", "60", "--mu", "0.5", "--out", str(blf)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "metadata of another recording, x.csv" in err[0], err
+    assert meta.read_bytes() == before and not blf.exists()
+    assert main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.5", "--seed", "3", "--out", str(csv)]) == 0
+    assert json.loads(meta.read_text())["file"].endswith("x.csv")

@@ -59,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
                         f"use one of {', '.join(TABLE_SUFFIXES + LOG_SUFFIXES)}")
     if not out.parent.exists():
         raise UserError(f"--out {out}: directory {out.parent} does not exist")
+    _check_metadata_free(out)
     if args.manoeuvre == "recorded":
         sim_run = _resimulate(args)
     else:
@@ -85,6 +86,21 @@ def run(args: argparse.Namespace) -> int:
     print(f"{args.manoeuvre} at {speed}, mu {args.mu:g}: {n} samples at 20 Hz "
           f"({table['time_s'][-1]:.2f} s), {_outcome_text(sim_run.outcome)} -> {out}", file=sys.stderr)
     return 0
+
+
+def _check_metadata_free(out: Path) -> None:
+    """Refuse an ``out`` whose metadata file (``<stem>.json``) describes another recording (``x.blf`` beside
+    ``x.csv``): writing it would leave that recording with this run's metadata."""
+    import json
+
+    meta = metadata_path(out)
+    try:
+        other = json.loads(meta.read_text()).get("file")
+    except (OSError, ValueError, AttributeError):
+        return  # (none, or not a run's metadata: the output checks already decided on it)
+    if isinstance(other, str) and Path(other).name != out.name:
+        raise UserError(f"--out {out}: {meta} is the metadata of another recording, {Path(other).name}; "
+                        f"writing this run would replace it (give --out another name)")
 
 
 def _outcome_text(outcome: dict) -> str:
