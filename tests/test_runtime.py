@@ -601,13 +601,22 @@ def test_refuses_sha256_mismatch(model_path, tmp_path, capsys):
     ('interfce = "virtual"\n', "unknown key 'interfce'"),
     ("sync_id = 4096\n", "sync_id"),
     ('timeout_cycles = "x"\n', "timeout_cycles"),
+    # the file's values obey the options' own ranges and checks
+    ("timeout_cycles = 5000\n", "timeout_cycles must be in 1..1000"),
+    ("bitrate = 5\n", "bitrate must be in 1000..20000000"),
+    ("duration = 1e300\n", "duration must be at most"),
+    ('model = "nosuch.onnx"\n', "model "),
+    ('dbc = "."\n', "is a directory"),
 ])
 def test_refuses_bad_config(model_path, tmp_path, capsys, text, needle):
     cfg = tmp_path / "vs.toml"
     if text is not None:
         cfg.write_text(text)
-    err = _refusal(capsys, "--config", str(cfg), "--model", str(model_path), "--interface", "virtual", "--channel", "x")
+    model = [] if text and text.startswith("model") else ["--model", str(model_path)]
+    err = _refusal(capsys, "--config", str(cfg), *model, "--interface", "virtual", "--channel", "x")
     assert needle in err and str(cfg) in err
+    if text and text.startswith("model"):
+        assert "nosuch.onnx: no such file" in err  # (the model named, not its card)
 
 
 def test_refuses_missing_settings_and_bus(model_path, capsys):
@@ -627,6 +636,7 @@ def test_config_file_and_cli_override(model_path, tmp_path, capsys):
     assert c.sync_id == 0x7F0 and c.log_level == "warning" and c.timeout_cycles == 4.0
     # relative paths in the file are relative to the file
     (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "sat.onnx").write_bytes(model_path.read_bytes())
     rel = tmp_path / "rel.toml"
     rel.write_text('model = "m/sat.onnx"\ninterface = "virtual"\nchannel = "x"\n')
     assert load_config(rel).model == str(tmp_path / "m" / "sat.onnx")

@@ -18,7 +18,18 @@ from virtsensor.daemon.jsonlog import LOG_LEVELS
 from virtsensor.errors import UserError
 from virtsensor.fileio import read_user_text
 
-__all__ = ["RuntimeConfig", "load_config", "read_config_file"]
+__all__ = ["DURATION_MAX_S", "INT_RANGES", "TIMEOUT_CYCLES_RANGE", "RuntimeConfig", "load_config",
+           "read_config_file"]
+
+#: the integer settings' inclusive ranges: the CLI's options and the config file's keys share them
+INT_RANGES: dict[str, tuple[int, int]] = {"bitrate": (1000, 20_000_000), "sync_every": (1, 1000), "cpu": (0, 4095),
+                                          "rt_priority": (1, 99), "model_id": (0, 255),
+                                          "cpu_latency_us": (0, 2_000_000_000)}
+#: ``duration`` is in (0, DURATION_MAX_S] seconds; ``timeout_cycles`` in this inclusive range
+DURATION_MAX_S = 1e9
+TIMEOUT_CYCLES_RANGE = (1.0, 1000.0)
+#: the file kind of each path setting
+_PATH_SUFFIX = {"model": ".onnx", "dbc": ".dbc"}
 
 
 @dataclass
@@ -88,8 +99,7 @@ def _coerce(key: str, value: Any, where: str) -> Any:
     if key in ("bitrate", "sync_every", "cpu", "rt_priority", "model_id", "cpu_latency_us"):
         if isinstance(value, bool) or not isinstance(value, int):
             raise bad("an integer")
-        lo, hi = {"bitrate": (1, 10_000_000), "sync_every": (1, 1000), "cpu": (0, 4095),
-                  "rt_priority": (1, 99), "model_id": (0, 255), "cpu_latency_us": (0, 2_000_000_000)}[key]
+        lo, hi = INT_RANGES[key]
         if not lo <= value <= hi:
             raise bad(f"in {lo}..{hi}")
         return value
@@ -100,13 +110,27 @@ def _coerce(key: str, value: Any, where: str) -> Any:
     if key in ("duration", "timeout_cycles"):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
             raise bad("a positive number")
-        if key == "timeout_cycles" and value < 1:
-            raise bad("at least 1")
+        if key == "duration" and value > DURATION_MAX_S:
+            raise bad(f"at most {DURATION_MAX_S:g} s")
+        if key == "timeout_cycles" and not TIMEOUT_CYCLES_RANGE[0] <= value <= TIMEOUT_CYCLES_RANGE[1]:
+            raise bad(f"in {TIMEOUT_CYCLES_RANGE[0]:g}..{TIMEOUT_CYCLES_RANGE[1]:g}")
         return float(value)
     raise UserError(f"{where}: unknown setting {key!r}")  # pragma: no cover - keys are checked first
 
 
 _KEYS = tuple(f.name for f in fields(RuntimeConfig))
+
+
+def _check_path(key: str, value: Path, where: Path) -> None:
+    """The config file ``where``'s ``model``/``dbc`` ``value`` names an existing file of its kind, as the
+    options' own check; a UserError naming the file and the key if not."""
+    suffix = _PATH_SUFFIX[key]
+    if not value.exists():
+        raise UserError(f"{where}: {key} {value}: no such file")
+    if value.is_dir():
+        raise UserError(f"{where}: {key} {value} is a directory, not a {suffix} file")
+    if value.suffix.lower() != suffix:
+        raise UserError(f"{where}: {key} {value}: expected a {suffix} file")
 
 
 def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
@@ -134,8 +158,10 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
         if key in out:
             raise UserError(f"{path}: key {raw_key!r} given twice")
         value = _coerce(key, value, str(path))
-        if key in _PATH_KEYS and value is not None and not Path(value).is_absolute():
-            value = str((path.parent / value).resolve())
+        if key in _PATH_KEYS and value is not None:
+            if not Path(value).is_absolute():
+                value = str((path.parent / value).resolve())
+            _check_path(key, Path(value), path)
         out[key] = value
     return out
 
