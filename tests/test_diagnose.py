@@ -506,7 +506,7 @@ def test_conditions_from_a_csv_and_a_json_beside_the_run(tmp_path):
     ("file,grip\nrun01.csv,1\n", "line 1: unknown column 'grip'"),
     ("file,mu\nrun01.csv,0.9..0.5\n", "line 2: mu '0.9..0.5': a range needs finite lo <= hi"),
     ("file,mu\nrun01.csv,wet\n", "line 2: mu 'wet' is not a number or a range lo..hi"),
-    ("file,mu\nrun01.csv,3\n", "line 2: mu '3' is outside 0.2..1.2"),
+    ("file,mu\nrun01.csv,3\n", "line 2: mu '3' is outside 0.2..1.2\n"),  # (no unit: mu is a ratio)
     ("file,mu\nrun01.csv,1,2\n", "line 2: 3 cells for 2 columns"),
     ("file,mu\nrun09.csv,1\n", "run09.csv is not one of the measured runs"),
 ])

@@ -246,3 +246,11 @@ def test_replay_refuses_a_bad_manoeuvre(channel, capsys):
     rc = cli.main(["replay", "--manoeuvre", "moonwalk", "--interface", "virtual", "--channel", channel])
     assert rc == 2
     assert "unknown manoeuvre 'moonwalk'" in capsys.readouterr().err
+
+
+def test_a_20hz_table_is_not_replayed_as_a_can_log(tmp_path, capsys):
+    table = tmp_path / "run.csv"
+    table.write_text("time_s,ax_mps2\n0.0,0.1\n0.05,0.2\n")
+    rc = cli.main(["replay", str(table), "--interface", "virtual", "--channel", "x", "--rate", "max"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "a 20 Hz table" in err[0] and "not a CAN log" in err[0], err

@@ -97,7 +97,8 @@ def parse_value(name: str, raw: Any, where: str) -> tuple[float, float]:
         raise UserError(f"{where}: {name} {raw!r}: a range needs finite lo <= hi")
     b0, b1 = q.bounds
     if lo < b0 or hi > b1:
-        raise UserError(f"{where}: {name} {raw!r} is outside {b0:g}..{b1:g} {q.unit}")
+        unit = "" if q.unit in ("", "1", "-") else f" {q.unit}"
+        raise UserError(f"{where}: {name} {raw!r} is outside {b0:g}..{b1:g}{unit}")
     return lo, hi
 
 

@@ -392,6 +392,16 @@ class _ReaderWarnings(logging.Filter):
             logging.getLogger(name).removeFilter(self)
 
 
+def _is_table(path: Path) -> bool:
+    """Whether the text file ``path`` starts as a canonical table does (its header's first column ``time_s``)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace", newline=None) as f:
+            head = f.readline(4096)
+    except OSError:
+        return False
+    return head.lstrip("\ufeff").split(",", 1)[0].strip() == "time_s"
+
+
 def iter_log(path: str | os.PathLike) -> Iterator:
     """Yield the python-can ``Message`` objects of a log file, in file order.
 
@@ -407,6 +417,10 @@ def iter_log(path: str | os.PathLike) -> Iterator:
     if not path.is_file():
         raise UserError(f"{path}: no such log file")
     real, gz = _suffix(path)
+    if real == ".csv" and not gz and _is_table(path):
+        raise UserError(f"{path}: a 20 Hz table (first column time_s), not a CAN log (python-can's CSV log starts "
+                        "with timestamp,arbitration_id): write the run as a CAN log (virtsensor simulate ... --out "
+                        "x.blf) to play it")
     cut = _text_cut(path, real) if real in _TEXT_SUFFIXES and not gz else None
     if cut is not None:
         raise UserError(f"{path}: truncated: {cut[1]}; {_last_good(path, real, cut[0])}")
