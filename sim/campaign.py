@@ -287,6 +287,20 @@ def run_campaign(
     return results
 
 
+#: the warnings filter (``PYTHONWARNINGS`` syntax) :func:`_quiet_resource_tracker` gives loky's processes
+QUIET_TRACKER = "ignore:resource_tracker:UserWarning"
+
+
+def _quiet_resource_tracker() -> None:
+    """loky's resource tracker (a process of its own, started with the first workers, inheriting this process's
+    environment) warns at its exit of the semaphores of workers that were killed: on an error or an interrupt the
+    campaign kills them on purpose, and the one line the command prints is all the user should see. Its
+    ``resource_tracker: ...`` warnings are ignored through ``PYTHONWARNINGS`` (added to any filters already set)."""
+    have = os.environ.get("PYTHONWARNINGS", "")
+    if QUIET_TRACKER not in have.split(","):
+        os.environ["PYTHONWARNINGS"] = ",".join(x for x in (have, QUIET_TRACKER) if x)
+
+
 @contextmanager
 def _backend_config(backend: str | None, parent_pid: int, n_jobs: int = -1) -> Iterator[None]:
     """joblib configuration of a campaign: loky (joblib's default) with workers bound
@@ -300,6 +314,7 @@ def _backend_config(backend: str | None, parent_pid: int, n_jobs: int = -1) -> I
 
     default_is_loky = type(get_active_backend()[0]).__name__ == "LokyBackend"
     if backend == "loky" or (backend is None and default_is_loky):
+        _quiet_resource_tracker()
         with parallel_config(backend="loky", initializer=_loky_initializer, initargs=(parent_pid,)):
             yield
     elif backend == "ray":

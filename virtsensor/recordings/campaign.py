@@ -18,6 +18,7 @@ from typing import Any
 
 from virtsensor.errors import UserError
 from virtsensor.extras import require
+from virtsensor.fileio import name_the_file
 from virtsensor.recordings.files import WRITE_FORMATS
 from virtsensor.recordings.manifest import (
     MANIFEST,
@@ -50,7 +51,11 @@ def write_partial_run(sim_run: Any, out_dir: Path, fmt: str) -> dict[str, Any]:
 
     final = Path(out_dir) / run_name(sim_run.request, fmt)
     tmp = partial_name(final)
-    table = write_run_file(sim_run, tmp)
+    try:
+        table = write_run_file(sim_run, tmp)
+    except OSError as exc:
+        name_the_file(exc, final)  # (a full disk names no file: the parent's one line says which)
+        raise
     t = table["time_s"]
     entry = manifest_entry(sim_run, final, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
     entry.update(rows=len(t), sha256=file_sha256(tmp))
