@@ -83,9 +83,8 @@ def test_every_catalogue_can_signal_is_in_the_dbc(db):
         s = db.get_message_by_name(spec.message).get_signal_by_name(spec.dbc_signal)
         unit, factor = dbcgen.UNIT_CONVERSIONS.get(spec.unit, (spec.unit, 1.0))
         assert s.unit == unit, name
-        res = spec.resolution
-        assert res >= spec.resolution
-        assert math.isclose(s.scale, res * factor, rel_tol=1e-12), name
+        assert spec.resolution > 0, name
+        assert math.isclose(s.scale, spec.resolution * factor, rel_tol=1e-12), name
         assert math.isclose(s.minimum, spec.minimum * factor, abs_tol=1e-9), name
         assert math.isclose(s.maximum, spec.maximum * factor, abs_tol=1e-9), name
         # the raw range covers the catalogue range, with one spare code for SNA

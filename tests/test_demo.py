@@ -79,7 +79,9 @@ def test_demo_runs_on_the_bundled_defaults_and_its_figures_are_sane(demo):
 def test_demo_writes_the_plot(demo):
     assert demo["json"]["plot"] == str(demo["plot"])
     assert demo["plot"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert not list(demo["plot"].parent.glob("*.partial"))  # written atomically, nothing left behind
+    from virtsensor.fileio import PARTIAL_PREFIX
+
+    assert not list(demo["plot"].parent.glob(f"{PARTIAL_PREFIX}*"))  # written atomically, nothing left behind
 
 
 def test_demo_figures_equal_the_offline_pipeline(demo):

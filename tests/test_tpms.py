@@ -15,6 +15,7 @@ from virtsensor import cli
 from virtsensor import signals as cat
 from virtsensor.canbus.e2e import USABLE
 from virtsensor.daemon import DEGRADED, INIT, VALID
+from virtsensor.errors import UserError
 from virtsensor.features import HISTORY, TPMS
 from virtsensor.learning.dataset import Run
 from virtsensor.model import OnnxModel
@@ -218,7 +219,7 @@ def test_pressure_protocol_groups_by_tpms_and_scores_side_by_side(runs, models):
     assert set(res["acceptance"]["passed"]) == {"1.8", "2.8"}
     md = pressure_markdown(res)
     assert md.count("| 1.8 bar |") == 3 and "trail correction" in md
-    with pytest.raises(Exception, match="nominal"):
+    with pytest.raises(UserError, match="nominal"):
         pressure_protocol(free, tpms, [held[0]], None)
 
 

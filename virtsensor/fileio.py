@@ -6,10 +6,11 @@ Contracts:
   reader of recordings ever takes for a run). The file is made readable by all (0644) and the rename is
   made durable (``fsync`` of the file and its folder, POSIX).
 * :func:`staged_files`: a command's several output files written all or none: each into a ``.partial-``
-  file beside it, renamed into place only when every one is written; on a failure or an interrupt no target
-  is touched.
+  file beside it, renamed into place only when every one is written; on a failure or an interrupt while
+  writing no target is touched (a rename that fails part way, rarer, leaves the ones renamed so far).
 * :func:`staged_dir`: the files of a directory written all or none: into a ``.partial-`` directory beside
-  it, moved into place only when every one is written; on a failure or an interrupt the target is as it was.
+  it, moved into place only when every one is written; on a failure or an interrupt while writing the target is
+  as it was (a move that fails part way, rarer, leaves the files moved so far).
 * :func:`json_safe`: the same object with non-finite floats as ``None`` (JSON has no NaN/inf), numpy
   scalars and arrays as Python numbers and lists, paths as strings, sets as sorted lists, mapping keys as
   strings.

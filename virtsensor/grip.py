@@ -15,7 +15,8 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   ``Fy = (m b ay + Iz dr/dt) / L`` (N); its longitudinal force from the traction motor torque (``T i / r``,
   driving or regenerating) plus the front share of the brakes' force, ``min(m ax + D vx^2 - T i / r, 0)``
   (what the deceleration leaves after drive and air drag ``D vx^2``); its load from the static
-  front load and the longitudinal load transfer, ``Fz = m g b / L - m h ax / L``;
+  front load and the longitudinal load transfer, ``Fz = m g b / L - m h ax / L``, held at 0.2 of the static load
+  or more (a hard acceleration does not unload the axle to nothing);
 * the force ratio ``n = |F| / Fz`` (the friction the axle uses) and the axle trail ``t = -Mz sgn(Fy) / |Fy|``
   (m) from the sum of the two SATs, both low-passed (:attr:`GripParams.filter_s`); where the front TPMS
   pressures are known (:meth:`GripEstimator.set_front_pressure`), the trail is read at the calibration's

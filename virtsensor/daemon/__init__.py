@@ -14,7 +14,8 @@ Modules:
 * :mod:`~virtsensor.daemon.runner` -- threads, signals, shutdown;
 * :mod:`~virtsensor.daemon.stats` -- rings of tick timings;
 * :mod:`~virtsensor.daemon.sensor` -- :class:`VirtualSensor`, which composes them;
-* :mod:`~virtsensor.daemon.bench` -- ``virtsensor bench`` (imports the simulator; the daemon never does).
+* :mod:`~virtsensor.daemon.bench` -- ``virtsensor bench`` (replays shipped input frames; the simulator only
+  for another manoeuvre, the daemon never).
 """
 
 from virtsensor.daemon.config import RuntimeConfig, load_config, read_config_file

@@ -2,8 +2,10 @@
 
 Every figure is taken on a real :class:`~virtsensor.daemon.VirtualSensor` on python-can's in-process
 ``virtual`` bus (``cross_process``: ``udp_multicast`` in a private network namespace, null with a reason
-where that is not permitted). Input: a simulated manoeuvre (``sim.api.simulate``; the bench imports the
-simulator, the runtime never does) encoded as :func:`virtsensor.recordings.canlog.iter_frames` writes it, a sync
+where that is not permitted). Input: the frames of a simulated manoeuvre (:data:`MANOEUVRE`) as
+:func:`virtsensor.recordings.canlog.iter_frames` writes them, shipped with the package
+(:func:`virtsensor.assets.bench_inputs_path`: the bench runs on the base install; only another manoeuvre is
+simulated, :func:`simulated_frames`, which needs the simulator), a sync
 frame (:func:`~virtsensor.daemon.layout.sync_frames`) after each 20 Hz instant, and a window of ``LOOP_S``
 seconds replayed in a loop (timestamps shifted by ``LOOP_S`` per loop; the window holds a whole multiple of
 15 frames of every 10/20/100 ms message, so the Profile 11 alive counters, 0..14, stay continuous).
