@@ -291,14 +291,24 @@ def run_campaign(
 QUIET_TRACKER = "ignore:resource_tracker:UserWarning"
 
 
-def _quiet_resource_tracker() -> None:
+@contextmanager
+def _quiet_resource_tracker() -> Iterator[None]:
     """loky's resource tracker (a process of its own, started with the first workers, inheriting this process's
     environment) warns at its exit of the semaphores of workers that were killed: on an error or an interrupt the
-    campaign kills them on purpose, and the one line the command prints is all the user should see. Its
-    ``resource_tracker: ...`` warnings are ignored through ``PYTHONWARNINGS`` (added to any filters already set)."""
-    have = os.environ.get("PYTHONWARNINGS", "")
-    if QUIET_TRACKER not in have.split(","):
-        os.environ["PYTHONWARNINGS"] = ",".join(x for x in (have, QUIET_TRACKER) if x)
+    campaign kills them on purpose, and the one line the command prints is all the user should see. While the
+    campaign runs, ``PYTHONWARNINGS`` (any filters already set, and :data:`QUIET_TRACKER`) has the processes it
+    starts ignore those ``resource_tracker: ...`` warnings; the variable is restored after (a tracker started
+    here keeps the filter, later processes do not get it)."""
+    had = os.environ.get("PYTHONWARNINGS")
+    if QUIET_TRACKER not in (had or "").split(","):
+        os.environ["PYTHONWARNINGS"] = ",".join(x for x in (had, QUIET_TRACKER) if x)
+    try:
+        yield
+    finally:
+        if had is None:
+            os.environ.pop("PYTHONWARNINGS", None)
+        else:
+            os.environ["PYTHONWARNINGS"] = had
 
 
 @contextmanager
@@ -314,8 +324,8 @@ def _backend_config(backend: str | None, parent_pid: int, n_jobs: int = -1) -> I
 
     default_is_loky = type(get_active_backend()[0]).__name__ == "LokyBackend"
     if backend == "loky" or (backend is None and default_is_loky):
-        _quiet_resource_tracker()
-        with parallel_config(backend="loky", initializer=_loky_initializer, initargs=(parent_pid,)):
+        with _quiet_resource_tracker(), parallel_config(backend="loky", initializer=_loky_initializer,
+                                                        initargs=(parent_pid,)):
             yield
     elif backend == "ray":
         import ray

@@ -82,15 +82,56 @@ def test_a_full_disk_is_one_line_naming_the_file_exit_1(tmp_path, capsys, monkey
     import errno
 
     from virtsensor import cli
-    from virtsensor.recordings import simulated
+    from virtsensor.commands import simulate as cmd
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     out = tmp_path / "x.csv"
     out.write_text("an older run\n")
-    monkeypatch.setattr(simulated, "write_run_file", full)
+    monkeypatch.setattr(cmd, "write_run_file", full)
     rc = cli.main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.7", "--out", str(out)])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and len(err) == 1 and "No space left on device" in err[0] and str(out) in err[0], err
     assert out.read_text() == "an older run\n" and sorted(p.name for p in tmp_path.iterdir()) == ["x.csv"]
+
+
+def test_a_staged_writers_own_temporary_file_is_reported_as_its_target(tmp_path):
+    """A writer inside the block may write atomically itself (a temporary file of the temporary file): its
+    OSError is raised again naming the target the user asked for, not a file that no longer exists."""
+    import errno
+
+    from virtsensor.fileio import atomic_write, staged_files
+
+    out = tmp_path / "bench.md"
+
+    def full(p):
+        raise OSError(errno.ENOSPC, "No space left on device", str(p))
+
+    with pytest.raises(OSError) as info, staged_files(out) as (tmp,):
+        atomic_write(tmp, full)
+    assert info.value.filename == str(out) and info.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_writes_the_run_and_its_metadata_both_or_neither(tmp_path, capsys, monkeypatch):
+    """A full disk on the metadata keeps the older run and its metadata as they were; one line, exit 1."""
+    import errno
+
+    from virtsensor import cli
+    from virtsensor.commands import simulate as cmd
+
+    out = tmp_path / "x.csv"
+    assert cli.main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.7", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert sorted(before) == ["x.csv", "x.json"]
+    capsys.readouterr()
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(cmd, "dumps", full)
+    assert cli.main(["simulate", "steering-pulse", "--speed", "60", "--mu", "0.5", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "No space left on device" in err[0] and str(out) in err[0], err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before

@@ -135,3 +135,12 @@ def test_the_bench_runs_on_the_base_install(tmp_path):
                        cwd=tmp_path, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "Traceback" not in r.stderr and sorted(p.name for p in tmp_path.iterdir()) == ["b.json"]
+
+
+def test_a_bench_histogram_without_matplotlib_is_refused_before_measuring(tmp_path):
+    code = _BLOCK.format(blocked=("matplotlib",))
+    r = subprocess.run([sys.executable, "-c", code, "bench", "--quick", "--no-cross-process", "--json", "b.json",
+                        "--histogram", "h.png"], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "virtsensor[plots]" in lines[0], r.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -218,7 +218,10 @@ def pressure_curves(p: dict, knots: tuple[float, ...] = TRAIL_KNOTS) -> dict:
 
     p0 = float(p["tyres"]["pressure_front_pa"])
     t0, a0, peak0 = curve(p0)
-    end = int(np.argmax(np.diff(t0) >= 0)) or len(t0) - 1  # (the trail falls with the slip angle up to here)
+    rises = np.flatnonzero(np.diff(t0) >= 0)
+    end = int(rises[0]) if len(rises) else len(t0) - 1  # (the trail falls with the slip angle up to here)
+    if end < 2:
+        raise SystemExit("pressure curves: the tyre's trail does not fall with the slip angle")
     rows, peaks = [], []
     for pressure in PRESSURE_GRID_PA:
         tp, ap, peak = curve(pressure)

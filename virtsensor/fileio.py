@@ -157,8 +157,9 @@ def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | 
     the outputs renamed so far in place.
 
     Raises:
-        OSError: a temporary file cannot be created, synced or renamed (whatever the block raises passes
-            through unchanged).
+        OSError: a temporary file cannot be created, synced or renamed; an ``OSError`` of the block that names a
+            temporary file (or one a writer made beside it) is raised again naming its target, one naming no
+            file (a full disk) naming the targets (whatever else the block raises passes through unchanged).
     """
     targets = [None if p is None else Path(p) for p in paths]
     temps: list[Path | None] = []
@@ -183,6 +184,11 @@ def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | 
         for tmp in temps:
             if tmp is not None:
                 tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename and exc.errno is not None:
+            name = Path(os.fsdecode(exc.filename)).name
+            for tmp, t in zip(temps, targets, strict=False):
+                if tmp is not None and t is not None and tmp.stem in name:  # (the temporary file, or a writer's own)
+                    raise OSError(exc.errno, exc.strerror, str(t)) from exc
         name_the_file(exc, ", ".join(str(t) for t in targets if t is not None))
         raise
     for folder in {t.parent for t in targets if t is not None}:

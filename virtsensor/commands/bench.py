@@ -51,13 +51,17 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"bench: {text}", file=sys.stderr, flush=True)
 
+    if args.histogram:
+        from virtsensor import plotting
+
+        plotting.require("virtsensor bench --histogram")  # (before minutes of measuring, not after)
     r = run_bench(args.model, quick=args.quick, soak_ticks=args.soak_ticks,
                   cross_process=not args.no_cross_process, progress=say,
                   cpu_latency_us=None if args.no_cpu_latency else args.cpu_latency_us or 0)
     text = to_json(r)
     with staged_files(args.json, args.markdown, args.histogram) as (json_tmp, md_tmp, hist_tmp):  # (all or none)
         if json_tmp is not None:
-            json_tmp.write_text(text)
+            json_tmp.write_text(text, encoding="utf-8")
         if md_tmp is not None:
             write_markdown(r, md_tmp)
         if hist_tmp is not None:

@@ -110,9 +110,9 @@ def run(args: argparse.Namespace) -> int:
 
         table += "\n" + pressure_markdown(result["pressure_protocol"])
     with staged_files(args.json, args.markdown) as (json_tmp, md_tmp):  # (both or neither)
-        json_tmp.write_text(dumps(result) + "\n")
+        json_tmp.write_text(dumps(result) + "\n", encoding="utf-8")
         if md_tmp is not None:
-            md_tmp.write_text(table)
+            md_tmp.write_text(table, encoding="utf-8")
     print(table)
     return 0
 

@@ -38,9 +38,9 @@ def run(args: argparse.Namespace) -> int:
     result = score_runs(model, runs)
     table = markdown(result)
     with staged_files(args.json, args.markdown) as (json_tmp, md_tmp):  # (both or neither)
-        json_tmp.write_text(dumps(result) + "\n")
+        json_tmp.write_text(dumps(result) + "\n", encoding="utf-8")
         if md_tmp is not None:
-            md_tmp.write_text(table)
+            md_tmp.write_text(table, encoding="utf-8")
     o = result["overall"]
     print(f"{len(runs)} run(s), {o['n']} samples: R2 {o['r2']:.3f}, MAE {o['mae_nm']:.2f} Nm "
           f"(mean of both front wheels) -> {args.json}", file=sys.stderr)

@@ -8,8 +8,9 @@ from pathlib import Path
 
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
 from virtsensor.errors import UserError
+from virtsensor.fileio import dumps, staged_files
 from virtsensor.recordings.files import LOG_SUFFIXES, TABLE_SUFFIXES
-from virtsensor.recordings.simulated import check_usable, metadata_path, run_table, write_metadata, write_run
+from virtsensor.recordings.simulated import check_usable, metadata_entry, metadata_path, run_table, write_run_file
 
 HELP = f"simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log ({'/'.join(LOG_SUFFIXES)})"
 
@@ -79,9 +80,10 @@ def run(args: argparse.Namespace) -> int:
     what = f"recorded (inputs {args.inputs})" if args.manoeuvre == "recorded" else args.manoeuvre
     table = run_table(sim_run)
     check_usable(sim_run, table, what)  # a run that ends early but long enough is written, and says so below
-    write_run(sim_run, out, table)
+    with staged_files(out, metadata_path(out)) as (run_tmp, meta_tmp):  # the run and its metadata, both or neither
+        write_run_file(sim_run, run_tmp, table)
+        meta_tmp.write_text(dumps(metadata_entry(sim_run, out, table)) + "\n", encoding="utf-8")
     n = len(table["time_s"])
-    write_metadata(sim_run, out, table)
     speed = f"{args.speed:g} km/h" if args.speed is not None else f"recorded inputs of {args.inputs}"
     print(f"{args.manoeuvre} at {speed}, mu {args.mu:g}: {n} samples at 20 Hz "
           f"({table['time_s'][-1]:.2f} s), {_outcome_text(sim_run.outcome)} -> {out}", file=sys.stderr)
@@ -98,7 +100,7 @@ def _check_metadata_free(out: Path) -> None:
         other = json.loads(meta.read_text()).get("file")
     except (OSError, ValueError, AttributeError):
         return  # (none, or not a run's metadata: the output checks already decided on it)
-    if isinstance(other, str) and Path(other).name != out.name:
+    if isinstance(other, str) and Path(other).name != out.name and (meta.parent / Path(other).name).exists():
         raise UserError(f"--out {out}: {meta} is the metadata of another recording, {Path(other).name}; "
                         f"writing this run would replace it (give --out another name)")
 

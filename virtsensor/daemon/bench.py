@@ -47,6 +47,7 @@ import platform
 import threading
 import time
 import uuid
+import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -188,8 +189,8 @@ def load_frames(path: str | os.PathLike) -> list[Any]:
         with np.load(path, allow_pickle=False) as z:
             ts, ids, dlc, ext, data = (z[k] for k in ("timestamp", "arbitration_id", "dlc", "is_extended_id",
                                                       "data"))
-    except (OSError, ValueError, KeyError) as exc:
-        raise UserError(f"{path}: not the bench's input frames ({exc})") from None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise UserError(f"{path}: not the bench's input frames ({type(exc).__name__}: {exc})") from None
     import can
 
     return [can.Message(timestamp=float(t), arbitration_id=int(i), is_extended_id=bool(e), dlc=int(n),

@@ -131,6 +131,8 @@ def _check_path(key: str, value: Path, where: Path) -> None:
         raise UserError(f"{where}: {key} {value} is a directory, not a {suffix} file")
     if value.suffix.lower() != suffix:
         raise UserError(f"{where}: {key} {value}: expected a {suffix} file")
+    if not os.access(value, os.R_OK):
+        raise UserError(f"{where}: {key} {value}: not readable")
 
 
 def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
@@ -158,10 +160,8 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
         if key in out:
             raise UserError(f"{path}: key {raw_key!r} given twice")
         value = _coerce(key, value, str(path))
-        if key in _PATH_KEYS and value is not None:
-            if not Path(value).is_absolute():
-                value = str((path.parent / value).resolve())
-            _check_path(key, Path(value), path)
+        if key in _PATH_KEYS and value is not None and not Path(value).is_absolute():
+            value = str((path.parent / value).resolve())
         out[key] = value
     return out
 
@@ -173,12 +173,16 @@ def load_config(file: str | os.PathLike | None = None, overrides: Mapping[str, A
         UserError: see :func:`read_config_file`; a missing ``model``, ``interface`` or ``channel``.
     """
     merged: dict[str, Any] = read_config_file(file) if file is not None else {}
+    from_file = {k for k in _PATH_KEYS if merged.get(k) is not None}
     for key, value in (overrides or {}).items():
         k = key.replace("-", "_")
         if k not in _KEYS:
             raise UserError(f"unknown setting {key!r}")
         if value is not None:
             merged[k] = _coerce(k, value, f"--{k.replace('_', '-')}")
+            from_file.discard(k)
+    for k in sorted(from_file):  # a path the file gives and no option overrides: checked as the option's own
+        _check_path(k, Path(merged[k]), Path(str(file)))
     if merged.get("model") is None:  # the shipped model, whatever the working directory
         merged["model"] = str(assets.model_path())
     cfg = RuntimeConfig(**merged)

@@ -119,17 +119,23 @@ def metadata_path(out: Path) -> Path:
     return Path(out).with_suffix(".json")
 
 
+def metadata_entry(sim_run: Any, out: Path, table: Mapping[str, Any]) -> dict[str, Any]:
+    """The metadata of the run written to ``out`` (request, outcome, plan label, samples, duration): what
+    :func:`write_metadata` writes."""
+    from sim.campaign import manifest_entry
+
+    t = table["time_s"]
+    return manifest_entry(sim_run, out, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
+
+
 def write_metadata(sim_run: Any, out: Path, table: Mapping[str, Any]) -> None:
-    """Write the run's metadata (request, outcome, plan label) as JSON beside it (:func:`metadata_path`), atomically.
+    """Write the run's metadata (:func:`metadata_entry`) as JSON beside it (:func:`metadata_path`), atomically.
 
     Raises:
         UserError: the file cannot be written (the run's file ``out`` is then removed too: no run without
             its metadata).
     """
-    from sim.campaign import manifest_entry
-
-    t = table["time_s"]
-    entry = manifest_entry(sim_run, out, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
+    entry = metadata_entry(sim_run, out, table)
     meta = metadata_path(out)
     try:
         write_json(meta, entry)
