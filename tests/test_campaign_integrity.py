@@ -187,3 +187,20 @@ def test_the_summary_counts_runs_that_did_not_complete_as_planned_by_status():
                 *[{"status": "completed"}] * 14, {"status": "off-track"}, {"status": "behind-plan"}]
     assert outcome_tally(outcomes) == "18 not completed as planned: 15 spun, 1 off-track, 2 behind-plan"
     assert outcome_tally([{"status": "completed"}] * 3) == outcome_tally([]) == "all completed"
+
+
+def test_loky_resource_tracker_warnings_are_quiet_only_while_a_campaign_runs(monkeypatch):
+    """The processes a campaign starts ignore loky's ``resource_tracker:`` warnings (of the workers it kills on
+    purpose); the environment is restored after, filters the user had kept."""
+    import os
+
+    from sim.campaign import QUIET_TRACKER, _quiet_resource_tracker
+
+    monkeypatch.delenv("PYTHONWARNINGS", raising=False)
+    with _quiet_resource_tracker():
+        assert os.environ["PYTHONWARNINGS"] == QUIET_TRACKER
+    assert "PYTHONWARNINGS" not in os.environ
+    monkeypatch.setenv("PYTHONWARNINGS", "error::DeprecationWarning")
+    with _quiet_resource_tracker():
+        assert os.environ["PYTHONWARNINGS"].split(",") == ["error::DeprecationWarning", QUIET_TRACKER]
+    assert os.environ["PYTHONWARNINGS"] == "error::DeprecationWarning"
