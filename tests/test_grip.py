@@ -369,6 +369,10 @@ def test_the_trail_is_read_on_the_tyres_own_curve_at_its_pressure():
     assert mid[2] == pytest.approx(0.0125, abs=1e-9)
     est = GripEstimator(p, sat_reads_pressure=True)
     est.set_front_pressure(290_000.0)
+    first = (est._trail, est._util, est._use, est.peak_ratio)
+    est.set_front_pressure(220_000.0)
+    est.set_front_pressure(290_000.0)  # (seen before: the same knots and curves, kept)
+    assert (est._trail, est._util, est._use, est.peak_ratio) == first and est._trail[j] == t_hard
     est.set_front_pressure(math.nan)  # (the pressure lost again: the calibration's curves)
     _steady(est, 40, 0.3 * 9.81, 0.0125)
     assert (est.state.util, est.state.mu, est.state.trail_m) == pytest.approx(nominal, rel=1e-12)

@@ -89,6 +89,9 @@ __all__ = ["GRIP_INPUTS", "PRESSURE_INPUTS", "GripParams", "GripEstimator", "Gri
 
 #: the catalogue car's grip parameters, package data beside this module
 PARAMS_FILE = "grip_car.json"
+#: the most pressures whose knots and curves an estimator keeps (:meth:`GripEstimator.set_front_pressure`; the mean
+#: of two TPMS readings at 0.005 bar a bit takes a few dozen values in a drive)
+CURVE_CACHE_SIZE = 256
 #: the estimator inputs :meth:`GripEstimator.step` reads, in its argument order (after the two SATs)
 GRIP_INPUTS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "motor_torque_nm",
                "wheel_speed_fl_radps", "wheel_speed_fr_radps")
@@ -392,6 +395,7 @@ class GripEstimator:
         self._pressure = math.nan  # (the pressure the knots and curves are set for; nan: the calibration's)
         #: the tyre's peak lateral force at the pressure set relative to the calibration's (the curves' scale)
         self.peak_ratio = 1.0
+        self._curve_cache: dict[float, tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...], float]] = {}
         self._bands, self._abs = tuple(p.mu_bands), tuple(tuple(c) for c in p.abs_err90_at_trail)
         self._pub = tuple(tuple(c) for c in p.interval_at_trail) if p.interval_at_trail else self._abs
         self.state = GripState()
@@ -444,20 +448,25 @@ class GripEstimator:
             self._trail_gain = 1.0
 
     def _set_curves(self, pressure_pa: float) -> None:
-        """The knots and curves at ``pressure_pa`` (nan: the calibration's), linear between grid pressures."""
+        """The knots and curves at ``pressure_pa`` (nan: the calibration's), linear between grid pressures; kept
+        per pressure (a TPMS reports few distinct values: a tick that sees one again computes nothing)."""
         self._pressure = pressure_pa
         if pressure_pa != pressure_pa:
             self._trail, self._util, self._use = self._nominal
             self.peak_ratio = 1.0
             return
-        p = self.params
-        j, w = _locate(pressure_pa, p.pressure_grid_pa)
-        lo, hi = p.trail_at_pressure[j], p.trail_at_pressure[j + 1]
-        r = p.peak_at_pressure[j] + w * (p.peak_at_pressure[j + 1] - p.peak_at_pressure[j])
-        self._trail = tuple(a + w * (b - a) for a, b in zip(lo, hi, strict=True))
-        self.peak_ratio = r
-        self._util = tuple(r * u for u in self._nominal[1])
-        self._use = tuple(r * u for u in self._nominal[2])
+        got = self._curve_cache.get(pressure_pa)
+        if got is None:
+            p = self.params
+            j, w = _locate(pressure_pa, p.pressure_grid_pa)
+            lo, hi = p.trail_at_pressure[j], p.trail_at_pressure[j + 1]
+            r = p.peak_at_pressure[j] + w * (p.peak_at_pressure[j + 1] - p.peak_at_pressure[j])
+            got = (tuple(a + w * (b - a) for a, b in zip(lo, hi, strict=True)),
+                   tuple(r * u for u in self._nominal[1]), tuple(r * u for u in self._nominal[2]), r)
+            if len(self._curve_cache) >= CURVE_CACHE_SIZE:
+                self._curve_cache.clear()
+            self._curve_cache[pressure_pa] = got
+        self._trail, self._util, self._use, self.peak_ratio = got
 
     def _nominal_trail(self, t: float, i: int, w: float) -> float:
         """The trail ``t`` (m), located at ``(i, w)`` on the present knots, as the tyre at the calibration's pressure
