@@ -760,6 +760,7 @@ def test_the_daemon_reads_the_pressure_on_the_tyres_curves_only_for_a_model_that
     blind = grip_output(MATRIX, decoded, wheels, model_signals=cat.INPUTS)
     tpms = grip_output(MATRIX, decoded, wheels, model_signals=decoded)
     assert not blind.estimator.sat_reads_pressure and tpms.estimator.sat_reads_pressure
+    assert not grip_output(MATRIX, decoded, wheels).estimator.sat_reads_pressure  # (model's inputs not said: PPZ1)
     assert reads_pressure(decoded) and not reads_pressure((*cat.INPUTS, PRESSURE_INPUTS[0]))
 
 

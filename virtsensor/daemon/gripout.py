@@ -132,8 +132,12 @@ def grip_output(matrix: CanMatrix, signals: Sequence[str], wheels: Sequence[Any]
                 params: GripParams | None = None, model_signals: Sequence[str] | None = None) -> GripOutput | NoGrip:
     """A :class:`GripOutput` reading ``signals`` (the daemon's decoded signals), or a :class:`NoGrip` when the
     matrix lacks VS_Grip, the model's inputs (``model_signals``, default ``signals``) lack a signal the estimate
-    needs (whose status the SATs' would not carry) or the model does not give both front SATs."""
+    needs (whose status the SATs' would not carry) or the model does not give both front SATs. The estimate reads
+    a known pressure on the tyre's own curves only where ``model_signals`` is given and holds both front
+    pressures (decoded signals may hold them for the grip alone: without the model's inputs, the ``PPZ1`` scale,
+    which never over-corrects a pressure-blind model)."""
     model = signals if model_signals is None else model_signals
     if "VS_Grip" not in matrix.messages or any(s not in model for s in GRIP_INPUTS) or len(wheels) != 2:
         return NoGrip()
-    return GripOutput(matrix, signals, wheels, params, sat_reads_pressure=reads_pressure(model))
+    reads = model_signals is not None and reads_pressure(model_signals)
+    return GripOutput(matrix, signals, wheels, params, sat_reads_pressure=reads)
