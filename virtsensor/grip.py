@@ -668,8 +668,8 @@ def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np
     Returns:
         ``util``, ``mu``, ``halfwidth`` (nan where unknown), ``warning`` (bool), ``trail_m``, ``force_ratio``, and
         ``peak_ratio``: the tyre's peak lateral force at the tick's pressure relative to the calibration's (1 where
-        the pressure is unknown or the calibration has no curves at other pressures; what the curves were scaled
-        by, :meth:`GripEstimator.set_front_pressure`).
+        the pressure is unknown, the SATs' model does not read it or the calibration has no curves at other
+        pressures; what the curves were scaled by, :meth:`GripEstimator.set_front_pressure`).
     """
     est = GripEstimator(params, sat_reads_pressure=sat_reads_pressure)
     ax, ay, vx, r, sw, tm, wl, wr = (np.asarray(table[k], dtype=float).tolist() for k in GRIP_INPUTS)
