@@ -36,7 +36,7 @@ import numpy as np
 from virtsensor.errors import UserError
 
 __all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "check_writable", "dumps", "json_default",
-           "json_safe", "name_the_file", "staged_dir", "staged_files", "write_json"]
+           "json_safe", "name_the_file", "staged_dir", "staged_files", "write_json", "write_texts"]
 
 #: Prefix of the temporary file of an atomic write (readers of recordings skip such files).
 PARTIAL_PREFIX = ".partial-"
@@ -193,6 +193,14 @@ def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | 
         raise
     for folder in {t.parent for t in targets if t is not None}:
         _fsync_dir(folder)
+
+
+def write_texts(*outputs: tuple[str | os.PathLike[str] | None, str]) -> None:
+    """Write each ``(path, text)`` (UTF-8; a None path: skipped), all or none (:func:`staged_files`)."""
+    with staged_files(*(p for p, _ in outputs)) as temps:
+        for tmp, (_, text) in zip(temps, outputs, strict=True):
+            if tmp is not None:
+                tmp.write_text(text, encoding="utf-8")
 
 
 def _staging_parent(out: Path) -> Path:

@@ -34,11 +34,11 @@ import numpy as np
 
 from sim.tir import TirError, TirFile, bundled_tir, bundled_tyres, read_tir
 from sim.tyre import MagicFormula61
-from virtsensor import fileio, plotting
+from virtsensor import plotting
 from virtsensor.errors import UserError
 
 __all__ = ["CheckedTyre", "LOAD_FACTORS", "PRESSURE_FACTORS", "check_tyre_file", "format_report",
-           "parse_overrides", "plot_curves", "require_matplotlib", "resolve_tyre_file", "tyre_figures", "write_json"]
+           "parse_overrides", "plot_curves", "require_matplotlib", "resolve_tyre_file", "tyre_figures"]
 
 LOAD_FACTORS = (0.5, 1.0, 1.5)  # x FNOMIN
 PRESSURE_FACTORS = (0.9, 1.0, 1.1)  # x INFLPRES
@@ -236,12 +236,6 @@ def format_report(figures: Mapping[str, Any]) -> str:
 # ---------------------------------------------------------------------------------------------------------------
 # outputs
 # ---------------------------------------------------------------------------------------------------------------
-def write_json(figures: Mapping[str, Any], path: Path) -> None:
-    """The figures as indented JSON, atomically (folders created)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fileio.write_json(path, figures)
-
-
 def require_matplotlib() -> None:
     """:class:`~virtsensor.extras.MissingExtra` (a UserError naming the ``plots`` extra) without matplotlib."""
     plotting.require("virtsensor tyre --plot")

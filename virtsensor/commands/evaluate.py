@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor import signals as cat
     from virtsensor.errors import UserError
     from virtsensor.features import SPECS, FeatureSpec
-    from virtsensor.fileio import dumps, staged_files
+    from virtsensor.fileio import dumps, write_texts
     from virtsensor.learning.dataset import build_dataset, check_disjoint, load_runs, split_track_laps
     from virtsensor.learning.evaluation import evaluate, held_out_runs, markdown_table
     from virtsensor.learning.gripscore import score_grip
@@ -109,10 +109,7 @@ def run(args: argparse.Namespace) -> int:
         from virtsensor.learning.pressure import pressure_markdown
 
         table += "\n" + pressure_markdown(result["pressure_protocol"])
-    with staged_files(args.json, args.markdown) as (json_tmp, md_tmp):  # (both or neither)
-        json_tmp.write_text(dumps(result) + "\n", encoding="utf-8")
-        if md_tmp is not None:
-            md_tmp.write_text(table, encoding="utf-8")
+    write_texts((args.json, dumps(result) + "\n"), (args.markdown, table))  # (both or neither)
     print(table)
     return 0
 

@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.fileio import dumps, staged_files
+    from virtsensor.fileio import dumps, write_texts
     from virtsensor.learning.dataset import load_runs
     from virtsensor.learning.gripscore import grip_markdown
     from virtsensor.learning.scoring import markdown, needed_signals, score_runs
@@ -37,10 +37,7 @@ def run(args: argparse.Namespace) -> int:
     runs = load_runs(args.data, needed=needed_signals(model.card))
     result = score_runs(model, runs)
     table = markdown(result)
-    with staged_files(args.json, args.markdown) as (json_tmp, md_tmp):  # (both or neither)
-        json_tmp.write_text(dumps(result) + "\n", encoding="utf-8")
-        if md_tmp is not None:
-            md_tmp.write_text(table, encoding="utf-8")
+    write_texts((args.json, dumps(result) + "\n"), (args.markdown, table))  # (both or neither)
     o = result["overall"]
     print(f"{len(runs)} run(s), {o['n']} samples: R2 {o['r2']:.3f}, MAE {o['mae_nm']:.2f} Nm "
           f"(mean of both front wheels) -> {args.json}", file=sys.stderr)

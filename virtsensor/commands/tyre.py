@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.fileio import check_writable, staged_files
+    from virtsensor.fileio import check_writable, dumps, staged_files
     from virtsensor.tyres import (
         check_tyre_file,
         format_report,
@@ -44,7 +44,6 @@ def run(args: argparse.Namespace) -> int:
         plot_curves,
         require_matplotlib,
         tyre_figures,
-        write_json,
     )
 
     overrides = parse_overrides(args.overrides)
@@ -58,8 +57,6 @@ def run(args: argparse.Namespace) -> int:
     tyre = check_tyre_file(args.file, overrides)
     figures = tyre_figures(tyre)
     if args.json_path == "-":
-        from virtsensor.fileio import dumps
-
         sys.stdout.write(dumps(figures) + "\n")
     else:
         print(format_report(figures))
@@ -68,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
             path.parent.mkdir(parents=True, exist_ok=True)
     with staged_files(json_path, plot_path) as (json_tmp, plot_tmp):  # (both or neither)
         if json_tmp is not None:
-            write_json(figures, json_tmp)
+            json_tmp.write_text(dumps(figures) + "\n", encoding="utf-8")
         if plot_tmp is not None:
             plot_curves(tyre, plot_tmp)
     if plot_path is not None:
