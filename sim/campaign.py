@@ -291,24 +291,38 @@ def run_campaign(
 QUIET_TRACKER = "ignore:resource_tracker:UserWarning"
 
 
+#: campaigns running in this process under :func:`_quiet_resource_tracker`, and ``PYTHONWARNINGS`` before the first
+_quiet_depth = 0
+_quiet_had: str | None = None
+_quiet_lock = threading.Lock()
+
+
 @contextmanager
 def _quiet_resource_tracker() -> Iterator[None]:
     """loky's resource tracker (a process of its own, started with the first workers, inheriting this process's
     environment) warns at its exit of the semaphores of workers that were killed: on an error or an interrupt the
-    campaign kills them on purpose, and the one line the command prints is all the user should see. While the
-    campaign runs, ``PYTHONWARNINGS`` (any filters already set, and :data:`QUIET_TRACKER`) has the processes it
-    starts ignore those ``resource_tracker: ...`` warnings; the variable is restored after (a tracker started
-    here keeps the filter, later processes do not get it)."""
-    had = os.environ.get("PYTHONWARNINGS")
-    if QUIET_TRACKER not in (had or "").split(","):
-        os.environ["PYTHONWARNINGS"] = ",".join(x for x in (had, QUIET_TRACKER) if x)
+    campaign kills them on purpose, and the one line the command prints is all the user should see. While any
+    campaign of this process runs, ``PYTHONWARNINGS`` (any filters already set, and :data:`QUIET_TRACKER`) has the
+    processes it starts ignore those ``resource_tracker: ...`` warnings; the variable is restored when the last
+    running campaign ends (campaigns in threads overlap; a tracker started meanwhile keeps the filter, later
+    processes do not get it)."""
+    global _quiet_depth, _quiet_had
+    with _quiet_lock:
+        if _quiet_depth == 0:
+            _quiet_had = os.environ.get("PYTHONWARNINGS")
+            if QUIET_TRACKER not in (_quiet_had or "").split(","):
+                os.environ["PYTHONWARNINGS"] = ",".join(x for x in (_quiet_had, QUIET_TRACKER) if x)
+        _quiet_depth += 1
     try:
         yield
     finally:
-        if had is None:
-            os.environ.pop("PYTHONWARNINGS", None)
-        else:
-            os.environ["PYTHONWARNINGS"] = had
+        with _quiet_lock:
+            _quiet_depth -= 1
+            if _quiet_depth == 0:
+                if _quiet_had is None:
+                    os.environ.pop("PYTHONWARNINGS", None)
+                else:
+                    os.environ["PYTHONWARNINGS"] = _quiet_had
 
 
 @contextmanager

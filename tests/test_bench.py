@@ -189,3 +189,8 @@ def test_bench_inputs_that_are_not_frames_are_refused(tmp_path):
     bad.write_bytes(b"not an npz")
     with pytest.raises(UserError, match="not the bench's input frames"):
         load_frames(bad)
+    uneven = tmp_path / "y.npz"
+    np.savez(uneven, timestamp=np.zeros(3), arbitration_id=np.zeros(3, int), dlc=np.zeros(2, int),
+             is_extended_id=np.zeros(3, bool), data=np.zeros((3, 8), np.uint8))
+    with pytest.raises(UserError, match="differ in length"):
+        load_frames(uneven)

@@ -204,3 +204,11 @@ def test_loky_resource_tracker_warnings_are_quiet_only_while_a_campaign_runs(mon
     with _quiet_resource_tracker():
         assert os.environ["PYTHONWARNINGS"].split(",") == ["error::DeprecationWarning", QUIET_TRACKER]
     assert os.environ["PYTHONWARNINGS"] == "error::DeprecationWarning"
+    monkeypatch.delenv("PYTHONWARNINGS")
+    a, b = _quiet_resource_tracker(), _quiet_resource_tracker()  # (two campaigns in threads, the first ends first)
+    a.__enter__()
+    b.__enter__()
+    a.__exit__(None, None, None)
+    assert os.environ["PYTHONWARNINGS"] == QUIET_TRACKER  # (the second still runs)
+    b.__exit__(None, None, None)
+    assert "PYTHONWARNINGS" not in os.environ

@@ -250,3 +250,8 @@ def test_a_run_never_takes_over_another_recordings_metadata(tmp_path, capsys):
     assert meta.read_bytes() == before and not blf.exists()
     assert main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.5", "--seed", "3", "--out", str(csv)]) == 0
     assert json.loads(meta.read_text())["file"].endswith("x.csv")
+    (tmp_path / "sub").mkdir()
+    for other in ("", ".", "sub"):  # (metadata naming no recording file: nothing to protect)
+        meta.write_text(json.dumps({"file": other}))
+        assert main(["simulate", "single-sine", "--speed", "60", "--mu", "0.5", "--out", str(blf)]) == 0
+        blf.unlink()

@@ -135,3 +135,38 @@ def test_simulate_writes_the_run_and_its_metadata_both_or_neither(tmp_path, caps
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "No space left on device" in err[0] and str(out) in err[0], err
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_a_target_with_the_longest_legal_name_is_staged(tmp_path):
+    """The temporary file's name fits the file system however long the target's own (legal) name is."""
+    from virtsensor.fileio import NAME_MAX, atomic_write_bytes, write_texts
+
+    a, b = tmp_path / ("a" * (NAME_MAX - 5) + ".json"), tmp_path / ("b" * (NAME_MAX - 3) + ".md")
+    write_texts((a, "{}"), (b, "# b"))
+    atomic_write_bytes(tmp_path / ("c" * NAME_MAX), b"c")
+    assert sorted(len(p.name) for p in tmp_path.iterdir()) == [NAME_MAX] * 3
+
+
+def test_a_staged_write_that_cannot_start_names_its_target(tmp_path):
+    """No folder to put the temporary file in: the error names the output asked for, not a temporary name."""
+    import errno
+
+    from virtsensor.fileio import atomic_write_bytes, staged_files
+
+    out = tmp_path / "missing" / "b.md"
+    for write in (lambda: atomic_write_bytes(out, b"x"), lambda: staged_files(tmp_path / "a.json", out).__enter__()):
+        with pytest.raises(OSError) as info:
+            write()
+        assert info.value.errno == errno.ENOENT and info.value.filename == str(out)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_error_of_a_file_descriptor_in_a_staged_block_passes_through(tmp_path):
+    """An OSError whose "file name" is a descriptor number is raised as it is (no TypeError), nothing left."""
+    import errno
+
+    from virtsensor.fileio import staged_files
+
+    with pytest.raises(OSError) as info, staged_files(tmp_path / "q.json"):
+        raise OSError(errno.EBADF, "Bad file descriptor", 9999)
+    assert info.value.errno == errno.EBADF and list(tmp_path.iterdir()) == []

@@ -417,13 +417,16 @@ def test_params_are_checked():
                 {"pressure_nominal_pa": 0.0}, {"pressure_nominal_pa": float("inf")}):
         with pytest.raises(UserError, match="trail_pressure_coeff"):
             GripParams.from_json({**doc, **bad})
-    older = GripParams.from_json({k: v for k, v in doc.items() if k not in ("trail_pressure_coeff",
-                                                                             "pressure_nominal_pa")})
+    older = GripParams.from_json({k: v for k, v in doc.items() if k not in (
+        "trail_pressure_coeff", "pressure_nominal_pa", "pressure_grid_pa", "trail_at_pressure", "peak_at_pressure")})
     assert older.trail_pressure_coeff == 0.0  # (an older file: the trail as measured)
     rows = doc["trail_at_pressure"]
     for bad in ({"pressure_grid_pa": doc["pressure_grid_pa"][:-1]}, {"peak_at_pressure": [0.0] * len(rows)},
                 {"trail_at_pressure": [r[::-1] for r in rows]}, {"trail_at_pressure": [r[:-1] for r in rows]},
-                {"pressure_grid_pa": doc["pressure_grid_pa"][::-1]}):
+                {"pressure_grid_pa": doc["pressure_grid_pa"][::-1]},
+                {"pressure_nominal_pa": 3.0e5},  # (the grid holds it, but its curves are not the calibration's)
+                {"pressure_nominal_pa": 2.25e5},  # (not on the grid)
+                {"pressure_grid_pa": [True, *doc["pressure_grid_pa"][1:]]}):
         with pytest.raises(UserError, match="pressure"):
             GripParams.from_json({**doc, **bad})
     assert not GripParams.from_json({k: v for k, v in doc.items() if k not in (

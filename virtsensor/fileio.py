@@ -114,9 +114,7 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object]) 
     file name, a full disk say, as one naming ``path``); nothing is left behind.
     """
     path = Path(path)
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f"{PARTIAL_PREFIX}{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    tmp = _temp_beside(path)
     try:
         write(tmp)
         with open(tmp, "rb+") as f:
@@ -128,6 +126,27 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object]) 
         name_the_file(exc, path)
         raise
     _fsync_dir(path.parent)
+
+
+#: the longest file name (bytes) the temporary files are made to fit (Linux, macOS, Windows file systems)
+NAME_MAX = 255
+
+
+def _temp_beside(target: Path) -> Path:
+    """A new empty file beside ``target``: ``.partial-<stem>.<8 random characters><suffix>``, the stem shortened
+    so that the name fits :data:`NAME_MAX` (a target whose own name fits can always be staged).
+
+    Raises:
+        OSError: it cannot be created (no such folder, no permission, a full disk), naming ``target``.
+    """
+    room = NAME_MAX - len(PARTIAL_PREFIX) - len(os.fsencode(target.suffix)) - 9  # (".", the 8 random characters)
+    stem = os.fsencode(target.stem)[:max(room, 0)].decode("utf-8", "ignore")
+    try:
+        fd, name = tempfile.mkstemp(dir=target.parent, prefix=f"{PARTIAL_PREFIX}{stem}.", suffix=target.suffix)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(target)) from exc
+    os.close(fd)
+    return Path(name)
 
 
 def name_the_file(exc: BaseException, path: Path | str) -> None:
@@ -168,9 +187,7 @@ def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | 
             if t is None:
                 temps.append(None)
                 continue
-            fd, name = tempfile.mkstemp(dir=t.parent, prefix=f"{PARTIAL_PREFIX}{t.stem}.", suffix=t.suffix)
-            os.close(fd)
-            temps.append(Path(name))
+            temps.append(_temp_beside(t))
         yield temps
         for tmp in temps:
             if tmp is not None:
@@ -184,7 +201,8 @@ def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | 
         for tmp in temps:
             if tmp is not None:
                 tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError) and exc.filename and exc.errno is not None:
+        if isinstance(exc, OSError) and isinstance(exc.filename, (str, bytes)) and exc.filename \
+                and exc.errno is not None:  # (a file descriptor's error has a number for its file name)
             name = Path(os.fsdecode(exc.filename)).name
             for tmp, t in zip(temps, targets, strict=False):
                 if tmp is not None and t is not None and tmp.stem in name:  # (the temporary file, or a writer's own)

@@ -283,6 +283,14 @@ class GripParams:
             raise ValueError("grip params: pressure_grid_pa must be finite, > 0 and strictly ascending")
         if not all(0.0 < x < math.inf for x in peaks):
             raise ValueError("grip params: peak_at_pressure values must be finite and > 0")
+        if any(isinstance(x, bool) for x in (*g, *peaks, *(v for r in rows for v in r))):
+            raise ValueError("grip params: pressure_grid_pa, trail_at_pressure and peak_at_pressure hold numbers, "
+                             "not true/false")
+        j = next((i for i, x in enumerate(g) if abs(x - self.pressure_nominal_pa) <= 1e-6 * x), None)
+        if j is None or abs(peaks[j] - 1.0) > 1e-6 or any(
+                abs(a - b) > 1e-9 for a, b in zip(rows[j], self.trail_m, strict=True)):
+            raise ValueError("grip params: pressure_grid_pa must hold pressure_nominal_pa, where the curves are the "
+                             "calibration's own (trail_at_pressure the trail_m knots, peak_at_pressure 1)")
         if not all(math.isfinite(a) and math.isfinite(b) and b > a
                    for r in rows for a, b in zip(r, r[1:], strict=False)):
             raise ValueError("grip params: each trail_at_pressure row must be finite and strictly ascending")

@@ -100,8 +100,9 @@ def _check_metadata_free(out: Path) -> None:
         other = json.loads(meta.read_text()).get("file")
     except (OSError, ValueError, AttributeError):
         return  # (none, or not a run's metadata: the output checks already decided on it)
-    if isinstance(other, str) and Path(other).name != out.name and (meta.parent / Path(other).name).exists():
-        raise UserError(f"--out {out}: {meta} is the metadata of another recording, {Path(other).name}; "
+    name = Path(other).name if isinstance(other, str) else ""
+    if name not in ("", ".", "..", out.name) and (meta.parent / name).is_file():
+        raise UserError(f"--out {out}: {meta} is the metadata of another recording, {name}; "
                         f"writing this run would replace it (give --out another name)")
 
 

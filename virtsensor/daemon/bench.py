@@ -189,6 +189,8 @@ def load_frames(path: str | os.PathLike) -> list[Any]:
         with np.load(path, allow_pickle=False) as z:
             ts, ids, dlc, ext, data = (z[k] for k in ("timestamp", "arbitration_id", "dlc", "is_extended_id",
                                                       "data"))
+        if not len(ts) == len(ids) == len(dlc) == len(ext) == len(data):
+            raise ValueError("its arrays differ in length")
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise UserError(f"{path}: not the bench's input frames ({type(exc).__name__}: {exc})") from None
     import can
