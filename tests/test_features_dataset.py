@@ -220,3 +220,22 @@ def test_grid_search_scores_candidates_on_held_out_runs_and_ranks_them():
     assert (res.rows, res.folds) == (1200, 3)
     with pytest.raises(ValueError, match="at least 3 runs"):
         grid_search(X, Y, np.zeros(len(X), dtype=int), folds=3, n_jobs=1, progress=False)
+
+
+def test_evaluate_refuses_a_run_without_a_usable_sample(tmp_path, capsys):
+    """A run whose every row lacks an input (ay all NaN) is refused in one line naming it, as ``score`` does,
+    instead of counting as a run that gave nothing."""
+    from pathlib import Path
+
+    from virtsensor.cli import main
+
+    data = _write_runs(tmp_path / "data", n_runs=3, n=60)
+    table = synthetic_table(60, 9)
+    table["ay_mps2"] = np.full(60, np.nan)
+    write_csv(data / "allnan.csv", table)
+    out = tmp_path / "e.json"
+    model = Path(__file__).resolve().parents[1] / "models" / "improved.onnx"
+    assert main(["evaluate", "--model", str(model), "--data", str(data), "--json", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "allnan.csv: no sample with every input" in err, err
+    assert not out.exists()

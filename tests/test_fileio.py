@@ -170,3 +170,27 @@ def test_an_error_of_a_file_descriptor_in_a_staged_block_passes_through(tmp_path
     with pytest.raises(OSError) as info, staged_files(tmp_path / "q.json"):
         raise OSError(errno.EBADF, "Bad file descriptor", 9999)
     assert info.value.errno == errno.EBADF and list(tmp_path.iterdir()) == []
+
+
+def test_a_closed_output_pipe_ends_the_command_quietly():
+    """``virtsensor ... | head``: when the reader leaves, the command stops with the shell's SIGPIPE code (141)
+    and prints nothing more (no "error: Broken pipe", no interpreter message at exit)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    TIR = Path(__file__).resolve().parents[1] / "sim" / "data" / "tyres" / "c_segment_205_55R16.tir"
+
+    code = ("import sys\n"
+            "from virtsensor import cli\n"
+            "from virtsensor.commands import tyre\n"
+            "def talk(args):\n"
+            "    for i in range(1_000_000):\n"
+            "        print('line', i)\n"
+            "tyre.run = talk\n"
+            f"sys.exit(cli.main(['tyre', {str(TIR)!r}]))\n")
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert p.stdout.readline() == b"line 0\n"
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=60) == 141 and err == "", err

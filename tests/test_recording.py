@@ -302,9 +302,9 @@ def test_garbage_trc_line_names_the_line_and_python_can_stays_quiet(tmp_path, ru
 def test_an_empty_trc_is_refused_without_python_cans_warning(tmp_path, caplog):
     path = tmp_path / "empty.trc"
     path.write_bytes(b"")
-    assert list(iter_log(path)) == []
-    with pytest.raises(UserError, match="empty.trc"):
-        read_log(path)
+    for read in (lambda p: list(iter_log(p)), read_log):
+        with pytest.raises(UserError, match="empty.trc: the file is empty"):
+            read(path)
     assert not [r for r in caplog.records if r.name.startswith("can")]
 
 
@@ -432,3 +432,12 @@ def test_phase_override(run):
     assert d.values["wheel_speed_fl_radps"] == pytest.approx(sig["wheel_speed_fl_radps"][idx], abs=0.025)
     with pytest.raises(ValueError, match="phase"):
         list(iter_frames(t, sig, phases={"ESC_WheelSpeeds_F": 0.02}))
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".log", ".trc", ".csv"])
+def test_binary_data_named_as_a_text_log_is_refused_as_such(tmp_path, suffix):
+    """Random bytes are no text log: said so, not taken for a log cut mid-record."""
+    path = tmp_path / f"garbled{suffix}"
+    path.write_bytes(np.random.default_rng(1).integers(0, 256, 4000, dtype=np.uint8).tobytes())
+    with pytest.raises(UserError, match=f"garbled{suffix}: not a \\{suffix} CAN log: binary data"):
+        list(iter_log(path))

@@ -218,6 +218,7 @@ def test_cli_refuses_an_empty_log_in_one_line(tmp_path, capsys, channel, suffix)
     out, err = capsys.readouterr()
     assert rc == 2 and out == ""
     assert err.count("\n") == 1 and str(path) in err and "Traceback" not in err, err
+    assert "the file is empty" in err, err
 
 
 def test_manoeuvre_without_simulator(monkeypatch, capsys, channel):
@@ -225,6 +226,13 @@ def test_manoeuvre_without_simulator(monkeypatch, capsys, channel):
     rc = cli.main(["replay", "--manoeuvre", "steering-pulse", "--interface", "virtual", "--channel", channel])
     assert rc == 2
     assert "the simulator is not available" in capsys.readouterr().err
+    monkeypatch.delitem(sys.modules, "sim.api")
+    monkeypatch.setitem(sys.modules, "scipy", None)  # (the base install: the simulator's packages are absent)
+    for name in [m for m in sys.modules if m == "sim" or m.startswith(("sim.", "scipy."))]:
+        monkeypatch.delitem(sys.modules, name)
+    rc = cli.main(["replay", "--manoeuvre", "steering-pulse", "--interface", "virtual", "--channel", channel])
+    err = capsys.readouterr().err
+    assert rc == 2 and "needs the optional extra 'train'" in err and err.count("\n") == 1, err
 
 
 def test_replay_simulates_a_manoeuvre_on_the_fly(channel, capsys):

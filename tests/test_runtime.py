@@ -607,6 +607,7 @@ def test_refuses_sha256_mismatch(model_path, tmp_path, capsys):
     ("duration = 1e300\n", "duration must be at most"),
     ('model = "nosuch.onnx"\n', "model "),
     ('dbc = "."\n', "is a directory"),
+    ("cpu = 4095\n", "cpu must be one of the CPUs this process may run on"),  # (in range; no such CPU here)
 ])
 def test_refuses_bad_config(model_path, tmp_path, capsys, text, needle):
     cfg = tmp_path / "vs.toml"
@@ -624,6 +625,8 @@ def test_refuses_missing_settings_and_bus(model_path, capsys):
     assert "--interface" in err and "--channel" in err
     err = _refusal(capsys, "--model", str(model_path), "--interface", "nosuchbus", "--channel", "x")
     assert "nosuchbus" in err
+    err = _refusal(capsys, "--model", str(model_path), "--interface", "virtual", "--channel", "x", "--cpu", "4095")
+    assert err.startswith("virtsensor run: error: --cpu: cpu must be one of the CPUs") and err.count("\n") == 1, err
 
 
 # ------------------------------------------------------------------------------------------------ config

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -85,6 +86,16 @@ def _fail(command: str, exc: UserError) -> int:
     return exc.exit_code
 
 
+def _quiet_stdout() -> None:
+    """Point stdout at the null device, so that the interpreter's final flush of a closed pipe says nothing."""
+    try:
+        fd = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(fd, sys.stdout.fileno())
+        os.close(fd)
+    except (OSError, ValueError):  # (no real stdout: nothing to flush)
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -118,6 +129,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"virtsensor {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of the output left (``| head``): stop quietly, as a Unix filter does
+        _quiet_stdout()
+        return 128 + 13  # (the shell's code of a process that SIGPIPE ended)
     except OSError as exc:  # the machine, not the request: a full disk, an I/O error (a worker's, re-raised here)
         where = f" ({exc.filename})" if exc.filename else ""
         print(f"virtsensor {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)

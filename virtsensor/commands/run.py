@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="FILE.toml", type=t.text_file(),
                         help="TOML file with any of these settings")
     parser.add_argument("--cpu", type=t.int_range(*r["cpu"]), default=None, metavar="N",
-                        help="pin the daemon to CPU N (0 to 4095)")
+                        help="pin the daemon to CPU N (0 to 4095, one this process may run on)")
     parser.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=None,
                         help="ask for SCHED_FIFO scheduling (logged and ignored when not permitted)")
     parser.add_argument("--rt-priority", type=t.int_range(*r["rt_priority"]), default=None, metavar="P",

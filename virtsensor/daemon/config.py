@@ -102,6 +102,8 @@ def _coerce(key: str, value: Any, where: str) -> Any:
         lo, hi = INT_RANGES[key]
         if not lo <= value <= hi:
             raise bad(f"in {lo}..{hi}")
+        if key == "cpu" and hasattr(os, "sched_getaffinity") and value not in (cpus := os.sched_getaffinity(0)):
+            raise bad(f"one of the CPUs this process may run on ({', '.join(map(str, sorted(cpus)))})")
         return value
     if key == "realtime":
         if not isinstance(value, bool):

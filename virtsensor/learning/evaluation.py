@@ -91,8 +91,8 @@ def evaluate(
     ``runs``, ``track`` and ``circuits`` only, so the protocols stay comparable across recipes.
 
     Raises:
-        UserError: two ``circuits`` with the same name (file stem); fewer than :data:`MIN_RUNS` runs with usable
-            rows for a recipe's features (checked before any fit).
+        UserError: two ``circuits`` with the same name (file stem); a run, lap or circuit with no usable row for a
+            recipe's features (naming it); fewer than :data:`MIN_RUNS` runs (checked before any fit).
     """
     datasets = _datasets(runs, {*(r["features"] for r in recipes.values()), *([PAPER.name] if baselines else [])})
     extra_of = dict(train_extra or {})
@@ -106,6 +106,8 @@ def evaluate(
         spec = SPECS[spec_name]
         ds = datasets[spec_name]
         lap_ds = {k: build_dataset([r], spec) for k, r in laps.items()}
+        for k, d in lap_ds.items():
+            _require_rows(d, [laps[k]], spec_name)
         sizes[name] = {"rows": int(len(ds.X)), "runs": len(ds.runs), "dropped_nonfinite": ds.dropped_nonfinite,
                        "features": list(ds.feature_names)}
         extra = build_dataset(extra_of[name], spec) if extra_of.get(name) else None
@@ -156,12 +158,24 @@ def _datasets(runs: Sequence[Run], spec_names: set[str]) -> dict[str, Dataset]:
     out = {}
     for name in sorted(spec_names):
         ds = out[name] = build_dataset(runs, SPECS[name])
+        _require_rows(ds, runs, name)
         n = len(np.unique(ds.groups))
         if n < MIN_RUNS:
             raise UserError(f"--data: {n} run(s) with usable rows for the {name!r} features; evaluate holds "
                             f"whole runs out ({TEST_FRACTION * 100:g} % of them, at least one) and trains on the "
                             f"others, so it needs at least {MIN_RUNS}")
     return out
+
+
+def _require_rows(ds: Dataset, runs: Sequence[Run], spec_name: str) -> None:
+    """Refuse a run of ``ds`` (built from ``runs``) that gave it no row, naming its file (as ``score`` does)."""
+    from virtsensor.errors import UserError
+
+    empty = sorted(set(range(len(runs))) - set(np.unique(ds.groups).tolist()))
+    if empty:
+        run = runs[empty[0]]
+        raise UserError(f"{run.path or run.name}: no sample with every input of the {spec_name!r} features and both "
+                        "reference SATs finite")
 
 
 def held_out_runs(track_laps: Mapping[str, Run], circuits: Sequence[Run]) -> dict[str, Run]:

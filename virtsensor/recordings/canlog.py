@@ -309,6 +309,36 @@ def _blf_truncation(path: Path, reader) -> str | None:
     return None
 
 
+def _check_whole(path: Path, real: str, gz: bool) -> None:
+    """Refuse, before reading frames, a log that cannot be whole: empty, a 20 Hz table named ``.csv``, binary data
+    named as a text log, or a text log cut short (:func:`_text_cut`)."""
+    if path.stat().st_size == 0:
+        raise UserError(f"{path}: the file is empty (no {real} CAN log in it)")
+    if real == ".csv" and not gz and _is_table(path):
+        raise UserError(f"{path}: a 20 Hz table (first column time_s), not a CAN log (python-can's CSV log starts "
+                        "with timestamp,arbitration_id): write the run as a CAN log (virtsensor simulate ... --out "
+                        "x.blf) to play it")
+    if real in _TEXT_SUFFIXES and not gz and not _looks_like_text(path):
+        raise UserError(f"{path}: not a {real} CAN log: binary data, not UTF-8 text")
+    cut = _text_cut(path, real) if real in _TEXT_SUFFIXES and not gz else None
+    if cut is not None:
+        raise UserError(f"{path}: truncated: {cut[1]}; {_last_good(path, real, cut[0])}")
+
+
+def _looks_like_text(path: Path, n: int = 1 << 16) -> bool:
+    """Whether the first ``n`` bytes of ``path`` are UTF-8 text without NUL bytes (a character cut at the
+    end of the sample is allowed)."""
+    with open(path, "rb") as f:
+        head = f.read(n)
+    if b"\0" in head:
+        return False
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return exc.start >= len(head) - 3 and exc.reason == "unexpected end of data"
+    return True
+
+
 def _text_cut(path: Path, real: str) -> tuple[int, str] | None:
     """Where a text log was cut: ``(first line not read, why)``, or None when it is whole.
 
@@ -417,13 +447,7 @@ def iter_log(path: str | os.PathLike) -> Iterator:
     if not path.is_file():
         raise UserError(f"{path}: no such log file")
     real, gz = _suffix(path)
-    if real == ".csv" and not gz and _is_table(path):
-        raise UserError(f"{path}: a 20 Hz table (first column time_s), not a CAN log (python-can's CSV log starts "
-                        "with timestamp,arbitration_id): write the run as a CAN log (virtsensor simulate ... --out "
-                        "x.blf) to play it")
-    cut = _text_cut(path, real) if real in _TEXT_SUFFIXES and not gz else None
-    if cut is not None:
-        raise UserError(f"{path}: truncated: {cut[1]}; {_last_good(path, real, cut[0])}")
+    _check_whole(path, real, gz)
     lines: _Lines | None = None
     try:
         if real in _TEXT_SUFFIXES:

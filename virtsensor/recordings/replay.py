@@ -136,13 +136,16 @@ def simulated_frames(
     Raises:
         UserError: the simulator package cannot be imported, or the request is invalid.
     """
+    from virtsensor.extras import as_user_error
+
     try:
         from sim.api import simulate_streams  # lazy: the runtime never needs the simulator
         from sim.manoeuvres import ManoeuvreError
         from sim.params import ParamError
         from sim.tir import TirError
     except ImportError as exc:
-        raise UserError(f"the simulator is not available ({exc})") from None
+        missing = as_user_error(exc, "replay --manoeuvre") if isinstance(exc, ModuleNotFoundError) else None
+        raise missing or UserError(f"the simulator is not available ({exc})") from None
     from virtsensor.recordings.canlog import iter_frames
 
     try:
