@@ -187,6 +187,34 @@ def test_the_warning_fit_ends_with_the_evidence_gate(monkeypatch):
     assert seen == [(0.75, "acceptance")] and p.evidence_long_ratio == 0.35
 
 
+def test_the_warning_fit_breaks_a_tie_of_lead_and_limits_warned_by_fewer_false_warnings(monkeypatch):
+    """Two settings with the same median lead and share of limits warned: the one with fewer false warnings is taken,
+    whatever the grid's order; a longer lead within the budget still wins over fewer false warnings."""
+    monkeypatch.setattr(study, "_load_transfer", lambda runs: 0.3)
+    monkeypatch.setattr(study, "WARN_ON", (0.7,))
+    monkeypatch.setattr(study, "DEMAND_LEAD_S", (0.0,))
+    monkeypatch.setattr(study, "DEMAND_MU_HELD", (0.0,))
+    monkeypatch.setattr(study, "EVIDENCE_MU_HELD", (0.0,))
+    monkeypatch.setattr(study, "KAPPA_LIMIT", (0.05,))
+    monkeypatch.setattr(study, "fit_evidence_gate", lambda runs, p, false_on="all": p)
+
+    def use(table: dict) -> float:
+        def measure(runs, q):
+            false, lead, warned = table[q.demand_weight]
+            o = {"false_warnings_per_10min": false, "warning_lead_s_median": lead, "limit_warned_share": warned}
+            return {"overall": o, "acceptance": o}
+        monkeypatch.setattr(study, "measure", measure)
+        monkeypatch.setattr(study, "DEMAND_WEIGHT", tuple(table))
+        return study._fit_warning([], grip.load_params()).demand_weight
+
+    assert use({0.9: (0.33, 0.35, 0.78), 0.8: (0.27, 0.35, 0.78)}) == 0.8
+    assert use({0.9: (0.33, 0.35000000000000053, 0.78), 0.8: (0.27, 0.34999999999999964, 0.78)}) == 0.8  # (the
+    # same lead, differences of 20 Hz tick times rounded differently)
+    assert use({0.8: (0.27, 0.35, 0.78), 0.9: (0.33, 0.35, 0.78)}) == 0.8
+    assert use({0.8: (0.27, 0.35, 0.78), 0.9: (0.45, 0.40, 0.78)}) == 0.9  # (longer lead within the budget)
+    assert use({0.8: (0.27, 0.35, 0.78), 0.9: (0.60, 0.40, 0.78)}) == 0.8  # (over the budget)
+
+
 def test_combined_bias_bands_the_curve_error_by_longitudinal_force_and_direction():
     """Each sample counts in its band of |Fx| / Fz and its direction only; the figures are the curve minus the truth
     (median, 90th percentile) and the share reading the threshold while the truth is calm; an empty band is null."""

@@ -478,14 +478,15 @@ def _fit_warning(runs: list[dict], p: grip.GripParams, false_on: str = "all") ->
     """The warning with the longest median lead among those with at most FALSE_BUDGET false warnings per 10 min
     (``false_on``: counted on every run, ``all``, or on the acceptance's own driving, ``acceptance``: the random steers
     and the circuit laps, :func:`acceptance_runs`)
-    (at equal lead, the one that warns of the most limits by the time they are reached); where none keeps that
-    budget, the one with the fewest (then the most limits warned, then the longest lead). Only thresholds the trail's
-    evidence can reach (at most the trail curve's highest utilisation): above it the warning would no longer read
-    the SAT at all (a collapsed trail would not warn), which is the point of the estimate. Then, with the warning
-    chosen, the evidence's longitudinal-force gate (:func:`fit_evidence_gate`, the same false-warning count)."""
+    (at equal lead, the one that warns of the most limits by the time they are reached, then the one with the fewest
+    false warnings); where none keeps that budget, the one with the fewest (then the most limits warned, then the
+    longest lead). Only thresholds the trail's evidence can reach (at most the trail curve's highest utilisation):
+    above it the warning would no longer read the SAT at all (a collapsed trail would not warn), which is the point
+    of the estimate. Then, with the warning chosen, the evidence's longitudinal-force gate (:func:`fit_evidence_gate`,
+    the same false-warning count)."""
     p = replace(p, load_transfer=_load_transfer(runs))
     print(f"  front load transfer {p.load_transfer:.4f} N per N of front lateral force", file=sys.stderr)
-    best: tuple[bool, float, float, grip.GripParams] | None = None
+    best: tuple[bool, float, float, float, grip.GripParams] | None = None
     grid = ((a, b, c, d, e, h, k) for a in WARN_ON if a <= max(p.util_at_trail) for b in WARN_HORIZON_S
             for c in DEMAND_WEIGHT for d in (DEMAND_LEAD_S if c > 0 else (0.0,))
             for e in (DEMAND_MU_HELD if c > 0 else (0.0,)) for h in EVIDENCE_MU_HELD for k in KAPPA_LIMIT)
@@ -495,22 +496,31 @@ def _fit_warning(runs: list[dict], p: grip.GripParams, false_on: str = "all") ->
         res = measure(runs, q)
         o = res["overall"]
         false = (res["acceptance"] if false_on == "acceptance" else o)["false_warnings_per_10min"] or 0.0
-        lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
+        lead = _lead_of(o)
         warned = o["limit_warned_share"] or 0.0
         print(f"  warning on {on:.2f}, look-ahead {hz:.1f} s, demand {dw:.1f} ahead {dl:.1f} s "
               f"against {'held' if dh else 'rated'} mu, held-mu evidence {eh:.0f}, wheel slip limit {kl:.2f}: "
               f"median lead {lead:.2f} s, "
               f"limits warned {warned:.2f}, false {false:.2f}/10 min", file=sys.stderr)
-        # (within the budget: the longest lead, then the most limits warned by the time they are reached)
-        key = (false <= FALSE_BUDGET, lead if false <= FALSE_BUDGET else -false, warned, lead, q)
-        if best is None or key[:4] > best[:4]:
+        # (within the budget: the longest lead, then the most limits warned by the time they are reached, then the
+        # fewest false warnings)
+        key = (false <= FALSE_BUDGET, lead if false <= FALSE_BUDGET else -false, warned, lead, -false, q)
+        if best is None or key[:5] > best[:5]:
             best = key
     if best is None:
         raise SystemExit("no warning threshold within the trail curve's range")
     if not best[0]:
         print(f"  no warning setting keeps false warnings <= {FALSE_BUDGET} per 10 min: the fewest taken",
               file=sys.stderr)
-    return fit_evidence_gate(runs, best[4], false_on)
+    return fit_evidence_gate(runs, best[5], false_on)
+
+
+def _lead_of(o: dict) -> float:
+    """The median lead of a figures' dict (s; -1e9 where no run reaches the limit), rounded to the microsecond: leads
+    are differences of 20 Hz tick times, and two settings with the same lead must compare equal, not by the float
+    rounding of those times (0.35000000000000053 against 0.34999999999999964 s)."""
+    lead = o["warning_lead_s_median"]
+    return -1e9 if lead is None else round(lead, 6)
 
 
 def fit_evidence_gate(runs: list[dict], p: grip.GripParams, false_on: str = "all") -> grip.GripParams:
@@ -523,7 +533,7 @@ def fit_evidence_gate(runs: list[dict], p: grip.GripParams, false_on: str = "all
         res = measure(runs, q)
         o = res["overall"]
         false = (res["acceptance"] if false_on == "acceptance" else o)["false_warnings_per_10min"] or 0.0
-        lead = -1e9 if o["warning_lead_s_median"] is None else o["warning_lead_s_median"]
+        lead = _lead_of(o)
         return false, lead, o["limit_warned_share"] or 0.0
 
     scores = {g: score(replace(p, evidence_long_ratio=g)) for g in sorted({0.0, *EVIDENCE_LONG_RATIO})}
