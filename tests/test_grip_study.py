@@ -131,6 +131,16 @@ def test_the_pressure_terms_are_the_cars_and_its_tyres():
     assert all(b < a for a, b in zip(rows[0][6:], rows[-1][6:], strict=False))  # tyre file holds below its range)
 
 
+def _fake_measure(monkeypatch, table: dict, field: str) -> None:
+    """The study's ``measure`` replaced: figures ``(false per 10 min, median lead, share warned)`` by the value of the
+    calibration's ``field``, the same for every run and for the acceptance's driving."""
+    def measure(runs, q):
+        false, lead, warned = table[getattr(q, field)]
+        o = {"false_warnings_per_10min": false, "warning_lead_s_median": lead, "limit_warned_share": warned}
+        return {"overall": o, "acceptance": o}
+    monkeypatch.setattr(study, "measure", measure)
+
+
 def test_the_evidence_gate_is_the_longest_lead_within_the_false_warning_limit(monkeypatch):
     """The fit of the evidence's longitudinal-force gate: the longest median lead first, then the most limits warned,
     among the gates within FALSE_BUDGET (or the warning's own false warnings without the gate, where more: a wide
@@ -139,11 +149,7 @@ def test_the_evidence_gate_is_the_longest_lead_within_the_false_warning_limit(mo
     figures = {0.0: (0.1, 0.1, 0.7), 0.25: (0.1, 0.1, 0.8), 0.35: (0.1, 0.1, 0.8), 0.5: (3.0, 0.5, 1.0)}
 
     def use(table: dict) -> None:
-        def measure(runs, q):
-            false, lead, warned = table[q.evidence_long_ratio]
-            o = {"false_warnings_per_10min": false, "warning_lead_s_median": lead, "limit_warned_share": warned}
-            return {"overall": o, "acceptance": o}
-        monkeypatch.setattr(study, "measure", measure)
+        _fake_measure(monkeypatch, table, "evidence_long_ratio")
 
     def gate(start: float) -> float:
         return study.fit_evidence_gate([], replace(grip.load_params(), evidence_long_ratio=start)).evidence_long_ratio
@@ -199,11 +205,7 @@ def test_the_warning_fit_breaks_a_tie_of_lead_and_limits_warned_by_fewer_false_w
     monkeypatch.setattr(study, "fit_evidence_gate", lambda runs, p, false_on="all": p)
 
     def use(table: dict) -> float:
-        def measure(runs, q):
-            false, lead, warned = table[q.demand_weight]
-            o = {"false_warnings_per_10min": false, "warning_lead_s_median": lead, "limit_warned_share": warned}
-            return {"overall": o, "acceptance": o}
-        monkeypatch.setattr(study, "measure", measure)
+        _fake_measure(monkeypatch, table, "demand_weight")
         monkeypatch.setattr(study, "DEMAND_WEIGHT", tuple(table))
         return study._fit_warning([], grip.load_params()).demand_weight
 
