@@ -194,3 +194,7 @@ def test_a_closed_output_pipe_ends_the_command_quietly():
     p.stdout.close()
     err = p.stderr.read().decode()
     assert p.wait(timeout=60) == 141 and err == "", err
+    # a broken pipe that is not stdout's (a worker's, say) is an error like any other: one line, exit 1
+    other = code.replace("        print('line', i)\n", "        raise BrokenPipeError(32, 'Broken pipe')\n")
+    done = subprocess.run([sys.executable, "-c", other], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and done.stderr == "virtsensor tyre: error: Broken pipe\n", done.stderr

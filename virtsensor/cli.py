@@ -86,6 +86,19 @@ def _fail(command: str, exc: UserError) -> int:
     return exc.exit_code
 
 
+def _stdout_gone() -> bool:
+    """Whether stdout is a pipe whose reader has closed it (Linux and BSDs: ``poll`` reports an error on it; where
+    that cannot be asked, a broken pipe is taken to be stdout's)."""
+    try:
+        import select
+
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # (no poll, or no real stdout)
+        return True
+
+
 def _quiet_stdout() -> None:
     """Point stdout at the null device, so that the interpreter's final flush of a closed pipe says nothing."""
     try:
@@ -129,13 +142,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"virtsensor {args.command}: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # the reader of the output left (``| head``): stop quietly, as a Unix filter does
-        _quiet_stdout()
+    except BrokenPipeError as exc:
+        if not _stdout_gone():  # (another pipe, a worker's say: an error like any other)
+            return _machine_error(args.command, exc)
+        _quiet_stdout()  # the reader of the output left (``| head``): stop quietly, as a Unix filter does
         return 128 + 13  # (the shell's code of a process that SIGPIPE ended)
     except OSError as exc:  # the machine, not the request: a full disk, an I/O error (a worker's, re-raised here)
-        where = f" ({exc.filename})" if exc.filename else ""
-        print(f"virtsensor {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
-        return 1
+        return _machine_error(args.command, exc)
+
+
+def _machine_error(command: str, exc: OSError) -> int:
+    """One line for an error of the machine (exit 1)."""
+    where = f" ({exc.filename})" if exc.filename else ""
+    print(f"virtsensor {command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":  # pragma: no cover
