@@ -111,21 +111,12 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object]) 
 
     The temporary file keeps ``path``'s suffix, so writers that choose the format by suffix (python-can's
     loggers) write the right one. Raises whatever ``write`` or the file system raises (an ``OSError`` without a
-    file name, a full disk say, as one naming ``path``); nothing is left behind.
+    file name, a full disk say, or naming the temporary file, as one naming ``path``); nothing is left behind.
+    One output of :func:`staged_files`.
     """
-    path = Path(path)
-    tmp = _temp_beside(path)
-    try:
+    with staged_files(path) as (tmp,):
+        assert tmp is not None
         write(tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        tmp.unlink(missing_ok=True)
-        name_the_file(exc, path)
-        raise
-    _fsync_dir(path.parent)
 
 
 #: the longest file name (bytes) the temporary files are made to fit (Linux, macOS, Windows file systems)

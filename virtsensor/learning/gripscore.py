@@ -212,13 +212,14 @@ def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None
     """
     per: dict[str, Any] = {}
     scored = []
+    reads = model_reads_pressure(model)
     for run in runs:
         where = str(run.path or run.name)
         if not has_grip_truth(run.table) or any(k not in run.table for k in GRIP_INPUTS):
             per[where] = None
             continue
         fl, fr = model_sats(model, run.table)
-        res = grip_of_run(run.table, fl, fr, params, model_reads_pressure(model))
+        res = grip_of_run(run.table, fl, fr, params, reads)
         assert res is not None
         scored.append(res[0])
         per[where] = public(res[0])

@@ -29,7 +29,7 @@ from virtsensor.recordings.manifest import (
     start_marker,
     write_manifest,
 )
-from virtsensor.recordings.simulated import partial_name, write_run_file
+from virtsensor.recordings.simulated import metadata_entry, partial_name, write_run_file
 
 #: file formats of a campaign's runs (suffix without the dot)
 FORMATS = WRITE_FORMATS
@@ -47,8 +47,6 @@ def run_name(request: Any, fmt: str) -> str:
 def write_partial_run(sim_run: Any, out_dir: Path, fmt: str) -> dict[str, Any]:
     """Worker side: write one finished run under its ``.partial-*`` name and return
     its manifest entry (final file name, request, rows, sha256, duration...)."""
-    from sim.campaign import manifest_entry
-
     final = Path(out_dir) / run_name(sim_run.request, fmt)
     tmp = partial_name(final)
     try:
@@ -56,9 +54,8 @@ def write_partial_run(sim_run: Any, out_dir: Path, fmt: str) -> dict[str, Any]:
     except OSError as exc:
         name_the_file(exc, final)  # (a full disk names no file: the parent's one line says which)
         raise
-    t = table["time_s"]
-    entry = manifest_entry(sim_run, final, samples=len(t), duration_s=float(t[-1] - t[0]) if len(t) else 0.0)
-    entry.update(rows=len(t), sha256=file_sha256(tmp))
+    entry = metadata_entry(sim_run, final, table)
+    entry.update(rows=len(table["time_s"]), sha256=file_sha256(tmp))
     return entry
 
 
