@@ -87,6 +87,24 @@ def test_a_command_whose_extra_is_missing_names_it_in_one_line(tmp_path, argv, e
     assert "Traceback" not in r.stderr and list(tmp_path.iterdir()) == []
 
 
+def test_the_missing_extra_is_named_once_with_what_pip_installs_and_the_help_still_reads(tmp_path):
+    """``virtsensor train`` on the base install: one line that names the command once and the PyPI names
+    (scikit-learn, not the module sklearn); ``train --help`` shows the options (exit 0) and which extra to install;
+    a command whose options come from the simulator refuses its help in the same one line."""
+    code = _BLOCK.format(blocked=("sklearn", "skl2onnx", "scipy", "joblib", "tqdm", "threadpoolctl", "shap",
+                                  "matplotlib"))
+    r = subprocess.run([sys.executable, "-c", code, "train"], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert r.stderr.count("virtsensor train") == 1 and "scikit-learn" in r.stderr and "sklearn" not in r.stderr
+    h = subprocess.run([sys.executable, "-c", code, "train", "--help"], capture_output=True, text=True, cwd=tmp_path)
+    flat = " ".join(h.stdout.split())  # (argparse wraps the epilog)
+    assert h.returncode == 0 and "--data" in flat and "pip install 'virtsensor[train]'" in flat, h
+    s = subprocess.run([sys.executable, "-c", code, "simulate", "--help"], capture_output=True, text=True,
+                       cwd=tmp_path)
+    assert s.returncode == 2 and s.stderr.count("\n") == 1 and "virtsensor[train]" in s.stderr, s.stderr
+    assert "Traceback" not in r.stderr + h.stderr + s.stderr and list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.slow
 def test_the_built_wheel_runs_the_demo_and_the_daemon_from_an_empty_directory(tmp_path):
     """pip wheel, install it apart from the source tree, then run from an empty directory."""

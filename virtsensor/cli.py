@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 from virtsensor.commands._types import check_paths
 from virtsensor.errors import UserError
-from virtsensor.extras import as_user_error, require
+from virtsensor.extras import as_user_error, missing_modules, require
 
 #: subcommand name -> module under virtsensor.commands, with its one-line help
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -117,12 +117,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub_action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     if name in COMMANDS:
         try:
-            if name in COMMAND_EXTRAS:
-                require(COMMAND_EXTRAS[name], f"virtsensor {name}")
+            extra = COMMAND_EXTRAS.get(name)
+            options = argv[:argv.index("--")] if "--" in argv else argv
+            if extra is not None and "-h" not in options and "--help" not in options:
+                require(extra, "this command")
             mod = _load(COMMANDS[name][0])
+            sub = sub_action.choices[name]
+            mod.add_arguments(sub)  # (some read their choices from the simulator: the help then needs the extra)
         except UserError as exc:
             return _fail(name, exc)
-        mod.add_arguments(sub_action.choices[name])
+        except ModuleNotFoundError as exc:
+            missing = as_user_error(exc, "this command")
+            if missing is None:
+                raise
+            return _fail(name, missing)
+        if extra is not None and missing_modules(extra):  # (its help is readable before the extra is installed)
+            sub.epilog = f"needs the optional extra '{extra}', not installed here: pip install 'virtsensor[{extra}]'"
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: a mistake (2, one line printed), --help or --version (0)
@@ -139,9 +149,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if missing is None:
             raise
         return _fail(args.command, missing)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C (130), or SIGTERM where a command turns it into one (143)
         print(f"virtsensor {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return int(getattr(exc, "exit_code", 130))
     except BrokenPipeError as exc:
         if not _stdout_gone():  # (another pipe, a worker's say: an error like any other)
             return _machine_error(args.command, exc)

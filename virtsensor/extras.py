@@ -27,6 +27,10 @@ EXTRAS: dict[str, tuple[str, ...]] = {
 }
 
 
+#: importable module -> the distribution pip installs it from, where the two names differ
+PIP_NAMES: dict[str, str] = {"sklearn": "scikit-learn"}
+
+
 class MissingExtra(UserError):
     """An optional extra that the requested work needs is not installed (exit code 2)."""
 
@@ -37,8 +41,8 @@ def missing_modules(extra: str) -> list[str]:
 
 
 def _message(what: str, extra: str, missing: list[str]) -> str:
-    return (f"{what} needs the optional extra '{extra}' (missing: {', '.join(missing)}): "
-            f"pip install 'virtsensor[{extra}]'")
+    names = ", ".join(PIP_NAMES.get(m, m) for m in missing)  # (what pip installs, not what ``import`` names)
+    return f"{what} needs the optional extra '{extra}' (missing: {names}): pip install 'virtsensor[{extra}]'"
 
 
 def require(extra: str, what: str) -> None:
