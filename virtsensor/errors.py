@@ -11,3 +11,10 @@ class UserError(Exception):
     """
 
     exit_code = 2
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM turned into an interrupt (a command that cleans up as on Ctrl-C): exit code 143 (128 + SIGTERM),
+    what the shell reports for a process that SIGTERM ended, where Ctrl-C gives 130."""
+
+    exit_code = 143

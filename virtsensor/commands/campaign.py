@@ -11,7 +11,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
-from virtsensor.errors import UserError
+from virtsensor.errors import Terminated, UserError
 from virtsensor.recordings.files import WRITE_FORMATS as FORMATS
 
 HELP = "simulate a whole data-set preset (e.g. the paper's Table I campaign) in parallel"
@@ -45,9 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @contextmanager
 def _sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM ends the campaign like Ctrl-C: workers killed, files removed, exit 130."""
+    """SIGTERM ends the campaign like Ctrl-C: workers killed, files removed; exit 143 (Ctrl-C: 130)."""
     def handler(signum, frame):
-        raise KeyboardInterrupt
+        raise Terminated
 
     if threading.current_thread() is not threading.main_thread():
         yield
