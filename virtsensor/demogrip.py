@@ -103,6 +103,6 @@ def grip_figure(path: Any, runs: Sequence[Any], model: Any) -> dict[str, Any] | 
     lead = "—" if m["warning_lead_s"] is None else f"{m['warning_lead_s']:.2f} s"
     share = "—" if m["mu_within_0_1_share"] is None else f"{100 * m['mu_within_0_1_share']:.0f} %"
     fig.suptitle(f"grip margin (VS_Grip) on {best.name}: warning lead before 95 % {lead}; mu within +-0.1 on {share}"
-                 f" of {m['mu_given']} samples given", fontsize=10)
+                 f" of {m['mu_scored']} samples given", fontsize=10)
     plotting.save(fig, path)
     return {"run": best.name, **gs.public(m)}

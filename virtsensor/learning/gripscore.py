@@ -8,8 +8,9 @@ tick with the daemon's code (:func:`virtsensor.grip.estimate_run`).
 
 Figures (keys of :func:`grip_metrics` and of the pooled :func:`pool`):
 
-* ``mu_within_0_1_share``: of the samples where the friction is given, the share within +-0.1 of the true mu;
-* ``mu_abs_err_p90``: the 90th percentile of the friction's absolute error where given;
+* ``mu_within_0_1_share``: of the samples where the friction is given, the share within +-0.1 of the true mu
+  (``mu_given`` samples given, ``mu_scored`` of them with a finite true mu: only those are scored);
+* ``mu_abs_err_p90``: the 90th percentile of the friction's absolute error where given (and the truth known);
 * ``mu_interval_cover_share``: of the samples where the friction is given, the share whose published interval
   (``mu +- halfwidth``, meant to hold the truth in 9 of 10 samples) holds the true mu (null without half-widths);
 * ``mu_given_share_above_0_6``: of the samples whose true front utilisation exceeds 0.6, the share where the
@@ -111,13 +112,14 @@ def grip_metrics(time_s: np.ndarray, util_true: np.ndarray, mu_true: np.ndarray,
     """One run's grip figures (see the module docstring), plus the counts :func:`pool` needs. ``halfwidth``: the
     published interval's half-width per sample (None: the coverage is not scored)."""
     given = np.isfinite(mu_est)
-    err = np.abs(mu_est[given] - mu_true[given])
-    covered = None if halfwidth is None else err <= np.asarray(halfwidth, float)[given]
-    excited = util_true > EXCITED_UTIL
+    scored = given & np.isfinite(mu_true)  # (a sample without the true friction is not scored: no error there)
+    err = np.abs(mu_est[scored] - mu_true[scored])
+    covered = None if halfwidth is None else err <= np.asarray(halfwidth, float)[scored]
+    excited = util_true > EXCITED_UTIL  # (an unknown true utilisation is neither excited nor calm)
     lead = _lead(time_s, util_true, warning)
     n_false, calm_s = _false_warnings(time_s, util_true, warning)
     return {
-        "n": int(len(time_s)), "mu_given": int(given.sum()),
+        "n": int(len(time_s)), "mu_given": int(given.sum()), "mu_scored": int(scored.sum()),
         "mu_within_0_1_share": float(np.mean(err <= MU_TOLERANCE)) if len(err) else None,
         "mu_abs_err_p90": float(np.percentile(err, 90)) if len(err) else None,
         "mu_interval_cover_share": float(np.mean(covered)) if covered is not None and len(err) else None,
@@ -141,7 +143,8 @@ def pool(per_run: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     n_false = sum(r["false_warnings"] for r in per_run)
     calm_s = sum(r["calm_s"] for r in per_run)
     return {
-        "runs": len(per_run), "n": sum(r["n"] for r in per_run), "mu_given": int(len(err)),
+        "runs": len(per_run), "n": sum(r["n"] for r in per_run), "mu_given": sum(r["mu_given"] for r in per_run),
+        "mu_scored": int(len(err)),
         "mu_within_0_1_share": float(np.mean(err <= MU_TOLERANCE)) if len(err) else None,
         "mu_abs_err_p90": float(np.percentile(err, 90)) if len(err) else None,
         "mu_interval_cover_share": float(np.mean(covered)) if covered is not None and len(covered) else None,
@@ -238,7 +241,8 @@ def grip_markdown(result: Mapping[str, Any] | None) -> str:
         return "—" if v is None else format(v, fmt)
 
     return (f"Grip ({o['runs']} runs with the truth): mu within +-0.1 {f(o['mu_within_0_1_share'], '.3f')} of "
-            f"{o['mu_given']} samples given, p90 |error| {f(o['mu_abs_err_p90'], '.3f')}, interval holds the truth in "
+            f"{o['mu_scored']} samples given (with a known true mu), p90 |error| {f(o['mu_abs_err_p90'], '.3f')}, "
+            f"interval holds the truth in "
             f"{f(o.get('mu_interval_cover_share'), '.3f')}; given in "
             f"{f(o['mu_given_share_above_0_6'], '.3f')} of samples above 0.6 utilisation; warning lead median "
             f"{f(o['warning_lead_s_median'], '.2f')} s over {o['runs_reaching_limit']} runs reaching 0.95; "
