@@ -449,6 +449,26 @@ def test_metrics_lead_and_false_warnings():
     assert m["mu_interval_cover_share"] is None  # (no half-widths given: not scored)
 
 
+def test_samples_without_the_true_friction_are_not_scored():
+    """A row whose true mu is unknown (nan) is neither within nor outside +-0.1: the figures are those of the rows
+    with the truth, and none at all where no row has it."""
+    t = np.arange(100) * 0.05
+    u = np.full(100, 0.5)
+    est = np.where(t >= 1.0, 0.52, np.nan)  # 80 given, each within 0.1 of the truth 0.5
+    truth = np.full(100, 0.5)
+    truth[40:80] = np.nan
+    m = gs.grip_metrics(t, u, truth, est, np.zeros(100, bool), np.full(100, 0.05))
+    assert m["mu_given"] == 80 and m["mu_scored"] == 40
+    assert m["mu_within_0_1_share"] == 1.0 and m["mu_abs_err_p90"] == pytest.approx(0.02)
+    assert m["mu_interval_cover_share"] == 1.0
+    unknown = gs.grip_metrics(t, u, np.full(100, np.nan), est, np.zeros(100, bool), np.full(100, 0.05))
+    assert unknown["mu_scored"] == 0 and unknown["mu_within_0_1_share"] is None
+    assert unknown["mu_abs_err_p90"] is None and unknown["mu_interval_cover_share"] is None
+    pooled = gs.pool([m, unknown])
+    assert pooled["mu_given"] == 160 and pooled["mu_scored"] == 40 and pooled["mu_within_0_1_share"] == 1.0
+    assert "40 samples given" in gs.grip_markdown({"overall": pooled})
+
+
 def test_the_interval_coverage_counts_the_given_samples_whose_interval_holds_the_truth():
     """``mu_interval_cover_share``: of the given samples, those with ``|mu - truth| <= halfwidth``; pooled over the
     samples (not the runs); null where no run gave half-widths."""
@@ -549,6 +569,37 @@ def test_vs_grip_decodes_with_cantools():
     assert MATRIX.fresh().decode(0x202, data, 0.0).status in USABLE
 
 
+def test_every_vs_grip_status_is_the_worse_of_the_two_wheels_as_cantools_reads_it():
+    """Over all 16 pairs of the two SAT_FRONT statuses (the order INVALID, INIT, DEGRADED, VALID written out here,
+    not taken from the code), decoded from the frame by cantools; INVALID or INIT: every value SNA, no warning."""
+    from virtsensor.daemon.gripout import GripOutput
+
+    order = [INVALID, INIT, DEGRADED, VALID]  # worst first
+    db = cantools.database.load_file(str(dbc_path()))
+    signals = list(cat.SIGNALS)
+    out = GripOutput(MATRIX, signals)
+    inputs = [0.0] * len(signals)
+    for name, v in {"vx_mps": 20.0, "ay_mps2": 3.0, "wheel_speed_fl_radps": 65.6,
+                    "wheel_speed_fr_radps": 65.6}.items():
+        inputs[signals.index(name)] = v
+    seen = set()
+    for a in order:
+        for b in order:
+            want = order[min(order.index(a), order.index(b))]
+            msg = out.fill(20.0, 22.0, a, b, inputs)
+            d = db.decode_message(GRIP_ID, bytes(msg.data), decode_choices=False)
+            got = {d[f"{n}_Status"] for n in ("VS_GripUtil", "VS_GripMu", "VS_GripMuHalfWidth", "VS_GripWarning")}
+            assert got == {want}, (a, b, d)
+            named = db.decode_message(GRIP_ID, bytes(msg.data))  # (the DBC's value names: "SNA")
+            sna = {n: str(named[n]) == "SNA" for n in ("VS_GripUtil", "VS_GripMu", "VS_GripMuHalfWidth")}
+            if want in (INVALID, INIT):
+                assert all(sna.values()) and d["VS_GripWarning"] == 0, (a, b, named)
+            else:
+                assert not sna["VS_GripUtil"] and 0.0 <= d["VS_GripUtil"] <= 1.0, (a, b, named)
+            seen.add(want)
+    assert seen == set(order)
+
+
 # ------------------------------------------------------------------------------------------------ the daemon
 @pytest.fixture(scope="module")
 def model() -> OnnxModel:
@@ -626,6 +677,12 @@ def test_daemon_publishes_vs_grip_tracking_truth(model, run_frames):
     sat_st, vals, gst = _decode(sat, grip)
     _statuses_follow_sat(sat_st, vals, gst)
     assert np.isin(gst[5:], (VALID, DEGRADED)).all()  # (DEGRADED: outside the model's envelope at the limit)
+    db = cantools.database.load_file(str(dbc_path()))  # the frames the daemon sent, as a third party reads them
+    for m, v in zip(grip, vals, strict=True):
+        d = db.decode_message(m.arbitration_id, bytes(m.data), decode_choices=False)
+        for k, name in enumerate(("VS_GripUtil", "VS_GripMu", "VS_GripMuHalfWidth")):
+            assert math.isnan(v[k]) or d[name] == pytest.approx(v[k], abs=1e-9), (name, d, v)
+        assert d["VS_GripWarning"] == v[3]
     from sim.sensors import truth_at
 
     truth = truth_at(run.truth, np.asarray(ticks) - frames[0].timestamp)
