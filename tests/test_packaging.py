@@ -102,7 +102,26 @@ def test_the_missing_extra_is_named_once_with_what_pip_installs_and_the_help_sti
     s = subprocess.run([sys.executable, "-c", code, "simulate", "--help"], capture_output=True, text=True,
                        cwd=tmp_path)
     assert s.returncode == 2 and s.stderr.count("\n") == 1 and "virtsensor[train]" in s.stderr, s.stderr
+    assert "scikit-learn" in s.stderr  # (every module of the extra that is missing, not the first one imported)
+    for argv, code_ in ((["train", "--he"], 0), (["train", "--data", "d", "-h"], 0), (["train", "--out", "-h"], 2),
+                        (["train", "--", "--help"], 2), (["evaluate", "--no-such-option"], 2)):
+        a = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=tmp_path)
+        assert a.returncode == code_, (argv, a.stderr)
+        if code_ == 2:  # (whatever else the arguments hold: the extra first, in the one line)
+            assert a.stderr.count("\n") == 1 and "needs the optional extra" in a.stderr, (argv, a.stderr)
+        else:
+            assert "virtsensor[train]" in " ".join(a.stdout.split()), (argv, a.stdout)
     assert "Traceback" not in r.stderr + h.stderr + s.stderr and list(tmp_path.iterdir()) == []
+
+
+def test_a_missing_extra_found_while_a_command_runs_names_the_command_once(tmp_path):
+    tir = ROOT / "sim" / "data" / "tyres" / "c_segment_205_55R16.tir"
+    code = _BLOCK.format(blocked=("matplotlib",))
+    r = subprocess.run([sys.executable, "-c", code, "tyre", str(tir), "--plot", str(tmp_path / "t.png")],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert r.stderr.startswith("virtsensor tyre: error: --plot needs the optional extra 'plots'"), r.stderr
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.slow

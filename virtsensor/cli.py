@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 from virtsensor.commands._types import check_paths
 from virtsensor.errors import UserError
-from virtsensor.extras import as_user_error, missing_modules, require
+from virtsensor.extras import MissingExtra, as_user_error, extra_message, missing_modules
 
 #: subcommand name -> module under virtsensor.commands, with its one-line help
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -52,10 +52,19 @@ COMMAND_EXTRAS: dict[str, str] = {
 }
 
 
+class _Probe(Exception):
+    """A mistake argparse found while :func:`_help_or_missing` only asked whether help was wanted."""
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with the project's rule for mistakes: one line, exit code 2."""
+    """argparse with the project's rule for mistakes: one line, exit code 2 (``probing``: raise :class:`_Probe`
+    instead, printing nothing)."""
+
+    probing = False
 
     def error(self, message: str) -> None:  # type: ignore[override]
+        if self.probing:
+            raise _Probe(message)
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
@@ -79,6 +88,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _load(module: str):
     return importlib.import_module(f"virtsensor.commands.{module}")
+
+
+def _help_or_missing(parser: argparse.ArgumentParser, sub: argparse.ArgumentParser, argv: list[str], name: str,
+                     extra: str) -> int:
+    """A command whose optional ``extra`` is not installed: its help where argparse finds it asked for (``-h``,
+    ``--help``, an abbreviation; printed with the extra to install at its foot, exit 0), else the one line that
+    names the extra (exit 2), whatever else the arguments hold."""
+    sub.epilog = f"needs the optional extra '{extra}', not installed here: pip install 'virtsensor[{extra}]'"
+    probing = [p for p in (parser, sub) if isinstance(p, _Parser)]
+    for p in probing:
+        p.probing = True
+    try:
+        parser.parse_args(argv)
+    except SystemExit as exc:  # (help or --version printed)
+        if exc.code in (0, None):
+            return 0
+    except _Probe:
+        pass
+    finally:
+        for p in probing:
+            p.probing = False
+    return _fail(name, MissingExtra(extra_message("this command", extra)))
 
 
 def _fail(command: str, exc: UserError) -> int:
@@ -116,23 +147,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     name = next((a for a in argv if not a.startswith("-")), None)
     sub_action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     if name in COMMANDS:
+        extra = COMMAND_EXTRAS.get(name)
+        absent = extra is not None and bool(missing_modules(extra))
         try:
-            extra = COMMAND_EXTRAS.get(name)
-            options = argv[:argv.index("--")] if "--" in argv else argv
-            if extra is not None and "-h" not in options and "--help" not in options:
-                require(extra, "this command")
             mod = _load(COMMANDS[name][0])
             sub = sub_action.choices[name]
-            mod.add_arguments(sub)  # (some read their choices from the simulator: the help then needs the extra)
+            mod.add_arguments(sub)  # (some read their choices from the simulator: their help needs the extra)
+            if absent:
+                return _help_or_missing(parser, sub, argv, name, str(extra))
         except UserError as exc:
             return _fail(name, exc)
         except ModuleNotFoundError as exc:
             missing = as_user_error(exc, "this command")
             if missing is None:
                 raise
+            if absent:  # (every module of the extra that is missing, not only the first one imported)
+                missing = MissingExtra(extra_message("this command", str(extra)))
             return _fail(name, missing)
-        if extra is not None and missing_modules(extra):  # (its help is readable before the extra is installed)
-            sub.epilog = f"needs the optional extra '{extra}', not installed here: pip install 'virtsensor[{extra}]'"
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: a mistake (2, one line printed), --help or --version (0)
@@ -145,7 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UserError as exc:
         return _fail(args.command, exc)
     except ModuleNotFoundError as exc:  # an optional path of a base command (e.g. replaying a simulation)
-        missing = as_user_error(exc, f"virtsensor {args.command}")
+        missing = as_user_error(exc, "this command")
         if missing is None:
             raise
         return _fail(args.command, missing)

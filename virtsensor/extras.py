@@ -12,7 +12,8 @@ import importlib.util
 
 from virtsensor.errors import UserError
 
-__all__ = ["EXTRAS", "MissingExtra", "as_user_error", "extra_for_module", "missing_modules", "require"]
+__all__ = ["EXTRAS", "PIP_NAMES", "MissingExtra", "as_user_error", "extra_for_module", "extra_message",
+           "missing_modules", "require"]
 
 _TRAIN = ("scipy", "sklearn", "skl2onnx", "joblib", "threadpoolctl", "tqdm")
 
@@ -45,12 +46,17 @@ def _message(what: str, extra: str, missing: list[str]) -> str:
     return f"{what} needs the optional extra '{extra}' (missing: {names}): pip install 'virtsensor[{extra}]'"
 
 
+def extra_message(what: str, extra: str) -> str:
+    """The one line naming ``extra``, the modules of it missing here and the install command."""
+    return _message(what, extra, missing_modules(extra))
+
+
 def require(extra: str, what: str) -> None:
     """Raise :class:`MissingExtra` naming ``extra`` and the install command when any of its modules is absent.
 
     Args:
         extra: a key of :data:`EXTRAS`.
-        what: what needs it, for the message (e.g. ``"virtsensor train"``).
+        what: what needs it, for the message after the command's own name (e.g. ``"this command"``, ``"--plot"``).
     """
     absent = missing_modules(extra)
     if absent:

@@ -238,7 +238,7 @@ def format_report(figures: Mapping[str, Any]) -> str:
 # ---------------------------------------------------------------------------------------------------------------
 def require_matplotlib() -> None:
     """:class:`~virtsensor.extras.MissingExtra` (a UserError naming the ``plots`` extra) without matplotlib."""
-    plotting.require("virtsensor tyre --plot")
+    plotting.require("--plot")
 
 
 def plot_curves(tyre: CheckedTyre, path: Path) -> None:
@@ -248,7 +248,7 @@ def plot_curves(tyre: CheckedTyre, path: Path) -> None:
     fz0, pres0, vx = float(p["FNOMIN"]), float(p["INFLPRES"]), float(p["LONGVL"])
     a_deg = np.linspace(-15.0, 15.0, 601)
     kappa = np.linspace(-0.3, 0.3, 601)
-    fig = plotting.figure(13, 4.2, what="virtsensor tyre --plot")
+    fig = plotting.figure(13, 4.2, what="--plot")
     ax_fy, ax_mz, ax_fx = fig.subplots(1, 3)
     colours = ("tab:blue", "tab:orange", "tab:green")
     for lf, colour in zip(LOAD_FACTORS, colours, strict=True):

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if args.histogram:
         from virtsensor import plotting
 
-        plotting.require("virtsensor bench --histogram")  # (before minutes of measuring, not after)
+        plotting.require("--histogram")  # (before minutes of measuring, not after)
     r = run_bench(args.model, quick=args.quick, soak_ticks=args.soak_ticks,
                   cross_process=not args.no_cross_process, progress=say,
                   cpu_latency_us=None if args.no_cpu_latency else args.cpu_latency_us or 0)

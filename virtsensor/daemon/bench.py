@@ -983,7 +983,7 @@ def write_histogram(r: dict[str, Any], path: str | os.PathLike) -> None:
     from virtsensor import plotting
 
     comp = np.asarray(r.get("_samples", {}).get("tick_compute_us", []), dtype=float)
-    fig = plotting.figure(8, 4.5, what="virtsensor bench --histogram")
+    fig = plotting.figure(8, 4.5, what="--histogram")
     ax = fig.subplots()
     if comp.size:
         hi = max(float(np.percentile(comp, 99.9)) * 1.5, 1.0)

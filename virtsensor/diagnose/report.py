@@ -183,7 +183,7 @@ def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list
     comp = art["comparison"]
     series = comp.series
     shown = ("sat_fl_nm", "steer_torque_nm", "ay_mps2", "yaw_rate_radps")
-    fig = plotting.figure(4.5 * len(series), 2.2 * len(shown), what="virtsensor diagnose --report")
+    fig = plotting.figure(4.5 * len(series), 2.2 * len(shown), what="--report")
     axes = fig.subplots(len(shown), len(series), squeeze=False)
     for j, s in enumerate(series):
         for i, n in enumerate(shown):
@@ -201,7 +201,7 @@ def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list
         ax.set_xlabel("time [s]", fontsize=7)
     written.append(plotting.save(fig, out_dir / "diagnose_timeseries.png"))
     cands = res["candidates"][:10]
-    fig = plotting.figure(7, 3.5, what="virtsensor diagnose --report")
+    fig = plotting.figure(7, 3.5, what="--report")
     ax = fig.subplots()
     labels = [c["cause"] + (f"[{c['signal']}]" if c["signal"] else "") for c in cands]
     ax.barh(range(len(cands))[::-1], [max(c["bic_gain"], 0.0) for c in cands],
@@ -212,7 +212,7 @@ def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list
     written.append(plotting.save(fig, out_dir / "diagnose_candidates.png"))
     dep = comp.dependence
     if dep:
-        fig = plotting.figure(3.2 * len(dep), 2.8, what="virtsensor diagnose --report")
+        fig = plotting.figure(3.2 * len(dep), 2.8, what="--report")
         axes = fig.subplots(1, len(dep), squeeze=False)
         for ax, (k, d) in zip(axes[0], dep.items(), strict=True):
             ax.plot(d["centre"], d["mean_residual_nm"], "o-", label="mean")
@@ -223,7 +223,7 @@ def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list
         axes[0][0].legend(fontsize=7)
         written.append(plotting.save(fig, out_dir / "diagnose_dependence.png"))
     if comp.spectra:
-        fig = plotting.figure(3.6 * len(comp.spectra), 2.8, what="virtsensor diagnose --report")
+        fig = plotting.figure(3.6 * len(comp.spectra), 2.8, what="--report")
         axes = fig.subplots(1, len(comp.spectra), squeeze=False)
         for ax, (n, d) in zip(axes[0], comp.spectra.items(), strict=True):
             ax.semilogy(d["f_hz"], d["psd_measured"], "k", label="measured")

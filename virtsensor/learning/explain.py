@@ -526,7 +526,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     say = log or (lambda _msg: None)
     _check_options(samples, background, method)
     shap = require_shap()
-    plotting.require("virtsensor explain")
+    plotting.require("this command")
     out_path = check_out_dir(out)
     inp = _load_inputs(model_path, data, track, circuits, seed)
     try:
