@@ -75,6 +75,34 @@ def test_demo_runs_on_the_bundled_defaults_and_its_figures_are_sane(demo):
         assert word in text, text
 
 
+def test_the_bundled_defaults_also_show_the_grip_warning_on_a_run_that_reaches_the_limit(demo):
+    """The main run stays below the limit; the bundled wet fishhook (DEMO_LIMIT_RUN) follows it at full speed and
+    shows the warning and the friction estimate against the road's."""
+    from virtsensor.demo import DEMO_LIMIT_RUN, limit_recording
+
+    assert demo["json"]["grip"]["warning_ticks"] == 0  # (why the limit run is there)
+    lim = demo["json"]["limit_run"]
+    assert lim["recording"] == str(limit_recording()) and DEMO_LIMIT_RUN[0] in lim["recording_description"]
+    g = lim["grip"]
+    assert g["road_mu"] == DEMO_LIMIT_RUN[2] and g["util_max"] > 0.8 and g["warning_ticks"] >= 20
+    assert g["mu_given_ticks"] >= 20 and g["mu_within_0_1_share"] >= 0.9
+    assert "at the limit: fishhook" in demo["text"] and "warning on" in demo["text"]
+    if HAVE_MPL:
+        assert lim["plot"] == str(demo["plot"].with_name("demo_limit.png"))
+        assert demo["plot"].with_name("demo_limit.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_recording_given_is_replayed_alone(tmp_path):
+    from virtsensor.demo import limit_recording
+
+    js = tmp_path / "d.json"
+    rc, text = run_demo_cli("--recording", str(limit_recording()), "--rate", "max", "--no-live", "--json", str(js),
+                            "--plot", str(tmp_path / "p.png"))
+    assert rc == 0, text
+    r = json.loads(js.read_text())
+    assert r["limit_run"] is None and "at the limit" not in text and r["grip"]["warning_ticks"] > 0
+
+
 @pytest.mark.skipif(not HAVE_MPL, reason="matplotlib is not installed")
 def test_demo_writes_the_plot(demo):
     assert demo["json"]["plot"] == str(demo["plot"])
