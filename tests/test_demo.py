@@ -243,3 +243,16 @@ def test_metrics_give_the_error_over_the_valid_ticks_alone():
     assert m["fl"]["valid_share"] == pytest.approx(2 / 6, abs=1e-4)
     status[:2] = 1  # no VALID tick at all
     assert _metrics(est, true, status)["fl"]["mae_valid_nm"] is None
+
+
+@pytest.mark.slow
+def test_the_bundled_recordings_are_what_the_simulator_makes_today():
+    """``tools/make_demo_recording.py --check``: each bundled recording byte for byte a fresh simulation (a change
+    of the simulator or the CAN matrix that leaves them stale shows here)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(root / "tools" / "make_demo_recording.py"), "--check"],
+                       capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert r.stdout.count("identical to a fresh simulation") == 2, r.stdout
