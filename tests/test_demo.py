@@ -87,6 +87,9 @@ def test_the_bundled_defaults_also_show_the_grip_warning_on_a_run_that_reaches_t
     assert g["road_mu"] == DEMO_LIMIT_RUN[2] and g["util_max"] > 0.8 and g["warning_ticks"] >= 20
     assert g["mu_given_ticks"] >= 20 and g["mu_within_0_1_share"] >= 0.9
     assert "at the limit: fishhook" in demo["text"] and "warning on" in demo["text"]
+    st = lim["statuses"]["fl"]
+    assert sum(st.values()) == lim["ticks"] and st["INVALID"] == 0 and st["VALID"] >= 0.8 * lim["ticks"]
+    assert f"statuses (FL) VALID {st['VALID']}" in demo["text"]
     if HAVE_MPL:
         assert lim["plot"] == str(demo["plot"].with_name("demo_limit.png"))
         assert demo["plot"].with_name("demo_limit.png").read_bytes()[:4] == b"\x89PNG"

@@ -374,7 +374,8 @@ def _limit_run(opts: _Options) -> dict[str, Any]:
     m = sub["metrics"]
     return {"recording": sub["recording"], "recording_description": sub["recording_description"],
             "ticks": sub["ticks"], "mean_mae_nm": None if m is None else m["mean"]["mae_nm"],
-            "mean_r2": None if m is None else m["mean"]["r2"], "grip": sub["grip"], "plot": sub["plot"]}
+            "mean_r2": None if m is None else m["mean"]["r2"], "grip": sub["grip"], "plot": sub["plot"],
+            "statuses": sub["statuses"]}
 
 
 def _run_daemon(opts: _Options, plan: _Plan, live: bool, out: TextIO) -> tuple[dict[str, Any], str | None]:
@@ -669,7 +670,10 @@ def _print_summary(r: dict[str, Any], out: TextIO) -> None:
     if lim:
         sat = ("" if lim["mean_mae_nm"] is None
                else f"; SAT mean MAE {lim['mean_mae_nm']:.2f} Nm, R2 {lim['mean_r2']:.3f}")
-        p(f"at the limit: {lim['recording_description']}, replayed at full speed{sat}")
+        worst = {k: n for k, n in lim["statuses"]["fl"].items() if n}  # (the front-left wheel's, as counted above)
+        p(f"at the limit: {lim['recording_description']}, replayed at full speed{sat}; statuses (FL) "
+          + ", ".join(f"{k} {n}" for k, n in worst.items()) + " (the daemon's reasons, such as leaving the model's "
+          "envelope, are its warnings on stderr)")
         if lim["grip"]:
             p("  " + grip_line(lim["grip"]))
         if lim["plot"]:
