@@ -55,6 +55,7 @@ __all__ = [
     "default_recording",
     "DEMO_LIMIT_RUN",
     "limit_recording",
+    "limit_plot_path",
     "demo_recording_name",
     "recordings_dir",
     "run_demo",
@@ -102,6 +103,12 @@ def default_recording() -> Path:
 def limit_recording() -> Path:
     """The bundled run that reaches the grip limit (:data:`DEMO_LIMIT_RUN`), whatever the working directory."""
     return recording_path(demo_recording_name(DEMO_LIMIT_RUN))
+
+
+def limit_plot_path(plot: str | os.PathLike) -> Path:
+    """Where the demo draws the limit run (:data:`DEMO_LIMIT_RUN`) beside its plot: ``<stem>_limit<suffix>``."""
+    p = Path(plot)
+    return p.with_name(f"{p.stem}_limit{p.suffix}")
 
 
 def default_model() -> Path:
@@ -260,6 +267,8 @@ class _Options:
     plot_path: Path | None
     plot_skip: str | None  # why no plot is drawn, None when one is
     json_file: Path | None
+    limit: bool = False  # the bundled limit run follows (the demo on its bundled defaults)
+    limit_plot: Path | None = None  # its plot (None: none)
 
 
 @dataclass
@@ -302,7 +311,13 @@ def _options(model: str | os.PathLike | None, recording: str | os.PathLike | Non
         check_writable(json_file, "--json")
     if not model_path.is_file():
         raise UserError(f"--model: no such model file {model_path}")
-    return _Options(model_path, rec_path, rate_f, plot_path, plot_skip, json_file)
+    limit = recording is None and limit_recording().is_file()
+    limit_plot = limit_plot_path(plot_path) if limit and plot_path is not None and plot_skip is None else None
+    if limit_plot is not None:
+        check_writable(limit_plot, "--plot (its limit run's plot beside it)")
+        if json_file is not None and limit_plot.resolve() == json_file.resolve():
+            raise UserError(f"--json {json_file} is where the limit run's plot goes (beside --plot); give another")
+    return _Options(model_path, rec_path, rate_f, plot_path, plot_skip, json_file, limit, limit_plot)
 
 
 def _plan(rec_path: Path) -> _Plan:
@@ -356,24 +371,28 @@ def run_demo(
     ticks: _Ticks = result.pop("_ticks")
     stats = result.pop("_stats")
     metrics = _add_figures(result, ticks, stats, opts, plan, model_sha256)
-    bundled = recording is None and limit_recording().is_file()
-    result["limit_run"] = _limit_run(opts) if bundled and not result.get("interrupted") else None
+    result["limit_run"] = _limit_run(opts) if opts.limit and not result.get("interrupted") else None
+    if result["limit_run"] is not None and result["limit_run"].get("interrupted"):
+        result["interrupted"] = True  # (Ctrl-C during the limit run: the demo was interrupted)
     _write_outputs(result, ticks, metrics, opts, wall0, out)
     return result
 
 
 def _limit_run(opts: _Options) -> dict[str, Any]:
     """The bundled limit run (:data:`DEMO_LIMIT_RUN`) through a fresh daemon with the same model, at full speed and
-    quietly; its plot beside the demo's (``<plot>_limit.png``) when the demo draws one. Returned: the run, its SAT
-    metrics, its grip figures (:func:`~virtsensor.demogrip.grip_summary`) and its plot (None: none)."""
-    plot = None
-    if opts.plot_path is not None and opts.plot_skip is None:
-        plot = opts.plot_path.with_name(f"{opts.plot_path.stem}_limit{opts.plot_path.suffix}")
-    sub = run_demo(model=opts.model_path, recording=limit_recording(), rate=None, live=False, plot=plot,
-                   out=io.StringIO())
-    m = sub["metrics"]
-    return {"recording": sub["recording"], "recording_description": sub["recording_description"],
-            "ticks": sub["ticks"], "mean_mae_nm": None if m is None else m["mean"]["mae_nm"],
+    quietly, its plot at ``opts.limit_plot``. Returned: the run, its SAT metrics and statuses, its grip figures
+    (:func:`~virtsensor.demogrip.grip_summary`), its plot (None: none), whether it was interrupted or ticked short
+    (``complete``); a run that fails is ``{"error": ...}``, so that the main run's figures are still written."""
+    try:
+        sub = run_demo(model=opts.model_path, recording=limit_recording(), rate=None, live=False,
+                       plot=opts.limit_plot, out=io.StringIO())
+    except (UserError, OSError, ValueError, RuntimeError) as exc:
+        return {"error": f"{type(exc).__name__}: {exc}"}
+    m, c = sub["metrics"], sub["daemon_counters"]
+    complete = sub["ticks"] == sub["sync_frames"] and not c.get("tick_errors") and not c.get("send_errors")
+    return {"recording": sub["recording"], "recording_description": sub["recording_description"], "rate": sub["rate"],
+            "ticks": sub["ticks"], "sync_frames": sub["sync_frames"], "interrupted": sub["interrupted"],
+            "complete": complete, "mean_mae_nm": None if m is None else m["mean"]["mae_nm"],
             "mean_r2": None if m is None else m["mean"]["r2"], "grip": sub["grip"], "plot": sub["plot"],
             "statuses": sub["statuses"]}
 
@@ -667,11 +686,15 @@ def _print_summary(r: dict[str, Any], out: TextIO) -> None:
     if r.get("grip"):
         p(grip_line(r["grip"]))
     lim = r.get("limit_run")
-    if lim:
+    if lim and "error" in lim:
+        p(f"at the limit: the bundled limit run failed ({lim['error']})")
+    elif lim:
         sat = ("" if lim["mean_mae_nm"] is None
                else f"; SAT mean MAE {lim['mean_mae_nm']:.2f} Nm, R2 {lim['mean_r2']:.3f}")
         worst = {k: n for k, n in lim["statuses"]["fl"].items() if n}  # (the front-left wheel's, as counted above)
-        p(f"at the limit: {lim['recording_description']}, replayed at full speed{sat}; statuses (FL) "
+        short = (" (interrupted)" if lim["interrupted"] else "" if lim["complete"] else
+                 f" (only {lim['ticks']} of {lim['sync_frames']} ticks answered, or daemon errors)")
+        p(f"at the limit{short}: {lim['recording_description']}, replayed at full speed{sat}; statuses (FL) "
           + ", ".join(f"{k} {n}" for k, n in worst.items()) + " (the daemon's reasons, such as leaving the model's "
           "envelope, are its warnings on stderr)")
         if lim["grip"]:

@@ -21,7 +21,7 @@ HELP = "the daemon on a bundled wet-road manoeuvre: estimated vs true SAT live, 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from virtsensor.commands import _types as t
-    from virtsensor.demo import DEFAULT_PLOT, default_model, default_recording
+    from virtsensor.demo import DEFAULT_PLOT, default_model, default_recording, limit_plot_path
 
     parser.add_argument("--model", metavar="FILE.onnx", default=None,
                         type=t.existing_file(".onnx", implicit=default_model),
@@ -34,8 +34,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(as fast as possible)")
     parser.add_argument("--no-live", dest="live", action="store_false",
                         help="no line per half second during the run, only the closing figures")
-    parser.add_argument("--plot", metavar="FILE.png", default=DEFAULT_PLOT, type=t.output_file(".png", mkdirs=True),
-                        help=f"PNG of estimated vs true SAT and the error (default {DEFAULT_PLOT}; needs matplotlib)")
+    parser.add_argument("--plot", metavar="FILE.png", default=DEFAULT_PLOT,
+                        type=t.output_file(".png", mkdirs=True, companions=lambda p: [limit_plot_path(p)]),
+                        help=f"PNG of estimated vs true SAT and the error (default {DEFAULT_PLOT}; needs matplotlib); "
+                             "on the bundled defaults the limit run's beside it, <name>_limit.png")
     parser.add_argument("--json", dest="json_path", metavar="FILE", default=None, type=t.output_file(),
                         help="write the figures as JSON")
 
