@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 from virtsensor.commands._types import check_paths
 from virtsensor.errors import UserError
-from virtsensor.extras import MissingExtra, as_user_error, extra_message, missing_modules
+from virtsensor.extras import MissingExtra, as_user_error, missing_extra
 
 #: subcommand name -> module under virtsensor.commands, with its one-line help
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -91,10 +91,10 @@ def _load(module: str):
 
 
 def _help_or_missing(parser: argparse.ArgumentParser, sub: argparse.ArgumentParser, argv: list[str], name: str,
-                     extra: str) -> int:
-    """A command whose optional ``extra`` is not installed: its help where argparse finds it asked for (``-h``,
-    ``--help``, an abbreviation; printed with the extra to install at its foot, exit 0), else the one line that
-    names the extra (exit 2), whatever else the arguments hold."""
+                     extra: str, missing: MissingExtra) -> int:
+    """A command whose optional ``extra`` is not installed (``missing``): its help where argparse finds it asked for
+    (``-h``, ``--help``, an abbreviation; printed with the extra to install at its foot, exit 0), else the one line
+    that names the extra (exit 2), whatever else the arguments hold."""
     sub.epilog = f"needs the optional extra '{extra}', not installed here: pip install 'virtsensor[{extra}]'"
     probing = [p for p in (parser, sub) if isinstance(p, _Parser)]
     for p in probing:
@@ -109,7 +109,7 @@ def _help_or_missing(parser: argparse.ArgumentParser, sub: argparse.ArgumentPars
     finally:
         for p in probing:
             p.probing = False
-    return _fail(name, MissingExtra(extra_message("this command", extra)))
+    return _fail(name, missing)
 
 
 def _fail(command: str, exc: UserError) -> int:
@@ -148,22 +148,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub_action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     if name in COMMANDS:
         extra = COMMAND_EXTRAS.get(name)
-        absent = extra is not None and bool(missing_modules(extra))
+        absent = None if extra is None else missing_extra(extra, "this command")
         try:
             mod = _load(COMMANDS[name][0])
             sub = sub_action.choices[name]
             mod.add_arguments(sub)  # (some read their choices from the simulator: their help needs the extra)
-            if absent:
-                return _help_or_missing(parser, sub, argv, name, str(extra))
+            if absent is not None:
+                return _help_or_missing(parser, sub, argv, name, str(extra), absent)
         except UserError as exc:
             return _fail(name, exc)
         except ModuleNotFoundError as exc:
             missing = as_user_error(exc, "this command")
             if missing is None:
                 raise
-            if absent:  # (every module of the extra that is missing, not only the first one imported)
-                missing = MissingExtra(extra_message("this command", str(extra)))
-            return _fail(name, missing)
+            # (every module of the extra that is missing, not only the first one imported)
+            return _fail(name, absent if absent is not None else missing)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: a mistake (2, one line printed), --help or --version (0)

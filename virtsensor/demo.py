@@ -691,11 +691,11 @@ def _print_summary(r: dict[str, Any], out: TextIO) -> None:
     elif lim:
         sat = ("" if lim["mean_mae_nm"] is None
                else f"; SAT mean MAE {lim['mean_mae_nm']:.2f} Nm, R2 {lim['mean_r2']:.3f}")
-        worst = {k: n for k, n in lim["statuses"]["fl"].items() if n}  # (the front-left wheel's, as counted above)
+        seen = {k: n for k, n in lim["statuses"]["fl"].items() if n}  # (the front-left wheel's ticks per status)
         short = (" (interrupted)" if lim["interrupted"] else "" if lim["complete"] else
                  f" (only {lim['ticks']} of {lim['sync_frames']} ticks answered, or daemon errors)")
         p(f"at the limit{short}: {lim['recording_description']}, replayed at full speed{sat}; statuses (FL) "
-          + ", ".join(f"{k} {n}" for k, n in worst.items()) + " (the daemon's reasons, such as leaving the model's "
+          + ", ".join(f"{k} {n}" for k, n in seen.items()) + " (the daemon's reasons, such as leaving the model's "
           "envelope, are its warnings on stderr)")
         if lim["grip"]:
             p("  " + grip_line(lim["grip"]))

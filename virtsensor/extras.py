@@ -12,7 +12,7 @@ import importlib.util
 
 from virtsensor.errors import UserError
 
-__all__ = ["EXTRAS", "PIP_NAMES", "MissingExtra", "as_user_error", "extra_for_module", "extra_message",
+__all__ = ["EXTRAS", "PIP_NAMES", "MissingExtra", "as_user_error", "extra_for_module", "missing_extra",
            "missing_modules", "require"]
 
 _TRAIN = ("scipy", "sklearn", "skl2onnx", "joblib", "threadpoolctl", "tqdm")
@@ -46,9 +46,11 @@ def _message(what: str, extra: str, missing: list[str]) -> str:
     return f"{what} needs the optional extra '{extra}' (missing: {names}): pip install 'virtsensor[{extra}]'"
 
 
-def extra_message(what: str, extra: str) -> str:
-    """The one line naming ``extra``, the modules of it missing here and the install command."""
-    return _message(what, extra, missing_modules(extra))
+def missing_extra(extra: str, what: str) -> MissingExtra | None:
+    """The :class:`MissingExtra` naming ``extra``, its modules missing here and the install command (None when the
+    extra is installed): what :func:`require` raises."""
+    absent = missing_modules(extra)
+    return MissingExtra(_message(what, extra, absent)) if absent else None
 
 
 def require(extra: str, what: str) -> None:
@@ -58,9 +60,9 @@ def require(extra: str, what: str) -> None:
         extra: a key of :data:`EXTRAS`.
         what: what needs it, for the message after the command's own name (e.g. ``"this command"``, ``"--plot"``).
     """
-    absent = missing_modules(extra)
-    if absent:
-        raise MissingExtra(_message(what, extra, absent))
+    err = missing_extra(extra, what)
+    if err is not None:
+        raise err
 
 
 def extra_for_module(module: str | None) -> str | None:
