@@ -134,11 +134,15 @@ def score_case(spec: dict[str, Any], seed: int, case, res: dict[str, Any], t_gen
     else:
         right = res.get("cause") == "none"
     mu_cov = []
-    for r, rc in enumerate(res.get("run_conditions", [])):
+    # by the run's name: a run the loader left out (a spin) is missing from the diagnosis' runs, so a position
+    # in them is not a position in the case's
+    true_mu = {p.stem: m for p, m in zip(case.diagnosis, case.mu, strict=False)}
+    for rc in res.get("run_conditions", []):
         v = rc["identified"].get("mu")
-        if v is not None and r < len(case.mu):
-            mu_cov.append({"true": case.mu[r], "estimate": v["estimate"], "ci95": v["ci95"], "excited": v["excited"],
-                           "covered": bool(v["ci95"][0] <= case.mu[r] <= v["ci95"][1])})
+        t = true_mu.get(rc["name"])
+        if v is not None and t is not None:
+            mu_cov.append({"run": rc["name"], "true": t, "estimate": v["estimate"], "ci95": v["ci95"],
+                           "excited": v["excited"], "covered": bool(v["ci95"][0] <= t <= v["ci95"][1])})
     gain = res.get("gain") or {}
     return {"case": spec["case"], "kind": kind, "seed": seed, "hidden": [h.as_dict() for h in hidden],
             "foreign": case.foreign.as_dict() if case.foreign else None, "mixed": case.conditions is not None,
