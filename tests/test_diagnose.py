@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -859,3 +860,30 @@ def test_an_estimate_beyond_the_range_the_simulator_responds_in_is_its_end_with_
     grp.groups = {"tyre_moments": {"points": list(zip(x.tolist(), y.tolist(), strict=True))}}
     idn._consistency(grp, 1.0)
     assert grp.groups["tyre_moments"]["estimate"] == 1.5 and grp.group_spread == 0.0
+
+
+def test_the_comparison_leaves_out_the_runs_the_identification_left_out():
+    """A run the identification left out (not reproduced at its identified conditions) would dominate the
+    signal statistics with the residuals it was left out for: they cover the other runs only, and its series are
+    kept and marked."""
+    from types import SimpleNamespace
+
+    from virtsensor.diagnose.compare import compare
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    n = 400
+    t = np.arange(n) * cat.TABLE_TICK_S
+    names = ("ay_mps2", "sat_fl_nm", "steer_torque_nm", "yaw_rate_radps", "vx_mps")
+    shape = {"ay_mps2": np.sin(t), "sat_fl_nm": 10 * np.sin(1.3 * t), "steer_torque_nm": np.cos(t),
+             "yaw_rate_radps": 0.1 * np.sin(0.7 * t), "vx_mps": 20 + np.sin(0.2 * t)}
+    runs, sims = [], []
+    for r, err in enumerate((0.01, 5.0, 0.01)):  # run 1: far off its re-simulation
+        table = {"time_s": t, **{k: v + err for k, v in shape.items()}}
+        runs.append(MeasuredRun(f"run{r}", Path(f"run{r}.csv"), table, [Segment(0, n)]))
+        sims.append([{"pred": dict(shape), "truth": {"alpha_fl": 0.01 * np.sin(t), "fz_fl": 4000 + 0 * t}}])
+    idn = SimpleNamespace(best=None, best_sims=None, nominal_sims=sims, excluded={"run1": "not reproduced"})
+    c = compare(runs, idn, names)
+    assert c.nominal["ay_mps2"]["bias"] == pytest.approx(0.01, abs=1e-9)
+    assert [s["excluded"] for s in c.series] == [False, True, False]
+    idn.excluded = {}
+    assert compare(runs, idn, names).nominal["ay_mps2"]["bias"] == pytest.approx((0.01 + 5.0 + 0.01) / 3, rel=1e-6)

@@ -204,12 +204,23 @@ def _series(runs: Sequence[MeasuredRun], nominal, best, names) -> list[dict[str,
 
 
 def compare(runs: Sequence[MeasuredRun], idn, names: Sequence[str]) -> Comparison:
-    """Compare the measured runs with their nominal (and calibrated) re-simulation."""
+    """Compare the measured runs with their nominal (and calibrated) re-simulation.
+
+    The statistics, the SAT residual's dependence and the spectra cover the runs the identification compared:
+    a run it left out (``idn.excluded``, by name: not reproduced at its identified conditions) would dominate
+    them with residuals it was left out for. Its series stay, marked ``excluded``."""
     best = idn.best_sims if idn.best is not None else None
+    left_out = getattr(idn, "excluded", None) or {}
+    keep = [r for r, run in enumerate(runs) if run.name not in left_out] or list(range(len(runs)))
+    kr, nom = [runs[r] for r in keep], [idn.nominal_sims[r] for r in keep]
+    kb = [best[r] for r in keep] if best is not None else None
+    series = _series(runs, idn.nominal_sims, best, names)
+    for item in series:
+        item["excluded"] = item["run"] in left_out
     return Comparison(
-        nominal=_stats(runs, idn.nominal_sims, names),
-        calibrated=_stats(runs, best, names) if best is not None else None,
-        dependence=_dependence(runs, idn.nominal_sims),
-        spectra=_spectra(runs, idn.nominal_sims),
-        series=_series(runs, idn.nominal_sims, best, names),
+        nominal=_stats(kr, nom, names),
+        calibrated=_stats(kr, kb, names) if kb is not None else None,
+        dependence=_dependence(kr, nom),
+        spectra=_spectra(kr, nom),
+        series=series,
     )

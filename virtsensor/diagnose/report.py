@@ -194,7 +194,7 @@ def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list
                 ax.plot(s["time_s"], s["calibrated"][n], "C3--", lw=0.9, label="calibrated sim")
             ax.set_ylabel(f"{n} [{cat.SIGNALS[n].unit}]", fontsize=7)
             if i == 0:
-                ax.set_title(f"{s['run']} #{s['segment']}", fontsize=8)
+                ax.set_title(f"{s['run']} #{s['segment']}" + (" (left out)" if s.get("excluded") else ""), fontsize=8)
             ax.tick_params(labelsize=7)
     axes[0][0].legend(fontsize=7)
     for ax in axes[-1]:
