@@ -887,3 +887,25 @@ def test_the_comparison_leaves_out_the_runs_the_identification_left_out():
     assert [s["excluded"] for s in c.series] == [False, True, False]
     idn.excluded = {}
     assert compare(runs, idn, names).nominal["ay_mps2"]["bias"] == pytest.approx((0.01 + 5.0 + 0.01) / 3, rel=1e-6)
+
+
+def test_a_run_left_out_is_no_fold_of_the_held_out_evidence():
+    """Folds are the compared runs: a run the identification left out has no rows and is no fold (it counted as
+    one, with a leave-one-out estimate equal to the full one, widening the groups' jackknife); with fewer than
+    MIN_FOLDS runs left, each run's halves are the folds."""
+    from virtsensor.diagnose.identify import MIN_FOLDS, Data
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    n = 200
+    t = np.arange(n) * cat.TABLE_TICK_S
+    runs = [MeasuredRun(f"run{r}", Path(f"run{r}.csv"), {"time_s": t, "ay_mps2": np.sin(t + r)}, [Segment(0, n)])
+            for r in range(MIN_FOLDS + 1)]
+    data = Data(runs, ("ay_mps2",))
+    assert data.n_folds == MIN_FOLDS + 1
+    data.exclude([1])
+    assert data.n_folds == MIN_FOLDS
+    assert sorted(set(data.fold["ay_mps2"].tolist())) == list(range(MIN_FOLDS))
+    assert np.all(np.bincount(data.fold["ay_mps2"]) > 0)
+    data.exclude([2])
+    assert data.n_folds == 2 * (MIN_FOLDS - 1)  # (fewer runs than MIN_FOLDS: halves of each)
+    assert np.all(np.bincount(data.fold["ay_mps2"], minlength=data.n_folds) > 0)
