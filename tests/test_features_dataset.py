@@ -239,3 +239,30 @@ def test_evaluate_refuses_a_run_without_a_usable_sample(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "allnan.csv: no sample with every input" in err, err
     assert not out.exists()
+
+
+def test_the_eq1_observer_is_fitted_on_column_torques_of_whole_runs():
+    """Targets that are exactly the observer's model (a share of the column torque plus a constant): fitted on the
+    random split's training rows, it recovers them, because the column torque (the steering angle's derivatives)
+    is computed on whole runs before the rows are taken (on the rows alone, 50 ms apart no longer, it was not)."""
+    from virtsensor.learning.dataset import Dataset
+    from virtsensor.learning.evaluation import _observer_fit_predict
+    from virtsensor.learning.training import SteeringObserver
+
+    names = ("steer_angle_rad", "steer_torque_nm", "assist_torque_nm")
+    rng = np.random.default_rng(3)
+    Xs, groups = [], []
+    for g in range(4):
+        t = np.arange(400) * cat.TABLE_TICK_S
+        delta = 0.3 * np.sin(2 * np.pi * (0.3 + 0.4 * g) * t) + 0.05 * np.sin(2 * np.pi * 1.7 * t + g)
+        Xs.append(np.column_stack([delta, rng.normal(0, 2, len(t)), rng.normal(0, 5, len(t))]))
+        groups.append(np.full(len(t), g))
+    X, grp = np.vstack(Xs), np.concatenate(groups)
+    obs = SteeringObserver(names)
+    tau = np.concatenate([obs.column_torque(X[grp == g]) for g in range(4)])
+    Y = np.column_stack([-0.45 * tau + 1.0, -0.45 * tau - 1.0])
+    ds = Dataset(X, Y, grp, [f"r{g}" for g in range(4)], [{}] * 4, names, ("sat_fl_nm", "sat_fr_nm"), 0,
+                 np.zeros(len(X)))
+    tr, te = random_split(len(X), 0)
+    pred = _observer_fit_predict(ds, {"all": ds}, rows=tr)["all"]
+    np.testing.assert_allclose(pred[te], Y[te], atol=1e-6)

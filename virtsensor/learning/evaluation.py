@@ -52,16 +52,18 @@ def grouped_split(groups: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray
     return np.flatnonzero(~test), np.flatnonzero(test)
 
 
-def _observer_fit_predict(ds_train: Dataset, parts: Mapping[str, Dataset]) -> dict[str, np.ndarray]:
-    """The eq. (1) observer differentiates within runs: fit and predict run by run."""
+def _observer_fit_predict(ds_train: Dataset, parts: Mapping[str, Dataset],
+                          rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The eq. (1) observer differentiates within runs: fit and predict run by run. ``rows``: the rows of
+    ``ds_train`` the least squares fits on (default all); the column torque is computed on its whole runs
+    first (a run with rows taken out is not 50 ms apart between its remaining rows)."""
     obs = SteeringObserver(ds_train.feature_names)
-    # least squares on all training runs' column torques (computed per run)
-    taus, ys = [], []
+    tau_all = np.empty(len(ds_train.X))
     for g in np.unique(ds_train.groups):
         m = ds_train.groups == g
-        taus.append(obs.column_torque(ds_train.X[m]))
-        ys.append(ds_train.Y[m])
-    tau, Y = np.concatenate(taus), np.concatenate(ys)
+        tau_all[m] = obs.column_torque(ds_train.X[m])
+    keep = np.ones(len(ds_train.X), dtype=bool) if rows is None else np.isin(np.arange(len(ds_train.X)), rows)
+    tau, Y = tau_all[keep], ds_train.Y[keep]
     obs.coef_, *_ = np.linalg.lstsq(np.column_stack([tau, np.ones_like(tau)]), Y, rcond=None)
     out = {}
     for name, ds in parts.items():
@@ -199,9 +201,9 @@ def _observer_protocols(ds: Dataset, laps: Mapping[str, Run], seed: int) -> dict
     """The eq. (1) observer's protocols on ``ds``, the runs' dataset of the paper's features."""
     out: dict[str, Any] = {}
     tr, te = random_split(len(ds.X), seed)
-    # the observer needs whole runs (it differentiates in time): the random split is
-    # applied after prediction, on rows of runs predicted whole
-    pred = _observer_fit_predict(ds.subset(tr), {"all": ds})["all"]
+    # the observer needs whole runs (it differentiates in time): its column torque is computed on whole runs,
+    # then fitted on the training rows, and the random split applied to rows of runs predicted whole
+    pred = _observer_fit_predict(ds, {"all": ds}, rows=tr)["all"]
     out["train"] = metrics(ds.Y[tr], pred[tr])
     out["test"] = metrics(ds.Y[te], pred[te])
     gtr, gte = grouped_split(ds.groups, seed)
