@@ -70,8 +70,10 @@ def main(argv: list[str] | None = None) -> int:
         ds = build_dataset([run], spec)
         err = np.abs(model.predict(ds.X) - ds.Y).mean(axis=1)
         n = len(err)
-        ax_l = np.asarray(run.table["ax_mps2"])[-n:]
-        ay_l = np.asarray(run.table["ay_mps2"])[-n:]
+        # the lap's rows the dataset kept, by their time (it drops the first rows, and any row with a NaN)
+        rows = np.searchsorted(np.asarray(run.table["time_s"], float), ds.time_s)
+        ax_l = np.asarray(run.table["ax_mps2"])[rows]
+        ay_l = np.asarray(run.table["ay_mps2"])[rows]
         i, j = _cells(ax_l, ay_l)
         inside = cover[np.minimum(i, cover.shape[0] - 1), np.minimum(j, cover.shape[1] - 1)]
         row = {"lap": Path(lap_path).name, "rows": int(n), "outside_share": float(1 - inside.mean()),
