@@ -791,8 +791,12 @@ def test_the_daemon_reads_the_front_pressures_as_offline(model, hard_tyre_run):
 
 
 def test_replace_keeps_params_valid():
+    """A replaced field is checked as the file's are: warning thresholds in order are taken, any other refused."""
     p = replace(load_params(), warn_on=0.9, warn_off=0.6)
-    assert p.warn_on == 0.9
+    assert (p.warn_on, p.warn_off) == (0.9, 0.6)
+    for on, off in ((0.5, 0.6), (1.1, 0.6), (0.7, 0.0), (0.7, -0.1)):
+        with pytest.raises(ValueError, match="warn_off <= warn_on"):
+            replace(p, warn_on=on, warn_off=off)
 
 
 def test_no_vs_grip_in_the_dbc_publishes_none():

@@ -217,23 +217,59 @@ def test_lateral_acceleration_against_yaw_rate_times_speed_in_a_steady_turn():
     assert not p.implausible[i_ay]
 
 
+def _lifted(rule, gate: str):
+    """``rule`` without one of its gates, so that a row it leaves unjudged is judged."""
+    from dataclasses import replace
+
+    if gate == "steady":
+        return replace(rule, steady=())
+    if gate == "within":
+        return replace(rule, within=())
+    if gate == "max_expected":
+        return replace(rule, max_expected=math.inf)
+    if gate == "min_expected":
+        return replace(rule, min_expected=0.0)
+    if gate == "turn_lo":
+        return replace(rule, turn=(*rule.turn[:5], 0.0, rule.turn[6]))
+    assert gate == "turn"
+    return replace(rule, turn=None)
+
+
+def _verdicts(rule, rows) -> tuple[bool, bool]:
+    """Whether the rule, and the same rule without the gate the rows are for, end implausible on ``rows``."""
+    out = []
+    for r in rule:
+        p = Plausibility([r], 12)
+        for row in rows:
+            p.update(row)
+        out.append(any(p.implausible))
+    return out[0], out[1]
+
+
 @pytest.mark.parametrize("why", ["steering moves", "slide: yaw rate far below the steering's", "straight ahead",
                                  "spin: r vx beyond any road's grip"])
 def test_lateral_acceleration_check_is_not_judged_outside_steady_turns_with_grip(why):
+    """Each row disagrees beyond the tolerance, so only its gate keeps the check from failing: without that gate
+    the same rows fail it."""
     cat, rules = _catalogue_rules()
-    p = Plausibility([rules["ay_vs_yaw_rate_times_speed"]], 12)
+    rule = rules["ay_vs_yaw_rate_times_speed"]
+    rows = []
     for k in range(100):
         row = _steady_turn(cat, ay=0.0)
         if why == "steering moves":
             row[cat.INPUTS.index("steer_angle_rad")] += 0.05 * (k % 2)  # 1 rad/s back and forth
+            gate = "steady"
         elif why.startswith("slide"):
-            row[cat.INPUTS.index("yaw_rate_radps")] = 0.05  # a quarter of the steering's kinematic yaw rate
-        elif why.startswith("spin"):  # r vx = 12 m/s^2 (and the steering's kinematic yaw rate) with ay at 9
-            row = _steady_turn(cat, ay=9.0, r=0.6)
+            row[cat.INPUTS.index("yaw_rate_radps")] = 0.07  # 0.42 of the steering's kinematic yaw rate; r vx = 1.4
+            gate = "turn_lo"
+        elif why.startswith("spin"):  # r vx = 12 m/s^2 (and the steering's kinematic yaw rate) with ay at 6
+            row = _steady_turn(cat, ay=6.0, r=0.6)
+            gate = "max_expected"
         else:
             row = _row(cat, ay_mps2=-2.6, yaw_rate_radps=0.0)  # sliding sideways with the wheels straight
-        assert p.update(row) == 0
-    assert not any(p.implausible)
+            gate = "turn"
+        rows.append(row)
+    assert _verdicts((rule, _lifted(rule, gate)), rows) == (False, True)
 
 
 @pytest.mark.parametrize("name", ["assist_vs_boosted_steer_torque", "assist_vs_boost_above_3nm"])
@@ -250,25 +286,33 @@ def test_assist_torque_against_the_boost_curve(name):
     for _ in range(rule.debounce):  # the assist pushes the wrong way
         p.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted))
     assert p.implausible[i_as] and p.failing == [True]
-    q = Plausibility([rule], 12)
-    for k in range(100):  # the same torques while the wheel turns fast (EPAS damping, back-EMF): not judged
-        steer = 0.05 * (k % 2)  # (1 rad/s back and forth, every tick)
-        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, steer_angle_rad=steer))
-        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, steer_angle_rad=steer,
-                      ax_mps2=-7.0))  # locked wheels
-        q.update(_row(cat, vx_mps=15.0, steer_torque_nm=0.3, assist_torque_nm=5.0, steer_angle_rad=steer))  # < 3 Nm
-    assert not any(q.implausible)
+    # the same wrong torques where the check is not judged, each for longer than its debounce; without the
+    # gate each is for, the same rows fail it
+    moving = [_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, steer_angle_rad=0.05 * (k % 2))
+              for k in range(60)]  # the wheel turning fast (EPAS damping, back-EMF): 1 rad/s back and forth
+    assert _verdicts((rule, _lifted(rule, "steady")), moving) == (False, True)
+    locked = [_row(cat, vx_mps=15.0, steer_torque_nm=3.0, assist_torque_nm=-boosted, ax_mps2=-7.0)] * 30
+    assert _verdicts((rule, _lifted(rule, "within")), locked) == (False, True)  # locked wheels: vx reads low
+    if rule.min_expected > 0:  # below 3 Nm of boost a gain is invisible: that variant does not judge it
+        small = [_row(cat, vx_mps=15.0, steer_torque_nm=0.3, assist_torque_nm=5.0)] * 30
+        assert _verdicts((rule, _lifted(rule, "min_expected")), small) == (False, True)
 
 
 def test_vehicle_speed_check_is_not_judged_while_a_wheel_can_spin_or_lock():
+    """Driven wheels spinning (motor torque above 30 Nm) and wheels locked (braking harder than 1 m/s^2), each
+    steady for longer than the debounce, disagree with vx beyond the tolerance: not judged, but the same rows
+    fail the check without its ``within`` gate."""
     cat, rules = _catalogue_rules()
-    p = Plausibility([rules["vx_vs_front_wheel_speed"]], 12)
+    rule = rules["vx_vs_front_wheel_speed"]
     spin = 52.0 / cat.ROLLING_RADIUS_M  # the driven wheels spinning on ice, no traction control
-    for _ in range(50):
-        assert p.update(_row(cat, vx_mps=11.6, motor_torque_nm=57.0, ax_mps2=1.0, wheel_speed_fl_radps=spin,
-                             wheel_speed_fr_radps=spin)) == 0
-        assert p.update(_row(cat, vx_mps=11.6, ax_mps2=-2.0, wheel_speed_fl_radps=0.0, wheel_speed_fr_radps=0.0)) == 0
-    assert not any(p.implausible)
+    spinning = [_row(cat, vx_mps=11.6, motor_torque_nm=57.0, ax_mps2=1.0, wheel_speed_fl_radps=spin,
+                     wheel_speed_fr_radps=spin)] * 50
+    locked = [_row(cat, vx_mps=11.6, ax_mps2=-2.0, wheel_speed_fl_radps=0.0, wheel_speed_fr_radps=0.0)] * 50
+    for rows in (spinning, locked):
+        assert _verdicts((rule, _lifted(rule, "within")), rows) == (False, True)
+    p = Plausibility([rule], 12)
+    for row in spinning:
+        assert p.update(row) == 0
     for _ in range(4):  # cruising with the same disagreement: judged (once the wheel speeds are steady again)
         p.update(_row(cat, vx_mps=11.6, wheel_speed_fl_radps=spin, wheel_speed_fr_radps=spin))
     assert p.implausible[cat.INPUTS.index("vx_mps")]
