@@ -904,8 +904,10 @@ def test_a_run_left_out_is_no_fold_of_the_held_out_evidence():
     assert data.n_folds == MIN_FOLDS + 1
     data.exclude([1])
     assert data.n_folds == MIN_FOLDS
+    assert data.fold_names == [r.name for k, r in enumerate(runs) if k != 1]
     assert sorted(set(data.fold["ay_mps2"].tolist())) == list(range(MIN_FOLDS))
     assert np.all(np.bincount(data.fold["ay_mps2"]) > 0)
     data.exclude([2])
     assert data.n_folds == 2 * (MIN_FOLDS - 1)  # (fewer runs than MIN_FOLDS: halves of each)
+    assert data.fold_names[:2] == ["run0#1", "run0#2"] and len(data.fold_names) == data.n_folds
     assert np.all(np.bincount(data.fold["ay_mps2"], minlength=data.n_folds) > 0)

@@ -5,6 +5,7 @@ Only the in-process ``virtual`` interface is used; every test has its own channe
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import uuid
@@ -92,6 +93,8 @@ def test_real_time_replay_timing(frames, channel):
     a training job) for longer; a run hit by such stalls is repeated (at most 3
     runs). Drift or a sleep-only player would fail every run.
     """
+    if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+        pytest.skip("measures real-time timing, which the other workers' tests upset: run the slow tier with -n 0")
     ts = np.array([f.timestamp for f in frames])
     assert ts[-1] - ts[0] > 9.9
     runs: list[tuple[float, float]] = []

@@ -391,17 +391,14 @@ def test_random_well_formed_frames_keep_the_contract(model, frames):
 
 def test_in_range_inputs_drawn_at_random_keep_the_contract_in_every_status(model, sim_runs):
     """The test run's signals moved a random share of the way towards values drawn anywhere in their valid
-    ranges, sent at their own rates with right CRCs and counters: the daemon reaches VALID and DEGRADED (the
-    draws leave the model's envelope, trip checks, or not), and in every status a VALID/DEGRADED estimate is a
-    finite in-range number, INVALID/INIT carry SNA. (Random payloads alone, above, almost never get past INIT.)"""
+    ranges, sent at their own rates with right CRCs and counters: in every status a VALID/DEGRADED estimate is a
+    finite in-range number, INVALID/INIT carry SNA. Two fixed draws reach VALID (the run itself) and DEGRADED (a
+    fifth of the way: the draws leave the model's envelope or trip checks), whatever Hypothesis draws besides.
+    (Random payloads alone, above, almost never get past INIT.)"""
     time_s, sig, _, _ = sim_runs[-1]
     k = int(np.searchsorted(time_s, 4.0))  # 4 s: the history fills, then 40 or so ticks
-    seen: list[np.ndarray] = []
 
-    @settings(max_examples=12, deadline=None, derandomize=True, database=None,
-              suppress_health_check=[HealthCheck.too_slow])
-    @given(st.integers(0, 2**32 - 1), st.sampled_from([0.0, 0.05, 0.2, 0.5, 1.0]))
-    def prop(seed, share):
+    def statuses(seed: int, share: float) -> set[int]:
         rng = np.random.default_rng(seed)
         drawn = {}
         for name, v in sig.items():
@@ -417,11 +414,18 @@ def test_in_range_inputs_drawn_at_random_keep_the_contract_in_every_status(model
                 vs.process(can.Message(timestamp=tick, arbitration_id=SYNC_ID, is_extended_id=False))
                 tick += 0.05
             vs.process(m)
-        seen.append(_stop_and_check_the_contract(vs).ravel())
+        return set(_stop_and_check_the_contract(vs).ravel().tolist())
+
+    assert VALID in statuses(1, 0.0)
+    assert DEGRADED in statuses(1, 0.2)
+
+    @settings(max_examples=10, deadline=None, derandomize=True, database=None,
+              suppress_health_check=[HealthCheck.too_slow])
+    @given(st.integers(0, 2**32 - 1), st.sampled_from([0.0, 0.05, 0.2, 0.5, 1.0]))
+    def prop(seed, share):
+        statuses(seed, share)
 
     prop()
-    statuses = set(np.concatenate(seen).tolist())
-    assert {VALID, DEGRADED} <= statuses, statuses
 
 
 def _stop_and_check_the_contract(vs: VirtualSensor) -> np.ndarray:

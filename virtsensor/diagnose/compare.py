@@ -208,7 +208,8 @@ def compare(runs: Sequence[MeasuredRun], idn, names: Sequence[str]) -> Compariso
 
     The statistics, the SAT residual's dependence and the spectra cover the runs the identification compared:
     a run it left out (``idn.excluded``, by name: not reproduced at its identified conditions) would dominate
-    them with residuals it was left out for. Its series stay, marked ``excluded``."""
+    them with residuals it was left out for. Its series stay, marked ``excluded``. (Were every run left out,
+    which the identification never does, the statistics would cover them all rather than none.)"""
     best = idn.best_sims if idn.best is not None else None
     left_out = getattr(idn, "excluded", None) or {}
     keep = [r for r, run in enumerate(runs) if run.name not in left_out] or list(range(len(runs)))

@@ -201,6 +201,9 @@ class Data:
         live = [r for r in range(len(self.runs)) if any(k[r] for k in rows)]
         at = {r: i for i, r in enumerate(live)}
         by_run = len(live) >= MIN_FOLDS
+        #: what each fold is: a run's name, or its first or second half (``name#1``, ``name#2``)
+        self.fold_names = [self.runs[r].name for r in live] if by_run else [
+            f"{self.runs[r].name}#{h}" for r in live for h in (1, 2)]
         out = {}
         for n, counts in zip(self.names, rows, strict=True):
             parts = [np.full(k, at[r]) if by_run else 2 * at[r] + (np.arange(k) >= k // 2)
@@ -877,7 +880,7 @@ def held_out_evidence(data: Data, fit: Fit, background: Any, sims_of: Mapping[tu
     picks = [int(np.argmin(total - m[:, f])) for f in range(data.n_folds)]
     gains = [float(feff * (m[0, f] - m[j, f])) for f, j in enumerate(picks)]
     return {"evidence": float(sum(gains)), "per_fold": [round(g, 2) for g in gains],
-            "values": [vals[j] for j in picks], "folds": data.n_folds,
+            "values": [vals[j] for j in picks], "folds": data.n_folds, "fold_names": list(data.fold_names),
             "contradicted_by": [f for f, g in enumerate(gains) if g < -HELD_OUT_CONTRADICTS]}
 
 

@@ -55,14 +55,17 @@ def grouped_split(groups: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray
 def _observer_fit_predict(ds_train: Dataset, parts: Mapping[str, Dataset],
                           rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The eq. (1) observer differentiates within runs: fit and predict run by run. ``rows``: the rows of
-    ``ds_train`` the least squares fits on (default all); the column torque is computed on its whole runs
-    first (a run with rows taken out is not 50 ms apart between its remaining rows)."""
+    ``ds_train`` the least squares fits on (indices or a boolean mask; default all); the column torque is
+    computed on its whole runs first (a run with rows taken out is not 50 ms apart between its remaining rows)."""
     obs = SteeringObserver(ds_train.feature_names)
     tau_all = np.empty(len(ds_train.X))
     for g in np.unique(ds_train.groups):
         m = ds_train.groups == g
         tau_all[m] = obs.column_torque(ds_train.X[m])
-    keep = np.ones(len(ds_train.X), dtype=bool) if rows is None else np.isin(np.arange(len(ds_train.X)), rows)
+    keep = np.ones(len(ds_train.X), dtype=bool)
+    if rows is not None:  # (indices or a boolean mask, as Dataset.subset takes)
+        keep[:] = False
+        keep[rows] = True
     tau, Y = tau_all[keep], ds_train.Y[keep]
     obs.coef_, *_ = np.linalg.lstsq(np.column_stack([tau, np.ones_like(tau)]), Y, rcond=None)
     out = {}
