@@ -211,7 +211,7 @@ def compare(runs: Sequence[MeasuredRun], idn, names: Sequence[str]) -> Compariso
     them with residuals it was left out for. Its series stay, marked ``excluded``. (Were every run left out,
     which the identification never does, the statistics would cover them all rather than none.)"""
     best = idn.best_sims if idn.best is not None else None
-    left_out = getattr(idn, "excluded", None) or {}
+    left_out = idn.excluded
     keep = [r for r, run in enumerate(runs) if run.name not in left_out] or list(range(len(runs)))
     kr, nom = [runs[r] for r in keep], [idn.nominal_sims[r] for r in keep]
     kb = [best[r] for r in keep] if best is not None else None

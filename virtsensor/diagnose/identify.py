@@ -190,26 +190,26 @@ class Data:
         self.n = {k: len(v) for k, v in self.meas.items()}
         self.floor = {n: max(cat.SIGNALS[n].resolution, 1e-9) ** 2 / 12.0 for n in names}
         self.shifts: dict[str, float] = {}
-        self.fold, self.n_folds = self._folds()
+        self.fold, self.n_folds, self.fold_names = self._folds()
 
-    def _folds(self) -> tuple[dict[str, np.ndarray], int]:
+    def _folds(self) -> tuple[dict[str, np.ndarray], int, list[str]]:
         """Per signal, the fold of each compared row for held-out evidence (:func:`held_out_evidence`): its run
         when :data:`MIN_FOLDS` runs or more are compared (a catalogue effect is the same on every run of the day),
         else the first or second half of its run's rows (each run's halves, in time). Only runs with compared
-        rows are folds (numbered in run order): a run left out (:meth:`exclude`) is none."""
+        rows are folds (numbered in run order): a run left out (:meth:`exclude`) is none. Returned: the folds per
+        signal, their number and what each is (a run's name, or its first or second half: ``name#1``, ``name#2``)."""
         rows = [[int(sum(int(m.sum()) for m in ms)) for ms in self.masks[n]] for n in self.names]
         live = [r for r in range(len(self.runs)) if any(k[r] for k in rows)]
         at = {r: i for i, r in enumerate(live)}
         by_run = len(live) >= MIN_FOLDS
-        #: what each fold is: a run's name, or its first or second half (``name#1``, ``name#2``)
-        self.fold_names = [self.runs[r].name for r in live] if by_run else [
+        names = [self.runs[r].name for r in live] if by_run else [
             f"{self.runs[r].name}#{h}" for r in live for h in (1, 2)]
         out = {}
         for n, counts in zip(self.names, rows, strict=True):
             parts = [np.full(k, at[r]) if by_run else 2 * at[r] + (np.arange(k) >= k // 2)
                      for r, k in enumerate(counts) if r in at]
             out[n] = np.concatenate(parts).astype(int) if parts else np.zeros(0, int)
-        return out, (len(live) if by_run else 2 * len(live))
+        return out, len(names), names
 
     def fold_rss(self, name: str, pred: np.ndarray) -> np.ndarray:
         """Per fold: the residual sum of squares of ``name`` predicted ``pred`` (on the compared rows)."""
@@ -235,7 +235,7 @@ class Data:
                                         for r, ms in zip(self.runs, self.masks[n], strict=True)
                                         for seg, m in zip(r.segments, ms, strict=True)]) for n in self.names}
         self.n = {k: len(v) for k, v in self.meas.items()}
-        self.fold, self.n_folds = self._folds()  # a run left out is no fold
+        self.fold, self.n_folds, self.fold_names = self._folds()  # a run left out is no fold
 
     def stack(self, sims: Sequence[Sequence[Mapping[str, Any]]], name: str,
               override: Any = None) -> np.ndarray:

@@ -62,11 +62,7 @@ def _observer_fit_predict(ds_train: Dataset, parts: Mapping[str, Dataset],
     for g in np.unique(ds_train.groups):
         m = ds_train.groups == g
         tau_all[m] = obs.column_torque(ds_train.X[m])
-    keep = np.ones(len(ds_train.X), dtype=bool)
-    if rows is not None:  # (indices or a boolean mask, as Dataset.subset takes)
-        keep[:] = False
-        keep[rows] = True
-    tau, Y = tau_all[keep], ds_train.Y[keep]
+    tau, Y = (tau_all, ds_train.Y) if rows is None else (tau_all[rows], ds_train.Y[rows])
     obs.coef_, *_ = np.linalg.lstsq(np.column_stack([tau, np.ones_like(tau)]), Y, rcond=None)
     out = {}
     for name, ds in parts.items():
