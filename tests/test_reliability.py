@@ -135,6 +135,27 @@ def test_time_base_step_back_recovers_once_frames_run_in_order(model, frames):
     assert vs.counters["time_step_back"] == sum(c < 0.02 for c in vs.layout.cycles_s) == 3
 
 
+@pytest.mark.parametrize("lost", [1, 6])
+def test_the_ticks_after_a_gap_are_not_valid_until_the_history_has_refilled(model, frames, lost):
+    """Sync frames lost for ``lost`` ticks while every input keeps arriving on time: the first tick after the gap
+    would build its rates and lags from rows before it as if they were one tick old. It and the next ones are not
+    VALID until every input's history holds rows after the gap only; then VALID again."""
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    syncs = [i for i, m in enumerate(merged) if m.arbitration_id == SYNC_ID]
+    gone = set(syncs[80:80 + lost])
+    ticks, vs = _drive_sync(model, [m for i, m in enumerate(merged) if i not in gone])
+    control, _ = _drive_sync(model, merged)
+    first = merged[syncs[80 + lost]].timestamp  # the first tick after the gap
+    _valid_before(ticks, min(gone))
+    after = [s for _, t, s, _ in ticks if t >= first]
+    assert [s for _, t, s, _ in control if t >= first][:10] == [(VALID, VALID)] * 10  # (VALID without the gap)
+    hist = max(vs._rules.sig_hist[i] for i in range(len(vs._rules.critical)) if vs._rules.critical[i])
+    assert hist >= 1
+    assert after[:hist] == [(INVALID, INVALID)] * hist, after[:hist + 2]
+    assert after[hist:hist + 10] == [(VALID, VALID)] * 10
+    assert vs.counters["tick_gaps"] == 1
+
+
 def test_free_running_backlog_is_aged_by_its_interface_timestamps(model, frames):
     """Free-running, frames drained at each tick, in real time: a backlog the interface held back and
     released late is stale (INVALID), although it has just arrived; live frames then bring VALID back."""

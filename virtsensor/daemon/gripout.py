@@ -78,6 +78,10 @@ class GripOutput:
         (e_fl, s_fl), (e_fr, s_fr) = self._sat
         return self.fill(sat_values[e_fl], sat_values[e_fr], sat_values[s_fl], sat_values[s_fr], inputs, bad)
 
+    def restart(self) -> None:
+        """Restart the estimate's filters (after a gap between ticks); the friction held is kept."""
+        self.estimator.reset()
+
     def send(self, send: Any) -> None:
         """Hand the latest filled frame to ``send`` (the bus link's)."""
         send(self.msg)
@@ -122,6 +126,9 @@ class NoGrip:
     enabled = False
 
     def fill_tick(self, sat_values: Any, inputs: Sequence[float], bad: Sequence[bool] = ()) -> None:
+        return None
+
+    def restart(self) -> None:
         return None
 
     def send(self, send: Any) -> None:

@@ -60,6 +60,7 @@ from virtsensor.daemon.validity import (
     assess_inputs,
     envelope_status,
     outside_envelope,
+    restart_recovery,
     wheel_status,
 )
 from virtsensor.features import FeatureBuilder
@@ -79,7 +80,13 @@ _COUNTERS = ("frames", "input_frames", "other_frames", "unknown_ids", "error_fra
              *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
              "future_stamped", "time_step_back", "implausible_checks", "drained_frames",
              "ticks", "overruns", "tick_errors", "sent", "send_errors", "unsent", "recv_errors", "reconnects",
-             "reconnect_failures", "status_changes", "envelope_exits", "envelope_ticks")
+             "reconnect_failures", "status_changes", "envelope_exits", "envelope_ticks", "tick_gaps")
+#: The longest time between two ticks (s) over which the feature history still holds rows one tick apart: half a
+#: tick late at most. After a longer gap (a skipped deadline, lost sync frames, a stalled thread), or a tick time
+#: that does not advance, the features would read rows from before it as if 50 ms old: every input with a history
+#: needs that history's worth of ticks again, as after a stale tick (:func:`~virtsensor.daemon.validity.
+#: restart_recovery`: INVALID, or DEGRADED where only non-critical inputs read a history; counted as ``tick_gaps``).
+MAX_TICK_GAP_S = 1.5 * TICK_NS * 1e-9
 
 
 class VirtualSensor:
@@ -146,6 +153,7 @@ class VirtualSensor:
         self._stop = threading.Event()
         self._link = BusLink(bus, bus_factory, self.counters, self._stop, reconnect_backoff_s, reconnect_max_s)
         self._push = hook("feature_vector", FeatureBuilder(lay.spec).push)
+        self._tick_t = -math.inf  # (the previous tick's time)
         self._predict = hook("inference", model.predict_one)
         self.fallback, self._predict_fb, self._inputs_complete = _fallback_parts(model, lay, hook, self._predict)
         self._send_sat = hook("send", self._link.send)
@@ -270,6 +278,10 @@ class VirtualSensor:
             gc.disable()
         try:
             rx = self.inputs
+            gap = t - self._tick_t
+            self._tick_t = t
+            if not 0.0 < gap <= MAX_TICK_GAP_S and gap != math.inf:
+                _restart_history(self, t, gap)
             order = rx.order
             n_future = order.tick(t)
             if n_future:
@@ -421,6 +433,17 @@ def _model_inputs(self: VirtualSensor, x: list[float]) -> tuple[list[float], Any
     if fb is not None and fb.active(self._state.bad):
         return x[: fb.n], self._predict_fb
     return x, self._predict
+
+
+def _restart_history(self: VirtualSensor, t: float, gap: float) -> None:
+    """After a gap between ticks (see :data:`MAX_TICK_GAP_S`): every input with a history recovers as after a stale
+    tick, and the grip estimate's filters restart (they too take their rows one tick apart); count and log it
+    (the first 3, then every 100th)."""
+    restart_recovery(self._rules, self._state)
+    self._out.grip.restart()
+    n = self.counters["tick_gaps"] = self.counters["tick_gaps"] + 1
+    if n <= 3 or n % 100 == 0:
+        event(logging.WARNING, "tick_gap", t=round(t, 6), gap_ms=round(gap * 1e3, 3), tick_gaps=n)
 
 
 def _log_implausible(self: VirtualSensor, t: float) -> None:

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
-           "PlausibilityRule", "Plausibility", "judge", "assess_inputs", "wheel_status", "EnvelopeRules",
-           "outside_envelope", "envelope_status"]
+           "restart_recovery", "PlausibilityRule", "Plausibility", "judge", "assess_inputs", "wheel_status",
+           "EnvelopeRules", "outside_envelope", "envelope_status"]
 
 #: Per-wheel status codes of ``SAT_FRONT.SAT_xx_Status`` (DBC value table).
 VALID, DEGRADED, INVALID, INIT = 0, 1, 2, 3
@@ -142,6 +142,16 @@ def assess_inputs(t: float, sig_time: Sequence[float], sig_flag: Sequence[bool],
             if bad[i]:
                 bitmap &= ~bit
     return status, bitmap
+
+
+def restart_recovery(rules: ValidityRules, state: ValidityState) -> None:
+    """After a gap between ticks: every model input whose features read a history (``rules.sig_hist``) needs that
+    many ticks again before it counts as good, as after a stale tick, so that no feature reads a row from before
+    the gap as one tick old (the tick that follows is the first of them)."""
+    rec, hist = state.recover, rules.sig_hist
+    for i in range(len(rules.critical)):
+        if hist[i] > rec[i]:
+            rec[i] = hist[i]
 
 
 def wheel_status(input_status: int, estimate: float, lo: float, hi: float) -> int:
