@@ -406,9 +406,13 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     assert f"({res['n_eff_factor']:.3f} x n" in md
 
 
-def test_a_control_car_answers_none_through_the_cli(tmp_path, capsys):
+def test_a_control_car_answers_none_through_the_cli(tmp_path, capsys, monkeypatch):
+    import virtsensor.diagnose as dg
     from virtsensor.cli import main
     from virtsensor.diagnose.hidden import make_case
+
+    real, kept = dg.diagnose, []
+    monkeypatch.setattr(dg, "diagnose", lambda *a, **k: kept.append(real(*a, **k)) or kept[-1])
 
     # two of the diagnosis programme's runs (the shorter ones) keep the suite quick
     case = make_case(7, tmp_path / "runs", control=True, holdout=(),
@@ -436,6 +440,18 @@ def test_a_control_car_answers_none_through_the_cli(tmp_path, capsys):
     assert {"bias", "gain", "lag_s", "nrmse"} <= set(res["comparison"]["nominal"]["sat_fl_nm"])
     pytest.importorskip("matplotlib")
     assert (tmp_path / "report" / "diagnose_timeseries.png").stat().st_size > 10_000
+    # all or none: a report whose diagnosis.md is taken by a folder fails, and neither the JSON nor the summary
+    # nor any report file is left (the same diagnosis again, not recomputed)
+    monkeypatch.setattr(dg, "diagnose", lambda *a, **k: kept[0])
+    (tmp_path / "bad" / "diagnosis.md").mkdir(parents=True)
+    capsys.readouterr()
+    rc = main(["diagnose", "--measured", *map(str, case.diagnosis), "--no-retrain", "--json",
+               str(tmp_path / "again.json"), "--report", str(tmp_path / "bad"), "--quiet"])
+    cap = capsys.readouterr()
+    assert rc != 0 and "diagnosis.md" in cap.err and len(cap.err.strip().splitlines()) == 1, cap.err
+    assert cap.out == "" and not (tmp_path / "again.json").exists()
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".partial")) == []
+    assert [p.name for p in (tmp_path / "bad").iterdir()] == ["diagnosis.md"]
 
 
 @pytest.mark.parametrize(("argv", "msg"), [

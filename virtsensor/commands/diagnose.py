@@ -70,7 +70,6 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.commands._simargs import car_from_args
     from virtsensor.diagnose import diagnose
     from virtsensor.errors import UserError
-    from virtsensor.fileio import atomic_write_bytes, write_json
     from virtsensor.learning.training import RECIPES
     from virtsensor.recordings.measured import load_measured
 
@@ -114,21 +113,41 @@ def run(args: argparse.Namespace) -> int:
                         preset=args.campaign, recipe=args.recipe, seed=args.seed, max_iter=args.max_iter,
                         ensemble=args.ensemble, n_jobs=args.n_jobs, retrain=not args.no_retrain, log=log)
     res["skipped_runs"] = [{"file": p, "reason": why} for p, why in skipped]
-    if args.export_model:
-        res["exported_model"] = _export(art["after"], res, args)
+    export = _export(art["after"], res, args) if args.export_model else None
+    n_plots = _write_outputs(res, art, args, export)
     print(_summary(res))
-    if args.json:
-        write_json(args.json, res)
     if args.report:
-        from virtsensor.diagnose.report import markdown, plots
-
         d = Path(args.report)
-        d.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(d / "diagnosis.md", markdown(res).encode())
-        files = plots(art, res, d)
-        log(f"report: {d / 'diagnosis.md'}" + (f" and {len(files)} plots" if files else
+        log(f"report: {d / 'diagnosis.md'}" + (f" and {n_plots} plots" if n_plots else
                                                 " (plots skipped: matplotlib is not installed)"))
     return 0
+
+
+def _write_outputs(res, art, args, export) -> int:
+    """The JSON, the exported model and its card, the report and its plots: all or none (each written into a
+    staged file or folder, put in place once every one is written); returns the number of plots."""
+    from contextlib import nullcontext
+
+    from virtsensor.fileio import staged_dir, staged_files, write_json
+    from virtsensor.model.card import card_path_for
+
+    model = Path(args.export_model) if export is not None else None
+    n_plots = 0
+    with staged_files(args.json, model, None if model is None else card_path_for(model)) as (js, mo, ca), \
+            (staged_dir(args.report) if args.report else nullcontext()) as rep:
+        if js is not None:
+            write_json(js, res)
+        if export is not None and mo is not None and ca is not None:
+            onnx_bytes, card = export
+            card.verify()
+            mo.write_bytes(onnx_bytes)
+            ca.write_bytes(card.text().encode("utf-8"))
+        if rep is not None:
+            from virtsensor.diagnose.report import markdown, plots
+
+            (rep / "diagnosis.md").write_bytes(markdown(res).encode())
+            n_plots = len(plots(art, res, rep))
+    return n_plots
 
 
 def _summary(res) -> str:
@@ -158,13 +177,15 @@ def _summary(res) -> str:
     return line
 
 
-def _export(est, res, args) -> str:
+def _export(est, res, args) -> tuple[bytes, object]:
+    """The calibrated estimator as ONNX bytes and its sealed card (nothing written: :func:`_write_outputs`); sets
+    ``res["exported_model"]``."""
     import numpy as np
 
     from virtsensor.errors import UserError
     from virtsensor.features import SPECS
     from virtsensor.model import ModelCard
-    from virtsensor.model.export import export_pipeline, pipeline_weights
+    from virtsensor.model.export import build_export, pipeline_weights
 
     spec = SPECS[est.recipe["features"]]
     rng = np.random.default_rng(args.seed)
@@ -178,7 +199,9 @@ def _export(est, res, args) -> str:
         metrics={k: res.get(k) for k in ("mae_before_nm", "mae_after_nm", "r2_before", "r2_after")},
         weights=pipeline_weights(est.pipeline))
     try:
-        card = export_pipeline(est.pipeline, len(spec.names), args.export_model, parity_X=parity, card_extra=extra)
+        onnx_bytes, card = build_export(est.pipeline, len(spec.names), args.export_model, parity_X=parity,
+                                        card_extra=extra)
     except ValueError as exc:
         raise UserError(f"{args.export_model}: export refused: {exc}") from None
-    return f"{args.export_model} (sha256 {card['sha256'][:12]}...)"
+    res["exported_model"] = f"{args.export_model} (sha256 {card['sha256'][:12]}...)"
+    return onnx_bytes, card

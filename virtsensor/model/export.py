@@ -60,7 +60,22 @@ COMPUTED_KEYS = (
 Precision = Literal["float32", "float64"]
 
 
-def export_pipeline(
+def export_pipeline(pipeline: Any, n_features: int, path: str | os.PathLike[str], **options: Any) -> ModelCard:
+    """Convert a fitted pipeline to one ONNX file and write its sealed model card beside it: :func:`build_export`
+    (every check; arguments and errors as there), then the graph and the card written (each atomically).
+
+    Returns:
+        The card as written.
+    """
+    onnx_bytes, sealed = build_export(pipeline, n_features, path, **options)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, onnx_bytes)
+    sealed.write(card_path_for(path))
+    return sealed
+
+
+def build_export(
     pipeline: Any,
     n_features: int,
     path: str | os.PathLike[str],
@@ -72,7 +87,9 @@ def export_pipeline(
     target_opset: Mapping[str, int] | None = None,
     lean: bool = True,
 ) -> ModelCard:
-    """Convert a fitted pipeline to one ONNX file and write its sealed model card beside it.
+    """A fitted pipeline converted to ONNX and its sealed model card, checked as the runtime loads them, for
+    ``path`` (the card names that file and is meant for :func:`card_path_for` it); nothing is written (a caller
+    that writes other outputs with them stages all of them: :func:`export_pipeline` writes just these two).
 
     Args:
         pipeline: fitted sklearn pipeline (e.g. ``RobustScaler`` + ``MLPRegressor``
@@ -100,12 +117,12 @@ def export_pipeline(
             skl2onnx's graph as converted (as exports before the rewrite existed).
 
     Returns:
-        The card as written.
+        ``(onnx_bytes, card)``.
 
     Raises:
         ValueError: bad arguments, export parity worse than
             :data:`~virtsensor.model.onnx.PARITY_TOL_NM` Nm, or ``weights`` that do not reproduce
-            the graph (nothing is written then).
+            the graph.
     """
     n_features = int(n_features)
     _check_args(pipeline, n_features, card_extra, precision)
@@ -130,10 +147,7 @@ def export_pipeline(
         rt.OnnxModel(onnx_bytes, sealed, path=path, card_path=card_path_for(path), use_iobinding=False)
     except UserError as exc:
         raise ValueError(f"exported model fails its own load checks: {exc}") from None
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, onnx_bytes)
-    sealed.write(card_path_for(path))
-    return sealed
+    return onnx_bytes, sealed
 
 
 def _check_args(pipeline: Any, n_features: int, card_extra: Mapping[str, Any], precision: str) -> None:
