@@ -166,6 +166,26 @@ def test_a_limit_run_interrupted_or_failing_is_said_so_and_the_main_figures_stay
 
 
 @pytest.mark.skipif(not HAVE_MPL, reason="matplotlib is not installed")
+def test_outputs_are_all_or_none_a_figures_file_that_cannot_be_written_leaves_no_plot(tmp_path, monkeypatch, capsys):
+    import errno
+
+    import virtsensor.demo as d
+
+    def full(path, obj):  # the disk fills up as the figures are written, after both plots
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(d, "write_json", full)
+    rc, text = run_demo_cli("--rate", "max", "--no-live", "--json", str(tmp_path / "o.json"), "--plot",
+                            str(tmp_path / "o.png"))
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]  # (after the daemon's log lines, where a test set them up)
+    assert rc == 1 and last.startswith("virtsensor demo: error: No space left on device") and "o.json" in last, err
+    assert "Traceback" not in err
+    assert "ticks:" not in text and "figures:" not in text  # no summary (the lines of what it replays came first)
+    assert sorted(tmp_path.iterdir()) == []  # no plot, no limit plot, no staged file
+
+
+@pytest.mark.skipif(not HAVE_MPL, reason="matplotlib is not installed")
 def test_demo_writes_the_plot(demo):
     assert demo["json"]["plot"] == str(demo["plot"])
     assert demo["plot"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

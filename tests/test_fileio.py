@@ -96,6 +96,17 @@ def test_a_full_disk_is_one_line_naming_the_file_exit_1(tmp_path, capsys, monkey
     assert out.read_text() == "an older run\n" and sorted(p.name for p in tmp_path.iterdir()) == ["x.csv"]
 
 
+def test_a_staged_file_the_block_removes_is_not_written_and_its_target_is_untouched(tmp_path):
+    from virtsensor.fileio import staged_files
+
+    (tmp_path / "b.png").write_text("old")
+    with staged_files(tmp_path / "a.json", tmp_path / "b.png") as (a, b):
+        a.write_text("{}")
+        b.unlink()  # (nothing to draw)
+    assert (tmp_path / "a.json").read_text() == "{}" and (tmp_path / "b.png").read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.png"]
+
+
 def test_a_staged_writers_own_temporary_file_is_reported_as_its_target(tmp_path):
     """A writer inside the block may write atomically itself (a temporary file of the temporary file): its
     OSError is raised again naming the target the user asked for, not a file that no longer exists."""

@@ -46,7 +46,7 @@ from virtsensor import plotting
 from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
 from virtsensor.demogrip import GRIP_SIGNALS, grip_line, grip_summary, plot_grip
 from virtsensor.errors import UserError
-from virtsensor.fileio import check_writable, write_json
+from virtsensor.fileio import check_writable, staged_files, write_json
 from virtsensor.metrics import mae, r2
 
 __all__ = [
@@ -371,29 +371,43 @@ def run_demo(
     ticks: _Ticks = result.pop("_ticks")
     stats = result.pop("_stats")
     metrics = _add_figures(result, ticks, stats, opts, plan, model_sha256)
-    result["limit_run"] = _limit_run(opts) if opts.limit and not result.get("interrupted") else None
-    if result["limit_run"] is not None and result["limit_run"].get("interrupted"):
-        result["interrupted"] = True  # (Ctrl-C during the limit run: the demo was interrupted)
-    _write_outputs(result, ticks, metrics, opts, wall0, out)
+    plot = opts.plot_path if opts.plot_skip is None else None
+    for f in (plot, opts.limit_plot, opts.json_file):
+        if f is not None:
+            f.parent.mkdir(parents=True, exist_ok=True)
+    with staged_files(plot, opts.limit_plot, opts.json_file) as (plot_tmp, limit_tmp, json_tmp):  # (all or none)
+        result["limit_run"] = _limit_run(opts, limit_tmp) if opts.limit and not result.get("interrupted") else None
+        if result["limit_run"] is not None and result["limit_run"].get("interrupted"):
+            result["interrupted"] = True  # (Ctrl-C during the limit run: the demo was interrupted)
+        _write_outputs(result, ticks, metrics, opts, wall0, plot_tmp, json_tmp)
+    _print_summary(result, out)
+    if opts.json_file is not None:
+        print(f"figures: {_shown(opts.json_file)}", file=out, flush=True)
     return result
 
 
-def _limit_run(opts: _Options) -> dict[str, Any]:
+def _limit_run(opts: _Options, plot_tmp: Path | None) -> dict[str, Any]:
     """The bundled limit run (:data:`DEMO_LIMIT_RUN`) through a fresh daemon with the same model, at full speed and
-    quietly, its plot at ``opts.limit_plot``. Returned: the run, its SAT metrics and statuses, its grip figures
+    quietly, its plot drawn into ``plot_tmp`` (the staged file of ``opts.limit_plot``; removed when it draws none).
+    Returned: the run, its SAT metrics and statuses, its grip figures
     (:func:`~virtsensor.demogrip.grip_summary`), its plot (None: none), whether it was interrupted or ticked short
     (``complete``); a run that fails is ``{"error": ...}``, so that the main run's figures are still written."""
     try:
         sub = run_demo(model=opts.model_path, recording=limit_recording(), rate=None, live=False,
-                       plot=opts.limit_plot, out=io.StringIO())
+                       plot=plot_tmp, out=io.StringIO())
     except (UserError, OSError, ValueError, RuntimeError) as exc:
-        return {"error": f"{type(exc).__name__}: {exc}"}
+        sub = {"error": f"{type(exc).__name__}: {exc}"}
+    if plot_tmp is not None and sub.get("plot") is None:
+        plot_tmp.unlink(missing_ok=True)  # (no plot drawn: none put in place)
+    if "error" in sub:
+        return sub
     m, c = sub["metrics"], sub["daemon_counters"]
     complete = sub["ticks"] == sub["sync_frames"] and not c.get("tick_errors") and not c.get("send_errors")
     return {"recording": sub["recording"], "recording_description": sub["recording_description"], "rate": sub["rate"],
             "ticks": sub["ticks"], "sync_frames": sub["sync_frames"], "interrupted": sub["interrupted"],
             "complete": complete, "mean_mae_nm": None if m is None else m["mean"]["mae_nm"],
-            "mean_r2": None if m is None else m["mean"]["r2"], "grip": sub["grip"], "plot": sub["plot"],
+            "mean_r2": None if m is None else m["mean"]["r2"], "grip": sub["grip"],
+            "plot": None if sub["plot"] is None else str(opts.limit_plot),
             "statuses": sub["statuses"]}
 
 
@@ -464,22 +478,21 @@ def _add_figures(result: dict[str, Any], ticks: _Ticks, stats: dict[str, Any], o
 
 
 def _write_outputs(result: dict[str, Any], ticks: _Ticks, metrics: dict[str, Any] | None, opts: _Options,
-                   wall0: float, out: TextIO) -> None:
-    """Draw the plot (when asked for and possible), print the summary, write the JSON (atomically)."""
+                   wall0: float, plot_tmp: Path | None, json_tmp: Path | None) -> None:
+    """Draw the plot (when asked for and possible) into ``plot_tmp`` and write the JSON into ``json_tmp``: the
+    staged files of ``opts.plot_path`` and ``opts.json_file`` (a plot not drawn removes its file)."""
     result["plot"] = None
     result["plot_skipped"] = opts.plot_skip
-    if opts.plot_path is not None and opts.plot_skip is None:
+    if plot_tmp is not None:
         if len(ticks.t):
-            _plot(opts.plot_path, ticks, metrics, result)
+            _plot(plot_tmp, ticks, metrics, result)
             result["plot"] = str(opts.plot_path)
         else:
             result["plot_skipped"] = "no tick to plot"
+            plot_tmp.unlink(missing_ok=True)
     result["wall_s"] = round(time.monotonic() - wall0, 3)
-    _print_summary(result, out)
-    if opts.json_file is not None:
-        opts.json_file.parent.mkdir(parents=True, exist_ok=True)
-        write_json(opts.json_file, result)
-        print(f"figures: {_shown(opts.json_file)}", file=out, flush=True)
+    if json_tmp is not None:
+        write_json(json_tmp, result)
 
 
 class _PlayerThread:

@@ -162,7 +162,8 @@ def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | 
     """Yield, per path (None stays None), a new empty temporary file beside it (``.partial-`` name, the same
     suffix: writers that choose the format by suffix write the right one) to write that output into; when the
     block ends without an error, every temporary file is made readable by all (0644), synced and renamed over
-    its target, then the folders synced. On an exception or an interrupt in the block every temporary file is
+    its target, then the folders synced; a temporary file the block removed is not (that output is not written,
+    its target untouched). On an exception or an interrupt in the block every temporary file is
     removed and no target is touched (an existing one keeps its content). A rename that fails part way leaves
     the outputs renamed so far in place.
 
@@ -180,6 +181,7 @@ def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | 
                 continue
             temps.append(_temp_beside(t))
         yield temps
+        temps = [None if tmp is None or not tmp.exists() else tmp for tmp in temps]  # (removed: not written)
         for tmp in temps:
             if tmp is not None:
                 with open(tmp, "rb+") as f:
