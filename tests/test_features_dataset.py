@@ -222,6 +222,25 @@ def test_grid_search_scores_candidates_on_held_out_runs_and_ranks_them():
         grid_search(X, Y, np.zeros(len(X), dtype=int), folds=3, n_jobs=1, progress=False)
 
 
+def test_a_grid_candidate_with_a_nonfinite_fold_ranks_last_and_the_result_is_json(monkeypatch):
+    """A candidate that diverges (or meets a flat fold) scores a non-finite R2: it is ranked last with null scores
+    (the model card is JSON, which has no NaN), and a grid where every candidate does so is refused."""
+    import json
+
+    import virtsensor.learning.training as tr
+
+    rng = np.random.default_rng(1)
+    X, Y, groups = rng.normal(size=(90, 2)), rng.normal(size=(90, 2)), np.repeat(np.arange(3), 30)
+    monkeypatch.setattr(tr, "_score_candidate", lambda params, *a: np.nan if params["alpha"] < 1e-3 else 0.25)
+    res = tr.grid_search(X, Y, groups, grid={"alpha": [1e-4, 1e-2]}, folds=3, n_jobs=1, progress=False)
+    assert [c["params"]["alpha"] for c in res.candidates] == [1e-2, 1e-4] and res.best_r2 == 0.25
+    assert res.candidates[1]["r2_mean"] is None and res.candidates[1]["nonfinite_folds"] == 3
+    json.dumps(res.candidates, allow_nan=False)
+    monkeypatch.setattr(tr, "_score_candidate", lambda *a: -np.inf)
+    with pytest.raises(ValueError, match="no candidate has a finite R2"):
+        tr.grid_search(X, Y, groups, grid={"alpha": [1e-4, 1e-2]}, folds=3, n_jobs=1, progress=False)
+
+
 def test_evaluate_refuses_a_run_without_a_usable_sample(tmp_path, capsys):
     """A run whose every row lacks an input (ay all NaN) is refused in one line naming it, as ``score`` does,
     instead of counting as a run that gave nothing."""

@@ -83,8 +83,12 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore")  # convergence notes: the iteration counts go to the card instead
         if args.grid:
-            result = grid_search(ds.X, ds.Y, ds.groups, folds=GRID_FOLDS, max_rows=args.grid_rows, seed=args.seed,
-                                 n_jobs=args.jobs, progress=not args.quiet, base_params=recipe["params"])
+            try:
+                result = grid_search(ds.X, ds.Y, ds.groups, folds=GRID_FOLDS, max_rows=args.grid_rows,
+                                     seed=args.seed, n_jobs=args.jobs, progress=not args.quiet,
+                                     base_params=recipe["params"])
+            except ValueError as exc:  # (no candidate with a finite R2)
+                raise UserError(f"--grid: {exc}") from None
             recipe["params"] = result.best_params
             report["grid_search"] = {"best_r2": result.best_r2, "seconds": result.seconds, "rows": result.rows,
                                      "folds": result.folds, "candidates": result.candidates}

@@ -17,6 +17,7 @@ and the estimator's hyper-parameters.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -132,7 +133,8 @@ class SteeringObserver(RegressorMixin, BaseEstimator):
 
 @dataclass
 class GridResult:
-    """Grid-search outcome: every candidate's mean and std R2 over the folds, best first."""
+    """Grid-search outcome: every candidate's mean and std R2 over the folds, best first (None, last, for a candidate
+    with a fold whose R2 is not finite: ``nonfinite_folds`` says how many)."""
 
     candidates: list[dict[str, Any]]
     best_params: dict[str, Any]
@@ -165,7 +167,11 @@ def grid_search(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, *, grid: Mappi
     search uses at most ``max_rows`` rows drawn at random (the winner is then
     trained on everything by the caller): searching the whole set would take an
     hour on a small machine. Fits run in parallel through joblib, with a
-    progress bar over the fits.
+    progress bar over the fits. A candidate with a fold whose R2 is not finite
+    (it diverged, or the fold's target is flat) is ranked last, its scores None.
+
+    Raises:
+        ValueError: fewer runs than ``folds``, or no candidate with a finite R2 on every fold.
     """
     from itertools import product
 
@@ -190,8 +196,13 @@ def grid_search(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, *, grid: Mappi
             scores.append(score)
             bar.update(1)
     per = np.array(scores).reshape(len(combos), folds)
-    candidates = [{"params": {k: c[k] for k in keys}, "r2_mean": float(m), "r2_std": float(sd)}
-                  for c, m, sd in zip(combos, per.mean(axis=1), per.std(axis=1), strict=True)]
-    candidates.sort(key=lambda d: -d["r2_mean"])
+    ok = np.isfinite(per).all(axis=1)  # (a fold whose R2 is not finite: a candidate that diverged, a flat target)
+    candidates = [{"params": {k: c[k] for k in keys}, "r2_mean": float(row.mean()) if good else None,
+                   "r2_std": float(row.std()) if good else None, "nonfinite_folds": int((~np.isfinite(row)).sum())}
+                  for c, row, good in zip(combos, per, ok, strict=True)]
+    if not ok.any():
+        raise ValueError(f"grid search: no candidate has a finite R2 on all {folds} folds of whole runs "
+                         f"({len(rows)} rows); give more runs or drop --grid")
+    candidates.sort(key=lambda d: math.inf if d["r2_mean"] is None else -d["r2_mean"])  # (those last)
     best = {**base_params, **candidates[0]["params"]}
     return GridResult(candidates, best, candidates[0]["r2_mean"], time.perf_counter() - t0, len(rows), folds)
