@@ -192,6 +192,58 @@ def test_free_running_backlog_is_aged_by_its_interface_timestamps(model, frames)
 
 
 
+def test_a_backlog_queued_before_the_daemon_started_is_not_valid_at_start_up(model, frames):
+    """Free-running start-up: the interface holds frames it got 4 s ago (the sender silent since) and hands them
+    over across the first three drains. The first drains cannot tell them from live frames by their timestamps
+    alone (the clock mapping has no reference yet): nothing is VALID until live frames confirm the mapping, then
+    VALID comes back."""
+    bus = _QueueBus()
+    vs = VirtualSensor(bus, model, MATRIX, freeze_gc=False)
+    t0 = frames[0].timestamp
+    w0 = time.time() - 4.0  # wall time (the interface's stamps) of stream time t0: 4 s ago
+
+    def put(a: float, b: float, w: float) -> None:  # stream times (a, b], stamped as got at w + (t - t0)
+        for m in frames:
+            if t0 + a < m.timestamp <= t0 + b:
+                bus.put(m, w + (m.timestamp - t0))
+
+    seen = []
+    for k in range(3):  # the backlog (stream 0 .. 0.45 s, 4 s old), 0.15 s of it at each of the first drains
+        put(0.15 * k, 0.15 * (k + 1), w0)
+        vs.drain()
+        seen.append(vs.tick())
+        time.sleep(0.05)
+    assert VALID not in {s for st in seen for s in st}, seen
+    assert vs.counters["clock_unconfirmed_ticks"] == 3
+    w1 = time.time() - 0.5  # then live frames (stream 0.5 s on, stamped as they arrive)
+    live = []
+    for k in range(20):
+        time.sleep(max(0.0, w1 + 0.5 + 0.05 * (k + 1) - time.time()))
+        put(0.5 + 0.05 * k, 0.5 + 0.05 * (k + 1), w1)
+        vs.drain()
+        live.append(vs.tick())
+    assert live[-5:] == [(VALID, VALID)] * 5, live
+    assert vs.counters["clock_unconfirmed_ticks"] <= 4
+
+
+def test_frames_without_a_timestamp_are_counted_and_said_once(model, frames):
+    """An interface without timestamps: its frames are aged from the drain that reads them, which the E2E gap
+    check of the 10 ms messages cannot pass at 50 ms drains: the daemon counts them and says so, once."""
+    bus = _QueueBus()
+    vs = VirtualSensor(bus, model, MATRIX, freeze_gc=False)
+    t0 = frames[0].timestamp
+    with daemon_events() as ev:
+        for k in range(6):
+            for m in frames:
+                if t0 + 0.05 * k < m.timestamp <= t0 + 0.05 * (k + 1):
+                    bus.put(m, 0.0)
+            vs.drain()
+            vs.tick()
+    n = sum(1 for m in frames if t0 < m.timestamp <= t0 + 0.3)
+    assert vs.counters["unstamped_frames"] == n > 100
+    assert [e["event"] for e in ev.events].count("unstamped_frames") == 1
+
+
 def test_vehicle_speed_disagreeing_with_the_wheel_speeds_is_not_valid_and_named(model):
     """vx 89 m/s while the front wheels roll at 19 m/s: in range, fresh and intact, but implausible."""
     t, sig = synthetic_streams(8.0, seed=5)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from virtsensor.daemon.receive import ClockMap
+from virtsensor.daemon.receive import CONFIRM_S, ClockMap
 from virtsensor.daemon.validity import (
     DEGRADED,
     INVALID,
@@ -141,6 +141,23 @@ def test_clock_map_follows_a_time_base_step_after_its_window():
         assert cm.offset == pytest.approx(5.0)
         cm.push(15.0)  # the interface's clock stepped back by 10 s
     assert cm.offset == pytest.approx(15.0)
+
+
+def test_clock_map_is_confirmed_by_two_consecutive_drains_that_agree():
+    cm = ClockMap(window=4)
+    assert cm.confirmed  # (nothing mapped yet)
+    cm.push(4.5)  # the first drain: a backlog or live frames, no telling
+    assert not cm.confirmed
+    cm.push(4.3)  # the next drain read 0.2 s of stamps in one tick: a backlog being read out
+    assert not cm.confirmed
+    cm.idle()  # a drain without frames breaks the streak
+    cm.push(0.003)
+    assert not cm.confirmed
+    cm.push(0.004 + CONFIRM_S * 0.9)  # live frames at two drains in a row
+    assert cm.confirmed
+    cm.push(9.0)
+    cm.idle()
+    assert cm.confirmed  # (for good)
 
 
 # ------------------------------------------------------------------------------------------------ plausibility

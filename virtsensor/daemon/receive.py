@@ -9,16 +9,18 @@ Everything here runs in one thread (the daemon's tick thread, or its receive thr
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
 from typing import Any
 
 from virtsensor.canbus.codec import CanMatrix, compile_receiver
+from virtsensor.daemon.jsonlog import event
 from virtsensor.daemon.layout import InputLayout
 from virtsensor.daemon.validity import FrameOrder
 
-__all__ = ["ClockMap", "ReceivePath", "StageHook", "polling_read"]
+__all__ = ["CONFIRM_S", "ClockMap", "ReceivePath", "StageHook", "polling_read"]
 
 #: ``hook(stage, fn) -> fn``: wraps one of the daemon's stage callables (e.g. to time it); see VirtualSensor.
 StageHook = Callable[[str, Callable[..., Any]], Callable[..., Any]]
@@ -59,8 +61,25 @@ def polling_read(bus: Any) -> Callable[[float], tuple[Any, bool]]:
     return read
 
 
+def _count_unstamped(counters: dict[str, int], n: int) -> None:
+    """Count drained frames without an interface timestamp; log the first drain that has any."""
+    before = counters.get("unstamped_frames", 0)
+    if not before:
+        event(logging.WARNING, "unstamped_frames", frames=n,
+              why="the interface gives no timestamps: frames are aged from the drain that reads them, so a message "
+                  "whose E2E timeout is shorter than the tick (the 10 ms ones: 30 ms) fails the gap check at every "
+                  "drain; use an interface with timestamps, or sync mode")
+    counters["unstamped_frames"] = before + n
+
+
 def _nothing(timeout: float) -> tuple[Any, bool]:
     return None, True
+
+
+#: how far apart (s) the smallest ``read_time - timestamp`` of two consecutive drains with frames may be for the
+#: clock mapping to count as confirmed (:class:`ClockMap`): live frames are read within a few ms of their
+#: arrival at every drain; a backlog read out over several drains is not
+CONFIRM_S = 0.025
 
 
 class ClockMap:
@@ -72,9 +91,15 @@ class ClockMap:
     backlog has the backlog aged by its own timestamps). A time base that steps back is followed after
     ``window`` drains with frames; until then its frames look old (stale). Mapped times are never later
     than the time the frame was read.
+
+    The first drains cannot tell a backlog queued before the daemon started (frames long old, the sender
+    silent since) from live frames: its newest frame would look just arrived. The mapping is *confirmed*
+    (:attr:`confirmed`, for good) once two consecutive drains both got frames and their smallest bounds agree
+    within :data:`CONFIRM_S`; until then the daemon counts no input fresh. Before any frame it maps nothing and
+    is confirmed (frames handled at their read time, without a drain, need no mapping).
     """
 
-    __slots__ = ("offset", "_ring", "_k")
+    __slots__ = ("offset", "confirmed", "_ring", "_k", "_prev")
 
     def __init__(self, window: int = 20) -> None:
         if window < 1:
@@ -83,13 +108,25 @@ class ClockMap:
         self._k = 0
         #: current offset estimate (s; inf before the first frame)
         self.offset = _INF
+        #: the offset is confirmed by live frames (see the class doc)
+        self.confirmed = True
+        self._prev = _INF  # (the smallest bound of the previous drain, inf when it got no frame)
 
     def push(self, batch_min: float) -> None:
         """Close a drain whose smallest ``read_time - timestamp`` was ``batch_min``."""
         ring = self._ring
+        if self.offset == _INF:
+            self.confirmed = False  # (the first drain with frames)
         ring[self._k] = batch_min
         self._k = (self._k + 1) % len(ring)
         self.offset = min(ring)
+        if not self.confirmed and abs(batch_min - self._prev) <= CONFIRM_S:
+            self.confirmed = True
+        self._prev = batch_min
+
+    def idle(self) -> None:
+        """Close a drain that got no frame (with a timestamp)."""
+        self._prev = _INF
 
 
 class ReceivePath:
@@ -191,7 +228,7 @@ class ReceivePath:
         handle = self.handle
         off = self.clock.offset
         bmin = _INF
-        n = 0
+        n = unstamped = 0
         while True:
             msg = read(0.0)[0]
             if msg is None:
@@ -208,9 +245,14 @@ class ReceivePath:
                 t = ts + off
             else:
                 t = now
+                unstamped += 1
             handle(msg, t)
+        if unstamped:
+            _count_unstamped(self.counters, unstamped)
         if bmin < _INF:
             self.clock.push(bmin)
+        else:
+            self.clock.idle()
         return n
 
     def clear_errors(self) -> None:

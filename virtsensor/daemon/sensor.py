@@ -80,7 +80,8 @@ _COUNTERS = ("frames", "input_frames", "other_frames", "unknown_ids", "error_fra
              *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
              "future_stamped", "time_step_back", "implausible_checks", "drained_frames",
              "ticks", "overruns", "tick_errors", "sent", "send_errors", "unsent", "recv_errors", "reconnects",
-             "reconnect_failures", "status_changes", "envelope_exits", "envelope_ticks", "tick_gaps")
+             "reconnect_failures", "status_changes", "envelope_exits", "envelope_ticks", "tick_gaps",
+             "clock_unconfirmed_ticks", "unstamped_frames")
 #: The longest time between two ticks (s) over which the feature history still holds rows one tick apart: half a
 #: tick late at most. After a longer gap (a skipped deadline, lost sync frames, a stalled thread), or a tick time
 #: that does not advance, the features would read rows from before it as if 50 ms old: every input with a history
@@ -278,10 +279,7 @@ class VirtualSensor:
             gc.disable()
         try:
             rx = self.inputs
-            gap = t - self._tick_t
-            self._tick_t = t
-            if not 0.0 < gap <= MAX_TICK_GAP_S and gap != math.inf:
-                _restart_history(self, t, gap)
+            ta = _assess_time(self, t)
             order = rx.order
             n_future = order.tick(t)
             if n_future:
@@ -291,7 +289,7 @@ class VirtualSensor:
             plaus = self._plaus
             if self._plaus_update(rx.values, self._state.stale):  # (stale: the previous tick's verdicts)
                 _log_implausible(self, t)
-            status, bitmap = self._assess(t, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
+            status, bitmap = self._assess(ta, rx.times, rx.flags, rx.last_ok, rx.errors, order.in_order,
                                            self._rules, self._state, plaus.implausible)
             self._msg_err[:] = rx.errors
             rx.clear_errors()
@@ -433,6 +431,20 @@ def _model_inputs(self: VirtualSensor, x: list[float]) -> tuple[list[float], Any
     if fb is not None and fb.active(self._state.bad):
         return x[: fb.n], self._predict_fb
     return x, self._predict
+
+
+def _assess_time(self: VirtualSensor, t: float) -> float:
+    """The time the tick at ``t`` judges its inputs at: ``t``, or inf (no input fresh) while the free-running
+    clock mapping is not confirmed (:class:`~virtsensor.daemon.receive.ClockMap`: the first drains); a gap since
+    the previous tick restarts the inputs' histories (:data:`MAX_TICK_GAP_S`)."""
+    gap = t - self._tick_t
+    self._tick_t = t
+    if not 0.0 < gap <= MAX_TICK_GAP_S and gap != math.inf:
+        _restart_history(self, t, gap)
+    if self.inputs.clock.confirmed:
+        return t
+    self.counters["clock_unconfirmed_ticks"] += 1
+    return math.inf
 
 
 def _restart_history(self: VirtualSensor, t: float, gap: float) -> None:
