@@ -200,3 +200,25 @@ def test_an_interrupt_leaves_the_output_as_it_was(setup, tmp_path, monkeypatch, 
     assert not [p for p in tmp_path.rglob(".partial-*")]
     if existing:
         assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_a_full_disk_is_one_line_exit_1_and_leaves_nothing(setup, tmp_path, monkeypatch, capsys):
+    """A figure that cannot be written (the disk full) is the machine's error, not the request's: exit 1, one line
+    naming the output, no directory left."""
+    import errno
+
+    import virtsensor.learning.explain as ex
+
+    root, data, model = setup
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", "fig1.png")
+
+    monkeypatch.setattr(ex, "plot_importance", full)
+    out = tmp_path / "figs"
+    capsys.readouterr()
+    assert main(["explain", "--model", str(model), "--data", str(data), "--out", str(out), "--samples", "5",
+                 "--background", "5", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "No space left on device" in err and str(out) in err, err
+    assert not out.exists() and not [p for p in tmp_path.rglob(".partial-*")]

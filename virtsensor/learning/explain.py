@@ -522,6 +522,7 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     Raises:
         UserError: missing/invalid model, data lacking a signal, a track lap or a circuit with fewer than 2
             usable rows, output directory not writable, shap or matplotlib not installed, nothing to explain.
+        OSError: the figures cannot be written (a full disk), naming ``out``; nothing of them is left.
     """
     say = log or (lambda _msg: None)
     _check_options(samples, background, method)
@@ -533,8 +534,8 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
         with staged_dir(out_path) as stage:
             doc = _write_all(stage, inp, shap, model_path=model_path, data=data, seed=seed, samples=samples,
                              background=background, method=method, say=say)
-    except OSError as exc:
-        raise UserError(f"--out {out_path}: cannot write the figures: {exc.strerror or exc}") from None
+    except OSError as exc:  # (the machine, not the request: a full disk is exit 1, as for every command)
+        raise OSError(exc.errno, f"cannot write the figures: {exc.strerror or exc}", str(out_path)) from None
     say(f"wrote {len(doc['figures'])} figures and explain.json to {out_path}")
     return doc
 
