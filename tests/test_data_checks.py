@@ -203,6 +203,28 @@ def test_gaps_pass_only_where_allowed(tmp_path):
         check_table("m.csv", t, gaps=True)
 
 
+def test_a_gap_of_more_than_a_minute_is_not_one_run_even_where_gaps_are_allowed(tmp_path, capsys):
+    """A measured table whose clock jumps 1e7 s (a whole number of ticks) passed as a gap: diagnose then filled
+    it with 2e8 NaN rows a column and was killed for memory. Refused naming the row; a 59 s gap still passes."""
+    t = _table(n=400)
+    t["time_s"][200:] += 59.0
+    check_table("m.csv", t, gaps=True)
+    t["time_s"][200:] += 1e7 - 59.0
+    with pytest.raises(UserError, match=r"^m\.csv: column time_s, row 201 \(line 202\): expected at most 60 s after "
+                                        r"row 200 \(at 9\.950000 s; .*got 10000010\.000000 s, 1e\+07 s later$"):
+        check_table("m.csv", t, gaps=True)
+    write_csv(tmp_path / "jump.csv", t)
+    code = main(["diagnose", "--measured", str(tmp_path / "jump.csv"), "--json", str(tmp_path / "d.json"),
+                 "--quiet"])
+    out, err = capsys.readouterr()
+    assert code == 2 and err.count("\n") == 1 and "expected at most 60 s after row 200" in err, err
+    assert "Traceback" not in err and not (tmp_path / "d.json").exists()
+    long = _table(n=12 * 3600 * 20 + 2)  # one row past 12 h
+    with pytest.raises(UserError, match=r"row 864002: expected at most 12 h after row 1 \(at 0\.000000 s; one run "
+                                        r"lasts no longer\), got 43200\.050000 s"):
+        check_table("x.blf", long)
+
+
 # --------------------------------------------------------------------------------- cut logs
 def _log_signals():
     t = np.arange(0, 3.0, 0.01)

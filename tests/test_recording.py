@@ -441,3 +441,63 @@ def test_binary_data_named_as_a_text_log_is_refused_as_such(tmp_path, suffix):
     path.write_bytes(np.random.default_rng(1).integers(0, 256, 4000, dtype=np.uint8).tobytes())
     with pytest.raises(UserError, match=f"garbled{suffix}: not a \\{suffix} CAN log: binary data"):
         list(iter_log(path))
+
+
+# ------------------------------------------------------------------------------- one run's time
+def _restamped(frames, stamps):
+    return [can.Message(timestamp=float(s), arbitration_id=f.arbitration_id, data=bytes(f.data),
+                        is_extended_id=False) for f, s in zip(frames, stamps, strict=True)]
+
+
+@pytest.mark.parametrize("where", ["last", "first"])
+def test_a_log_whose_clock_jumps_is_refused_naming_the_jump(tmp_path, run, where):
+    """One frame stamped in Unix time among frames counted from 0 (a logger's clock that jumped): refused, naming
+    the file and the time of the jump, instead of building a tick grid of 34 billion ticks (253 GiB)."""
+    t, sig = run
+    path = tmp_path / "jump.log"
+    write_log(path, t, sig)
+    lines = path.read_text().splitlines(keepends=True)
+    last = lines[-1]
+    stamped = "(1700000000.000000)" + last[last.index(")") + 1:]
+    lines = lines + [stamped] if where == "last" else [stamped, *lines]
+    path.write_text("".join(lines))
+    first, end = float(lines[1 if where == "first" else 0][1:9]), float(last[1:last.index(")")])
+    with pytest.raises(UserError) as e:
+        read_log(path)
+    message = str(e.value)
+    if where == "last":
+        assert message.startswith(f"{path}: its time jumps forward by 1.7e+09 s, from {end:.6f} s to "
+                                  "1700000000.000000 s, between consecutive frames"), message
+    else:
+        assert message.startswith(f"{path}: its time jumps back by 1.7e+09 s, from 1700000000.000000 s to "
+                                  f"{first:.6f} s, between consecutive frames"), message
+    assert "\n" not in message
+
+
+def test_a_minute_without_frames_or_more_than_12_hours_is_not_one_run(run):
+    """The front-end's limits (frontend.MAX_GAP_S, MAX_SPAN_S), on both of its paths: a silence just over a minute
+    is refused and one just under it is read; frames 50 s apart over 13 h are refused for the span alone; the
+    tick grid itself refuses to grow past 12 h whoever asks for it."""
+    from virtsensor.frontend import MAX_GAP_S, MAX_SPAN_S, tick_times
+
+    t, sig = run
+    frames = list(iter_frames(t, sig))
+    names = ["ax_mps2", "steer_angle_rad"]
+
+    def table(stamps, online=False):
+        m = MATRIX.fresh()
+        decoded = [m.decode(f.arbitration_id, f.data, f.timestamp) for f in _restamped(frames, stamps)]
+        return to_table(decoded, names, 20.0, online=online, source="x.log")
+
+    stamps = np.array([f.timestamp for f in frames])
+    half = len(stamps) // 2
+    for online in (False, True):
+        assert table(np.where(np.arange(len(stamps)) >= half, stamps + MAX_GAP_S - 1.0, stamps), online).ticks > 0
+        with pytest.raises(UserError, match=r"^x\.log: its time jumps forward by 6\d\.\d+ s, from "):
+            table(np.where(np.arange(len(stamps)) >= half, stamps + MAX_GAP_S + 1.0, stamps), online)
+        with pytest.raises(UserError, match=r"^x\.log: its frames span 46800 s \(from 0\.000000 s to 46800\.000000 "
+                                            r"s\); one run lasts at most 12 h"):
+            table(np.linspace(0.0, 13 * 3600.0, len(stamps)), online)
+    with pytest.raises(UserError, match="longer than one run"):
+        tick_times(0.0, 1e12, 20.0)
+    assert len(tick_times(0.0, MAX_SPAN_S, 20.0)) == MAX_SPAN_S * 20 + 1

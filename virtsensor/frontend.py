@@ -14,6 +14,22 @@ where
 Times are seconds in the clock of the frame timestamps. Values are SI in the
 catalogue's units.
 
+One recording is one run, and its time says so (:func:`time_problem`; a
+:class:`~virtsensor.errors.UserError` otherwise, before any tick grid is built):
+
+* no two consecutive frames (in input order) are more than :data:`MAX_GAP_S`
+  (60 s) apart, forward or back. The matrix's slowest message is sent every
+  second and the others every 10 to 50 ms, so a minute without a frame means
+  the bus was off (the car parked between two drives) or the logger's clock
+  jumped (one frame stamped in Unix time among frames counted from 0); sample
+  and hold would fill the silence with 1200 ticks of stale values, and a clock
+  jump with billions of them;
+* the first and the last frame are at most :data:`MAX_SPAN_S` (12 h) apart:
+  longer than any one drive a logger records into one file, and at 20 Hz
+  864,000 ticks, about 7 MB a column (100 MB for the canonical table's 15),
+  far less than the some 25 million frames of 12 h take to read anyway.
+  :func:`tick_times` refuses a longer grid whoever asks for it.
+
 Two implementations:
 
 * :class:`SampleHoldStore` — the online store, updated per frame and sampled
@@ -29,26 +45,36 @@ Two implementations:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 import numpy as np
 
 from virtsensor.canbus.e2e import USABLE
+from virtsensor.errors import UserError
 
 __all__ = [
+    "MAX_GAP_S",
+    "MAX_SPAN_S",
     "TIME_TOLERANCE_S",
     "Collected",
     "SampleHoldStore",
     "TableBuild",
     "collect",
+    "largest_step",
     "table_from_collected",
     "tick_times",
+    "time_problem",
     "to_table",
 ]
 
 #: Frames up to this much after a tick still count as "at" the tick (s).
 TIME_TOLERANCE_S = 1e-6
+#: The longest two consecutive frames of one run may lie apart, forward or back (s; see the module docstring).
+MAX_GAP_S = 60.0
+#: The longest one run may last, first frame to last (s): 12 h (see the module docstring).
+MAX_SPAN_S = 12 * 3600.0
 
 
 class SampleHoldStore:
@@ -132,13 +158,52 @@ def tick_times(t_first: float, t_last: float, rate_hz: float, t0: float | None =
     """Tick grid ``t0 + k / rate_hz`` for ``k = 0..`` while ``<= t_last`` (s).
 
     Default ``t0``: the last multiple of ``1/rate_hz`` at or before ``t_first``.
+
+    Raises:
+        UserError: a grid longer than one run (:data:`MAX_SPAN_S`), or not finite: it is never
+            allocated. (Readers refuse such a recording first, naming it: :func:`time_problem`.)
     """
     if not rate_hz > 0:
         raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
     if t0 is None:
         t0 = np.floor(t_first * rate_hz + 1e-9) / rate_hz
-    n = int(np.floor((t_last - t0) * rate_hz + 1e-9)) + 1
+    span = t_last - t0
+    if not span <= MAX_SPAN_S + 1.0 / rate_hz:
+        raise UserError(f"a tick grid from {t0:.6f} s to {t_last:.6f} s spans {span:.6g} s, longer than one run "
+                        f"({MAX_SPAN_S / 3600:g} h)")
+    n = int(np.floor(span * rate_hz + 1e-9)) + 1
     return t0 + np.arange(max(n, 0)) / rate_hz
+
+
+def time_problem(t_first: float, t_last: float, jump: tuple[float, float], what: str = "frames") -> str | None:
+    """Why a recording's time cannot be one run's, or None (see the module docstring).
+
+    Args:
+        t_first, t_last: its first and last timestamp (s).
+        jump: the two consecutive timestamps (s) furthest apart, in input order (NaN: fewer than two).
+        what: what the timestamps stamp, for the message ("frames", "samples").
+
+    Returns:
+        What is wrong and where (the time of the jump, or the span), to follow the file's name.
+    """
+    a, b = jump
+    if abs(b - a) > MAX_GAP_S:
+        return (f"its time jumps {'forward' if b > a else 'back'} by {abs(b - a):.6g} s, from {a:.6f} s to "
+                f"{b:.6f} s, between consecutive {what} (one run has no gap over {MAX_GAP_S:g} s: two runs, or a "
+                f"clock that jumped?)")
+    span = t_last - t_first
+    if not span <= MAX_SPAN_S:
+        return (f"its {what} span {span:.6g} s (from {t_first:.6f} s to {t_last:.6f} s); one run lasts at most "
+                f"{MAX_SPAN_S / 3600:g} h")
+    return None
+
+
+def largest_step(ts: np.ndarray) -> tuple[float, float]:
+    """The two consecutive values of ``ts`` furthest apart, in its order (NaN, NaN for fewer than two)."""
+    if ts.size < 2:
+        return math.nan, math.nan
+    i = int(np.argmax(np.abs(np.diff(ts))))
+    return float(ts[i]), float(ts[i + 1])
 
 
 class Collected(NamedTuple):
@@ -148,6 +213,8 @@ class Collected(NamedTuple):
         times, values: signal -> lists of receive times (s) and SI values, in input order.
         t_first, t_last: first and last frame timestamps over *all* frames (inf/-inf if none).
         frames: number of frames seen.
+        jump: the timestamps of the two consecutive frames (in input order, over all frames) furthest
+            apart, forward or back (NaN, NaN: fewer than two frames); see :func:`time_problem`.
     """
 
     times: dict[str, list[float]]
@@ -155,40 +222,48 @@ class Collected(NamedTuple):
     t_first: float
     t_last: float
     frames: int
+    jump: tuple[float, float] = (math.nan, math.nan)
 
 
 def collect(frames: Iterable, signals: Sequence[str]) -> Collected:
-    """One streaming pass over decoded frames keeping the usable values of ``signals``."""
+    """One streaming pass over decoded frames keeping the usable values of ``signals`` (and every
+    frame's timestamp, 8 bytes a frame, for :attr:`Collected.jump`)."""
     wanted = set(signals)
     times: dict[str, list[float]] = {s: [] for s in signals}
     values: dict[str, list[float]] = {s: [] for s in signals}
-    t_first, t_last = float("inf"), float("-inf")
-    n = 0
+    stamps: list[float] = []
+    stamp = stamps.append
     for f in frames:
         if f is None:
             continue
-        n += 1
         t = f.timestamp
-        if t < t_first:
-            t_first = t
-        if t > t_last:
-            t_last = t
+        stamp(t)
         if f.status not in USABLE:
             continue
         for name, v in f.values.items():
             if name in wanted:
                 times[name].append(t)
                 values[name].append(v)
-    return Collected(times, values, t_first, t_last, n)
+    if not stamps:
+        return Collected(times, values, float("inf"), float("-inf"), 0)
+    ts = np.asarray(stamps, dtype=np.float64)
+    return Collected(times, values, float(ts.min()), float(ts.max()), ts.size, largest_step(ts))
 
 
 def table_from_collected(
-    col: Collected, signals: Sequence[str], rate_hz: float = 20.0, t0: float | None = None
+    col: Collected, signals: Sequence[str], rate_hz: float = 20.0, t0: float | None = None, *, source: str = "frames"
 ) -> TableBuild:
-    """The vectorised half of :func:`to_table`: one ``np.searchsorted`` per signal."""
+    """The vectorised half of :func:`to_table`: one ``np.searchsorted`` per signal.
+
+    Raises:
+        UserError: ``source`` (a file's name, in the message) is not one run's time (:func:`time_problem`).
+    """
     signals = tuple(signals)
     if not np.isfinite(col.t_first):
         return _empty(signals, 0)
+    why = time_problem(col.t_first, col.t_last, col.jump)
+    if why is not None:
+        raise UserError(f"{source}: {why}")
     ticks = tick_times(col.t_first, col.t_last, rate_hz, t0)
     probe = ticks + TIME_TOLERANCE_S
     cols: dict[str, np.ndarray] = {}
@@ -216,27 +291,33 @@ def to_table(
     t0: float | None = None,
     *,
     online: bool = False,
+    source: str = "frames",
 ) -> TableBuild:
     """Sample-and-hold table of decoded frames on the tick grid ``t0 + k / rate_hz``.
 
     Args:
         frames: :class:`~virtsensor.canbus.codec.DecodedFrame` objects (None entries ignored),
-            in any order (they are replayed in stable time order).
+            in any order (they are replayed in stable time order) as long as no two consecutive
+            ones are more than :data:`MAX_GAP_S` apart.
         signals: catalogue names of the columns.
         rate_hz: tick rate (Hz); the canonical table is 20 Hz.
         t0: first tick (s, the frames' clock); default: see :func:`tick_times`.
             Ticks run up to the last frame's timestamp.
         online: build through :class:`SampleHoldStore` frame by frame (the
             daemon's path) instead of the vectorised ``searchsorted`` path.
+        source: what the frames come from, for messages.
 
     Returns:
         :class:`TableBuild`; leading ticks where some signal has not been seen
         are dropped and counted.
+
+    Raises:
+        UserError: the frames' time is not one run's (:func:`time_problem`).
     """
     signals = tuple(signals)
     if online:
-        return _to_table_online(list(frames), signals, rate_hz, t0)
-    return table_from_collected(collect(frames, signals), signals, rate_hz, t0)
+        return _to_table_online(list(frames), signals, rate_hz, t0, source)
+    return table_from_collected(collect(frames, signals), signals, rate_hz, t0, source=source)
 
 
 def _empty(signals: Sequence[str], n_ticks: int) -> TableBuild:
@@ -246,12 +327,18 @@ def _empty(signals: Sequence[str], n_ticks: int) -> TableBuild:
     return TableBuild(table, n_ticks, n_ticks)
 
 
-def _to_table_online(frames: list, signals: tuple[str, ...], rate_hz: float, t0: float | None) -> TableBuild:
+def _to_table_online(
+    frames: list, signals: tuple[str, ...], rate_hz: float, t0: float | None, source: str
+) -> TableBuild:
     frames = [f for f in frames if f is not None]
     if not frames:
         return _empty(signals, 0)
-    order = np.argsort(np.array([f.timestamp for f in frames], dtype=np.float64), kind="stable")
+    stamps = np.array([f.timestamp for f in frames], dtype=np.float64)
+    order = np.argsort(stamps, kind="stable")
     t_first, t_last = frames[order[0]].timestamp, frames[order[-1]].timestamp
+    why = time_problem(t_first, t_last, largest_step(stamps))
+    if why is not None:
+        raise UserError(f"{source}: {why}")
     ticks = tick_times(t_first, t_last, rate_hz, t0)
     store = SampleHoldStore(signals)
     rows: list[np.ndarray] = []

@@ -24,7 +24,10 @@ file and the position (frame index, line number or byte offset). A log cut by
 the end of its file (a BLF shorter than its header says, a text log whose last
 line has no end of line, an ASC log without its ``End TriggerBlock`` line) is
 refused as a whole, naming its last good frame and timestamp; so is a CSV table
-whose last row has no end of line.
+whose last row has no end of line. A log whose time is not one run's (a jump of
+more than a minute between consecutive frames, or more than 12 hours from first
+to last: :func:`virtsensor.frontend.time_problem`) is refused naming the time of
+the jump, before any tick grid is built.
 """
 
 from __future__ import annotations
@@ -572,6 +575,11 @@ def read_log(
 
     Returns:
         :class:`Recording`.
+
+    Raises:
+        UserError: an unreadable, cut or malformed log (:func:`iter_log`), a requested signal never
+            received intact, no frame of the matrix, or a time that is not one run's
+            (:func:`virtsensor.frontend.time_problem`), naming the file.
     """
     path = Path(path)
     return decode_recording(iter_log(path), path, matrix=matrix, rate_hz=rate_hz, signals=signals, t0=t0)
@@ -670,7 +678,7 @@ def decode_recording(
         raise UserError(
             f"{path}: no frame of the CAN matrix in this log ({counts.get('unknown', 0)} unknown frames)"
         )
-    build: TableBuild = table_from_collected(col, used, rate_hz, col.t_first + t0)
+    build: TableBuild = table_from_collected(col, used, rate_hz, col.t_first + t0, source=str(path))
     table = dict(build.table)
     if tpms is not None:
         table.update(tpms.sample(np.asarray(build.table["time_s"], dtype=np.float64)))

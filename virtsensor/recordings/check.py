@@ -4,6 +4,12 @@
 format, ``<file>: column <name>, row <k>: expected <what>, got <what>``:
 
 * ``time_s`` missing, not finite, or not strictly increasing;
+* a time that is not one run's, the rule of CAN logs and MDF files
+  (:func:`virtsensor.frontend.time_problem`): a step between rows of more than
+  :data:`~virtsensor.frontend.MAX_GAP_S` (where gaps are allowed: a reader that
+  fills them with rows would otherwise build billions of rows for a clock that
+  jumped), or more than :data:`~virtsensor.frontend.MAX_SPAN_S` from the first
+  row to the last;
 * a rate other than the canonical 20 Hz: every step between rows must be one
   tick (:data:`~virtsensor.signals.TABLE_TICK_S`) within :data:`STEP_TOLERANCE` of a tick, or, where gaps are
   allowed (a caller that cuts tables into segments at missing rows), a whole number of ticks;
@@ -27,6 +33,7 @@ import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
+from virtsensor.frontend import MAX_GAP_S, MAX_SPAN_S
 
 RATE_HZ = cat.TABLE_RATE_HZ
 TICK_S = cat.TABLE_TICK_S
@@ -62,6 +69,7 @@ def _check_time(path: Path, t: np.ndarray, gaps: bool) -> None:
         i = int(back[0]) + 1
         raise table_error(path, "time_s", i + 1, f"time strictly increasing (row {i} is at {t[i - 1]:.6g} s)",
                           f"{t[i]:.6g} s")
+    _check_one_run(path, t, dt)
     tol = STEP_TOLERANCE * TICK_S
     median = float(np.median(dt))
     if abs(median - TICK_S) > tol:
@@ -76,6 +84,19 @@ def _check_time(path: Path, t: np.ndarray, gaps: bool) -> None:
         want = f"a whole number of {TICK_S:g} s ticks after row {i}" if gaps else \
             f"one {TICK_S:g} s tick after row {i} ({RATE_HZ:g} Hz, no missing rows)"
         raise table_error(path, "time_s", i + 1, want, f"a step of {dt[i - 1]:.6g} s")
+
+
+def _check_one_run(path: Path, t: np.ndarray, dt: np.ndarray) -> None:
+    """Refuse rows ``t`` (increasing, s; ``dt`` their steps) that are not one run's time: a step over
+    :data:`~virtsensor.frontend.MAX_GAP_S` or a span over :data:`~virtsensor.frontend.MAX_SPAN_S`."""
+    i = int(np.argmax(dt))
+    if dt[i] > MAX_GAP_S:
+        raise table_error(path, "time_s", i + 2, f"at most {MAX_GAP_S:g} s after row {i + 1} (at {t[i]:.6f} s; one "
+                          f"run has no longer gap: two runs, or a clock that jumped?)",
+                          f"{t[i + 1]:.6f} s, {dt[i]:.6g} s later")
+    if t[-1] - t[0] > MAX_SPAN_S:
+        raise table_error(path, "time_s", t.size, f"at most {MAX_SPAN_S / 3600:g} h after row 1 (at {t[0]:.6f} s; "
+                          f"one run lasts no longer)", f"{t[-1]:.6f} s, {t[-1] - t[0]:.6g} s later")
 
 
 def _check_ranges(path: Path, table: Mapping[str, np.ndarray]) -> None:
