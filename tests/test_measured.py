@@ -179,6 +179,50 @@ def test_mdf4_unit_mismatch_is_named(tmp_path):
         load_measured([tmp_path / "m.mf4"])
 
 
+def _bad_mdf(asammdf, path, kind: str) -> None:
+    """An MDF4 file whose ``VehSpeed`` channel (the catalogue's vx_mps) is bad in the way ``kind`` says; its
+    ``YawRate`` is a good 100 Hz channel."""
+    t = np.arange(0, 5, 0.01)
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append([asammdf.Signal(np.zeros_like(t), t, name="YawRate", unit="rad/s")])
+    speed = {"name": "VehSpeed", "unit": "m/s"}
+    if kind == "empty":
+        mdf.append([asammdf.Signal(np.array([], dtype=float), np.array([], dtype=float), **speed)])
+    elif kind == "text":
+        mdf.append([asammdf.Signal(np.array([b"ab"] * t.size), t, name="VehSpeed", encoding="latin-1")])
+    elif kind == "twice":
+        mdf.append([asammdf.Signal(np.full_like(t, 20.0), t, **speed)])
+        mdf.append([asammdf.Signal(np.full_like(t, 21.0), t + 0.003, **speed)])
+    elif kind == "nan time":
+        mdf.append([asammdf.Signal(np.full(3, 20.0), np.array([0.0, np.nan, 0.1]), **speed)])
+    elif kind == "back":
+        mdf.append([asammdf.Signal(np.full(3, 20.0), np.array([0.0, 0.2, 0.1]), **speed)])
+    elif kind == "unix time":  # a channel group stamped in Unix time among groups counted from 0
+        mdf.append([asammdf.Signal(np.full_like(t, 20.0), 1.7e9 + t, **speed)])
+    mdf.save(path, overwrite=True)
+
+
+@pytest.mark.parametrize(("kind", "message"), [
+    ("empty", "channel 'VehSpeed' has no samples"),
+    ("text", "channel 'VehSpeed' holds text, not numbers (the catalogue's vx_mps is a number in 'm/s')"),
+    ("twice", "channel 'VehSpeed' occurs 2 times (channel groups 1, 2): which one is the run's vx_mps is not known"),
+    ("nan time", "channel 'VehSpeed': the timestamp of sample 1 is nan, not a finite time"),
+    ("back", "channel 'VehSpeed': time goes back at sample 2, from 0.200000 s to 0.100000 s"),
+    ("unix time", "its time jumps forward by 1.7e+09 s, from 4.990000 s to 1700000000.000000 s, between consecutive "
+                  "samples (one run has no gap over 60 s: two runs, or a clock that jumped?); channel 'VehSpeed' "
+                  "starts there"),
+])
+def test_an_mdf4_channel_that_is_not_one_runs_numbers_is_refused_naming_it(tmp_path, kind, message):
+    """Each, instead of a ValueError (min() of nothing, a string that is no float, a channel named twice) or a
+    253 GiB tick grid: one UserError naming the file and the channel or the time of the jump."""
+    asammdf = pytest.importorskip("asammdf")
+    path = tmp_path / "m.mf4"
+    _bad_mdf(asammdf, path, kind)
+    with pytest.raises(UserError) as e:
+        load_measured([path])
+    assert str(e.value).startswith(f"{path}: {message}"), str(e.value)
+
+
 def test_a_delayed_signal_is_not_taken_for_a_unit_error(tmp_path):
     """A slalom whose lateral acceleration lags the yaw rate by 0.1 s (a sensor delay, which the diagnosis is there
     to find): out of phase, a least-squares ratio reads about 0.3 (near 1/3.6, km/h); the amplitudes agree."""

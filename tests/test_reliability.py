@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import math
 import time
+from pathlib import Path
 
 import can
 import numpy as np
@@ -372,6 +373,73 @@ def test_named_mistakes_are_one_line_exit_2_and_write_nothing(cli_scratch, monke
     assert needle in lines[0], lines[0]
     assert "SECRET" not in out + err
     assert sorted(p.relative_to(d) for p in d.rglob("*")) == before
+
+
+def _jump_log(path) -> None:
+    """A candump log of 3 s of a run and one more frame stamped in Unix time (a logger's clock that jumped)."""
+    from virtsensor.recordings.canlog import write_log
+
+    t, sig = synthetic_streams(3.0, seed=3)
+    write_log(path, t, sig)
+    last = path.read_text().splitlines()[-1]
+    with open(path, "a") as f:
+        f.write("(1700000000.000000)" + last[last.index(")") + 1:] + "\n")
+
+
+def _bad_mf4(path, kind: str) -> None:
+    """An MDF4 file of 3 s of a run's inputs whose speed channel is bad: in Unix time, empty or text."""
+    asammdf = pytest.importorskip("asammdf")
+    t, sig = synthetic_streams(3.0, seed=3)
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append([asammdf.Signal(v, t, name=n, unit=cat.SIGNALS[n].unit) for n, v in sig.items() if n != "vx_mps"])
+    speed = {"unix time": asammdf.Signal(sig["vx_mps"], 1.7e9 + t, name="vx_mps", unit="m/s"),
+             "empty": asammdf.Signal(np.array([]), np.array([]), name="vx_mps", unit="m/s"),
+             "text": asammdf.Signal(np.array([b"20"] * t.size), t, name="vx_mps", encoding="latin-1")}[kind]
+    mdf.append([speed])
+    mdf.save(path, overwrite=True)
+
+
+#: Every command that reads recordings, with ``{bad}`` for the recording ({tmp}: a scratch directory).
+READERS = {
+    "score": ["score", "--model", "models/improved.onnx", "--data", "{bad}", "--json", "{tmp}/s.json"],
+    "train": ["train", "--data", "{bad}", "--out", "{tmp}/m.onnx", "--quiet"],
+    "evaluate": ["evaluate", "--model", "models/improved.onnx", "--data", "{bad}", "--json", "{tmp}/e.json"],
+    "explain": ["explain", "--model", "models/improved.onnx", "--data", "{bad}", "--out", "{tmp}/figs", "--quiet"],
+    "diagnose": ["diagnose", "--measured", "{bad}", "--json", "{tmp}/d.json", "--quiet"],
+    "simulate recorded": ["simulate", "recorded", "--inputs", "{bad}", "--mu", "1", "--out", "{tmp}/x.csv"],
+}
+#: Bad recordings: file name -> what the one line says about it.
+BAD_RECORDINGS = {
+    "jump.log": "its time jumps forward by 1.7e+09 s, from 2.990000 s to 1700000000.000000 s, between consecutive "
+                "frames",
+    "clock.mf4": "its time jumps forward by 1.7e+09 s, from 2.990000 s to 1700000000.000000 s, between consecutive "
+                 "samples",
+    "empty.mf4": "channel 'vx_mps' has no samples",
+    "text.mf4": "channel 'vx_mps' holds text, not numbers",
+}
+
+
+@pytest.mark.parametrize("bad", list(BAD_RECORDINGS))
+@pytest.mark.parametrize("command", list(READERS))
+def test_a_bad_recording_is_one_line_exit_2_for_every_command_that_reads_it(tmp_path, monkeypatch, capsys,
+                                                                              command, bad):
+    """An MDF4 channel with no samples or with text, a channel group or a frame stamped in Unix time among others
+    counted from 0: each command that reads recordings says so in one line naming the file, exit 2, nothing
+    written (they raised ValueError, or a MemoryError building a 253 GiB tick grid)."""
+    from virtsensor import cli
+
+    path = tmp_path / bad
+    if bad.endswith(".log"):
+        _jump_log(path)
+    else:
+        _bad_mf4(path, bad.removesuffix(".mf4").replace("clock", "unix time"))
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])  # models/ of the checkout
+    before = sorted(tmp_path.rglob("*"))
+    rc = cli.main([a.replace("{bad}", str(path)).replace("{tmp}", str(tmp_path)) for a in READERS[command]])
+    out, err = capsys.readouterr()
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{path}: {BAD_RECORDINGS[bad]}" in err, err
+    assert sorted(tmp_path.rglob("*")) == before
 
 
 # ------------------------------------------------------------------------------------ fault-injection soak
