@@ -501,3 +501,43 @@ def test_a_minute_without_frames_or_more_than_12_hours_is_not_one_run(run):
     with pytest.raises(UserError, match="longer than one run"):
         tick_times(0.0, 1e12, 20.0)
     assert len(tick_times(0.0, MAX_SPAN_S, 20.0)) == MAX_SPAN_S * 20 + 1
+
+
+@pytest.mark.parametrize("damage", ["gzip cut", "text cut", "not gzip", "corrupt"])
+def test_a_gz_log_is_checked_whole_before_its_first_frame(tmp_path, run, damage):
+    """A ``.asc.gz`` log gets the checks of a plain one, and its compressed data is read through first: a gzip
+    stream cut short (``head -c``), a text cut mid-record and then compressed, plain text named ``.gz``, corrupt
+    compressed data. Each is refused before any frame is yielded, naming the file and where."""
+    import gzip
+    import re
+    import zlib
+
+    t, sig = run
+    plain = tmp_path / "run.asc"
+    write_log(plain, t, sig)
+    text = plain.read_bytes()
+    packed = gzip.compress(text)
+    path = tmp_path / "run.asc.gz"
+    path.write_bytes({"gzip cut": packed[: len(packed) // 2], "text cut": gzip.compress(text[: len(text) // 2]),
+                      "not gzip": text, "corrupt": packed[:200] + bytes(64) + packed[264:]}[damage])
+    frames = iter_log(path)
+    with pytest.raises(UserError) as e:
+        next(frames)
+    message = str(e.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message, message
+    if damage in ("gzip cut", "text cut"):
+        cut = r"the gzip stream is cut, its text ends inside line" if damage == "gzip cut" else r"line \d+ is cut"
+        m = re.search(rf"truncated: {cut}.*; the last good frame is frame (\d+), timestamp (\d+\.\d+) s", message)
+        assert m, message
+        # every frame before the cut counts: the last good one is the last complete line's
+        if damage == "gzip cut":
+            readable = zlib.decompressobj(wbits=31).decompress(packed[: len(packed) // 2])
+        else:
+            readable = text[: len(text) // 2]
+        complete = readable[: readable.rindex(b"\n")].decode().splitlines()
+        stamps = [ln.split()[0] for ln in complete if " Rx " in ln]
+        assert (int(m.group(1)), m.group(2)) == (len(stamps) - 1, stamps[-1]), message
+    elif damage == "not gzip":
+        assert "not a .asc.gz CAN log: not gzip-compressed" in message, message
+    else:
+        assert "not a .asc.gz CAN log: corrupt compressed data after line 0" in message, message

@@ -24,7 +24,9 @@ file and the position (frame index, line number or byte offset). A log cut by
 the end of its file (a BLF shorter than its header says, a text log whose last
 line has no end of line, an ASC log without its ``End TriggerBlock`` line) is
 refused as a whole, naming its last good frame and timestamp; so is a CSV table
-whose last row has no end of line. A log whose time is not one run's (a jump of
+whose last row has no end of line. A ``.gz`` text log is decompressed through
+once before its first frame is read, for the same checks on its text and to
+refuse a gzip stream cut short, corrupt or not gzip at all. A log whose time is not one run's (a jump of
 more than a minute between consecutive frames, or more than 12 hours from first
 to last: :func:`virtsensor.frontend.time_problem`) is refused naming the time of
 the jump, before any tick grid is built.
@@ -314,25 +316,78 @@ def _blf_truncation(path: Path, reader) -> str | None:
 
 def _check_whole(path: Path, real: str, gz: bool) -> None:
     """Refuse, before reading frames, a log that cannot be whole: empty, a 20 Hz table named ``.csv``, binary data
-    named as a text log, or a text log cut short (:func:`_text_cut`)."""
+    named as a text log, a text log cut short (:func:`_text_cut`), or a gzip-compressed one whose compressed data
+    is cut, corrupt or not gzip at all (read through once to know: :func:`_text_ends`)."""
     if path.stat().st_size == 0:
         raise UserError(f"{path}: the file is empty (no {real} CAN log in it)")
-    if real == ".csv" and not gz and _is_table(path):
+    if real not in _TEXT_SUFFIXES:
+        return
+    head, tail, lines = _text_ends(path, real, gz)
+    if real == ".csv" and _is_table(head):
         raise UserError(f"{path}: a 20 Hz table (first column time_s), not a CAN log (python-can's CSV log starts "
                         "with timestamp,arbitration_id): write the run as a CAN log (virtsensor simulate ... --out "
                         "x.blf) to play it")
-    if real in _TEXT_SUFFIXES and not gz and not _looks_like_text(path):
+    if not _looks_like_text(head):
         raise UserError(f"{path}: not a {real} CAN log: binary data, not UTF-8 text")
-    cut = _text_cut(path, real) if real in _TEXT_SUFFIXES and not gz else None
+    cut = _text_cut(path, real, tail, lines)
     if cut is not None:
-        raise UserError(f"{path}: truncated: {cut[1]}; {_last_good(path, real, cut[0])}")
+        raise UserError(f"{path}: truncated: {cut[1]}; {_last_good(path, real, cut[0], gz)}")
 
 
-def _looks_like_text(path: Path, n: int = 1 << 16) -> bool:
-    """Whether the first ``n`` bytes of ``path`` are UTF-8 text without NUL bytes (a character cut at the
-    end of the sample is allowed)."""
-    with open(path, "rb") as f:
-        head = f.read(n)
+#: How much of a text log's beginning :func:`_looks_like_text` and :func:`_is_table` judge, and of its end
+#: :func:`_text_cut` (bytes).
+_HEAD_BYTES, _TAIL_BYTES = 1 << 16, 4096
+
+
+def _open_text(path: Path, gz: bool):
+    """``path`` opened as UTF-8 text (universal newlines), through gzip when ``gz``."""
+    if gz:
+        import gzip
+
+        return gzip.open(path, "rt", encoding="utf-8", newline=None)
+    return open(path, encoding="utf-8", newline=None)  # noqa: SIM115 - the caller closes it
+
+
+def _text_ends(path: Path, real: str, gz: bool) -> tuple[bytes, bytes, int | None]:
+    """The first :data:`_HEAD_BYTES` and the last :data:`_TAIL_BYTES` of a text log's text, and its number of line
+    ends when known (None: count them when needed). A ``.gz`` log is decompressed through once, a block at a time,
+    which counts its line ends and proves its compressed data whole.
+
+    Raises:
+        UserError: compressed data that is not gzip, corrupt, or cut (naming the line it ends in and the last
+            good frame before it).
+    """
+    if not gz:
+        with open(path, "rb") as f:
+            head = f.read(_HEAD_BYTES)
+            f.seek(max(0, path.stat().st_size - _TAIL_BYTES))
+            return head, f.read(), None
+    import gzip
+    import zlib
+
+    head, tail, lines = b"", b"", 0
+    try:
+        with gzip.open(path, "rb") as f:
+            # read1: what was decompressed is returned before the EOFError of a cut stream, never dropped with it
+            for block in iter(lambda: f.read1(1 << 16), b""):
+                head = head if len(head) >= _HEAD_BYTES else head + block[:_HEAD_BYTES - len(head)]
+                tail = (tail + block)[-_TAIL_BYTES:]
+                lines += block.count(b"\n")
+    except EOFError:
+        where = f"after line {lines}" if tail.endswith(b"\n") or not tail else f"inside line {lines + 1}"
+        raise UserError(f"{path}: truncated: the gzip stream is cut, its text ends {where}; "
+                        f"{_last_good(path, real, lines + 1, gz)}") from None
+    except (gzip.BadGzipFile, zlib.error, OSError) as exc:
+        with open(path, "rb") as f:
+            gzipped = f.read(2) == b"\x1f\x8b"
+        what = f"corrupt compressed data after line {lines}" if gzipped else "not gzip-compressed"
+        raise UserError(f"{path}: not a {real}.gz CAN log: {what} ({type(exc).__name__}: {exc})") from None
+    return head, tail, lines
+
+
+def _looks_like_text(head: bytes) -> bool:
+    """Whether ``head``, the beginning of a file, is UTF-8 text without NUL bytes (a character cut at the end of
+    the sample is allowed)."""
     if b"\0" in head:
         return False
     try:
@@ -342,35 +397,33 @@ def _looks_like_text(path: Path, n: int = 1 << 16) -> bool:
     return True
 
 
-def _text_cut(path: Path, real: str) -> tuple[int, str] | None:
+def _text_cut(path: Path, real: str, tail: bytes, lines: int | None) -> tuple[int, str] | None:
     """Where a text log was cut: ``(first line not read, why)``, or None when it is whole.
 
-    A last line without its end of line is a record cut in the middle; an ASC log
-    without its closing ``End TriggerBlock`` line stopped before its writer closed it.
+    ``tail`` is the end of its text, ``lines`` its number of line ends (None: counted here, when needed). A last
+    line without its end of line is a record cut in the middle; an ASC log without its closing
+    ``End TriggerBlock`` line stopped before its writer closed it.
     """
-    size = path.stat().st_size
-    if size == 0:
+    if not tail:
         return None
-    with open(path, "rb") as f:
-        f.seek(max(0, size - 4096))
-        tail = f.read()
-        whole_asc = real == ".asc" and tail.rstrip().lower().endswith(b"end triggerblock")
-        if whole_asc or (real != ".asc" and tail.endswith(b"\n")):
-            return None
-        f.seek(0)
-        lines = sum(block.count(b"\n") for block in iter(lambda: f.read(1 << 20), b""))
+    whole_asc = real == ".asc" and tail.rstrip().lower().endswith(b"end triggerblock")
+    if whole_asc or (real != ".asc" and tail.endswith(b"\n")):
+        return None
+    if lines is None:
+        with open(path, "rb") as f:
+            lines = sum(block.count(b"\n") for block in iter(lambda: f.read(1 << 20), b""))
     if not tail.endswith(b"\n"):
         return lines + 1, f"line {lines + 1} is cut mid-record (the file ends inside it)"
     return lines + 1, f"it ends at line {lines} without its 'End TriggerBlock' line (the log was not closed)"
 
 
-def _last_good(path: Path, real: str, stop_line: int) -> str:
-    """The last frame read intact before text line ``stop_line``, for messages."""
+def _last_good(path: Path, real: str, stop_line: int, gz: bool = False) -> str:
+    """The last frame read intact before text line ``stop_line`` (through gzip when ``gz``), for messages."""
     import logging
 
     from can.io.player import MESSAGE_READERS
 
-    lines = _Lines(open(path, encoding="utf-8", newline=None), None)  # noqa: SIM115 - closed below
+    lines = _Lines(_open_text(path, gz), None)
     n, first, last = 0, 0.0, 0.0
     log = logging.getLogger("can")
     level = log.level
@@ -425,14 +478,11 @@ class _ReaderWarnings(logging.Filter):
             logging.getLogger(name).removeFilter(self)
 
 
-def _is_table(path: Path) -> bool:
-    """Whether the text file ``path`` starts as a canonical table does (its header's first column ``time_s``)."""
-    try:
-        with open(path, encoding="utf-8", errors="replace", newline=None) as f:
-            head = f.readline(4096)
-    except OSError:
-        return False
-    return head.lstrip("\ufeff").split(",", 1)[0].strip() == "time_s"
+def _is_table(head: bytes) -> bool:
+    """Whether a text file beginning with ``head`` starts as a canonical table does (its header's first column
+    ``time_s``)."""
+    first = head[:4096].split(b"\n", 1)[0].decode("utf-8", errors="replace")
+    return first.lstrip("\ufeff").split(",", 1)[0].strip() == "time_s"
 
 
 def iter_log(path: str | os.PathLike) -> Iterator:
@@ -454,12 +504,7 @@ def iter_log(path: str | os.PathLike) -> Iterator:
     lines: _Lines | None = None
     try:
         if real in _TEXT_SUFFIXES:
-            if gz:
-                import gzip
-
-                raw = gzip.open(path, "rt", encoding="utf-8", newline=None)
-            else:
-                raw = open(path, encoding="utf-8", newline=None)  # noqa: SIM115 - closed by the reader
+            raw = _open_text(path, gz)
             check = {".asc": _asc_ok, ".log": _candump_ok}.get(real)
             lines = _Lines(raw, check)
             reader = MESSAGE_READERS[real](file=lines)
