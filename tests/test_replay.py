@@ -265,3 +265,75 @@ def test_a_20hz_table_is_not_replayed_as_a_can_log(tmp_path, capsys):
     rc = cli.main(["replay", str(table), "--interface", "virtual", "--channel", "x", "--rate", "max"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "a 20 Hz table" in err[0] and "not a CAN log" in err[0], err
+
+
+def _bad_log(tmp_path, damage: str):
+    """A log of 3 s of frames, bad past its middle as ``damage`` says."""
+    import gzip
+
+    t, sig = synthetic(3.0)
+    suffix = ".log" if damage in ("garbage line", "garbage line .gz") else ".asc"
+    plain = tmp_path / f"run{suffix}"
+    write_log(plain, t, sig)
+    lines = plain.read_bytes().splitlines(keepends=True)
+    if damage.startswith("garbage line"):
+        lines.insert(len(lines) // 2, b"garbage line here\n")
+    text = b"".join(lines)
+    if damage == "garbage line":
+        plain.write_bytes(text)
+        return plain
+    path = tmp_path / f"run{suffix}.gz"
+    packed = gzip.compress(text)
+    path.write_bytes({"garbage line .gz": packed, "gzip cut": packed[: len(packed) // 2],
+                      "text cut .gz": gzip.compress(text[: len(text) // 2])}[damage])
+    return path
+
+
+@pytest.mark.parametrize("damage", ["garbage line", "garbage line .gz", "gzip cut", "text cut .gz"])
+def test_a_log_bad_past_its_middle_sends_nothing(tmp_path, channel, capsys, damage):
+    """The whole log is read before the bus is opened: a garbage line in the middle of a .log (599 frames went out
+    before exit 2), a .asc.gz cut by ``head -c`` (502 frames, then an EOFError), a garbage line or a text cut
+    mid-record inside a complete gzip stream: one line, exit 2, nothing on the bus; replay() itself sends nothing
+    either."""
+    path = _bad_log(tmp_path, damage)
+    rx = can.Bus(interface="virtual", channel=channel)
+    try:
+        rc = cli.main(["replay", str(path), "--interface", "virtual", "--channel", channel, "--rate", "max", "-q"])
+        out, err = capsys.readouterr()
+        tx = can.Bus(interface="virtual", channel=channel)
+        try:
+            with pytest.raises(UserError) as e:
+                replay(path, tx, rate=None)
+        finally:
+            tx.shutdown()
+        got = iter(lambda: rx.recv(0.2), None)
+        assert next(got, None) is None, "a frame of the bad log went onto the bus"
+    finally:
+        rx.shutdown()
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{path}: " in err and str(e.value) in err, err
+    want = {"garbage line": "unparsable line 'garbage line here'", "garbage line .gz": "unparsable line",
+            "gzip cut": "truncated: the gzip stream is cut", "text cut .gz": "truncated: line"}[damage]
+    assert want in err, err
+
+
+def test_a_checked_log_is_read_through_once_before_the_bus_and_played_whole(tmp_path, channel):
+    """check_log counts a good .log.gz's frames, and replay plays the CheckedLog whole without reading it again."""
+    import gzip
+
+    from virtsensor.recordings.replay import check_log
+
+    t, sig = synthetic(0.5)
+    path = tmp_path / "ok.log.gz"
+    plain = tmp_path / "ok.log"
+    written = write_log(plain, t, sig)
+    path.write_bytes(gzip.compress(plain.read_bytes()))
+    checked = check_log(path)
+    assert checked.frames == written.frames
+    rx = Receiver(channel)
+    tx = can.Bus(interface="virtual", channel=channel)
+    try:
+        summary = replay(checked, tx, rate=None)
+    finally:
+        tx.shutdown()
+    assert summary.frames_sent == written.frames == len(rx.close(expect=written.frames))

@@ -7,8 +7,9 @@ Examples::
     virtsensor replay --manoeuvre double-lane-change --speed 80 --mu 1.0 --interface socketcan --channel vcan0
 
 Timing follows the log's timestamps (s) scaled by ``--rate``; see
-:mod:`virtsensor.recordings.replay`. The closing summary goes to stdout, the progress bar
-to stderr.
+:mod:`virtsensor.recordings.replay`. The log is read through whole before the bus is
+opened: a bad log is refused in one line (exit 2) with nothing sent. The closing summary
+goes to stdout, the progress bar to stderr.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
-    from virtsensor.recordings.replay import open_bus, parse_rate, replay, simulated_frames
+    from virtsensor.recordings.replay import check_log, open_bus, parse_rate, replay, simulated_frames
 
     rate = parse_rate(args.rate)
     if (args.file is None) == (args.manoeuvre is None):
@@ -86,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
                                   mu=_or(args.mu, DEFAULT_MU), seed=_or(args.seed, DEFAULT_SEED),
                                   overrides=args.overrides)
     else:
-        source = args.file
+        source = check_log(args.file)  # the whole log, before the bus is opened: a bad one sends nothing
     bus = open_bus(args.interface, args.channel, args.bitrate)
     try:
         summary = replay(source, bus, rate=rate, loop=args.loop, progress=not args.quiet)

@@ -11,6 +11,11 @@ one mean frame interval after the last frame of the previous pass, again on
 the same absolute time line. ``rate=None``/``"max"`` sends as fast as the bus
 accepts.
 
+A log file is read through once before its first frame is sent
+(:func:`check_log`: a frame at a time, so memory does not grow with the log):
+a log that is bad anywhere (a garbage line in the middle, a cut ``.gz``) is
+refused with nothing sent, never after part of it went onto the bus.
+
 Frames are sent unchanged (including those not in the DBC, which are only
 counted). The timing error of a frame is ``perf_counter()`` just before
 ``bus.send`` minus its deadline.
@@ -33,7 +38,8 @@ import numpy as np
 from virtsensor.canbus.codec import CanMatrix
 from virtsensor.errors import UserError
 
-__all__ = ["SPIN_S", "ReplaySummary", "replay", "parse_rate", "open_bus", "simulated_frames"]
+__all__ = ["SPIN_S", "CheckedLog", "ReplaySummary", "check_log", "replay", "parse_rate", "open_bus",
+           "simulated_frames"]
 
 #: Sleep until this long before a deadline, then spin (s).
 SPIN_S = 0.0015
@@ -155,19 +161,44 @@ def simulated_frames(
     return list(iter_frames(time_s, signals, matrix=matrix))
 
 
+@dataclass(frozen=True)
+class CheckedLog:
+    """A CAN log that :func:`check_log` read through whole: every frame readable, ``frames`` of them."""
+
+    path: Path
+    frames: int
+
+
+def check_log(path: str | os.PathLike) -> CheckedLog:
+    """Read a CAN log through once, a frame at a time (memory does not grow with the log), so that a bad log is
+    refused before anything is sent and a bad line in the middle never leaves part of the log on the bus.
+
+    Raises:
+        UserError: what :func:`virtsensor.recordings.canlog.iter_log` refuses (a missing, unsupported, empty,
+            binary, cut, corrupt or gzip-damaged log, or an unparsable frame, naming the file and where), or a log
+            without frames.
+    """
+    from virtsensor.recordings.canlog import iter_log
+
+    path = Path(path)
+    n = 0
+    for _ in iter_log(path):
+        n += 1
+    if n == 0:
+        raise UserError(f"{path}: no CAN frames to replay (an empty log)")
+    return CheckedLog(path, n)
+
+
 def _sources(frames_or_path, loop: bool):
-    """(factory returning a fresh iterator per pass, total frames per pass or None, label)."""
+    """(factory returning a fresh iterator per pass, total frames per pass or None, label). A log not checked
+    yet is checked whole first (:func:`check_log`)."""
     if isinstance(frames_or_path, (str, os.PathLike)):
+        frames_or_path = check_log(frames_or_path)
+    if isinstance(frames_or_path, CheckedLog):
         from virtsensor.recordings.canlog import iter_log
 
-        path = Path(frames_or_path)
-        # validate now (missing file, bad format, truncation) rather than after the first pass
-        it = iter_log(path)
-        first = next(it, None)
-        it.close()
-        if first is None:
-            raise UserError(f"{path}: no CAN frames to replay (an empty log)")
-        return (lambda: iter_log(path)), None, str(path)
+        log = frames_or_path
+        return (lambda: iter_log(log.path)), log.frames, str(log.path)
     if isinstance(frames_or_path, Sequence):
         seq = frames_or_path
     elif loop:
@@ -294,7 +325,7 @@ def _timing_stats(errors: array) -> tuple[float | None, float | None, float | No
 
 
 def replay(
-    frames_or_path: str | os.PathLike | Iterable,
+    frames_or_path: str | os.PathLike | CheckedLog | Iterable,
     bus,
     rate: float | str | None = 1.0,
     loop: bool = False,
@@ -309,7 +340,9 @@ def replay(
 
     Args:
         frames_or_path: a log file (any format :func:`virtsensor.recordings.canlog.iter_log`
-            reads) or python-can ``Message`` objects in time order.
+            reads; read through whole by :func:`check_log` before any frame is sent, unless it is
+            the :class:`CheckedLog` that :func:`check_log` returned) or python-can ``Message``
+            objects in time order.
         bus: an open python-can bus (not shut down here).
         rate: time scale (2.0 = twice as fast); ``None``/``"max"``: no timing.
         loop: start over at the end (until Ctrl-C, ``stop`` or ``max_loops``).
@@ -323,7 +356,7 @@ def replay(
         :class:`ReplaySummary`.
 
     Raises:
-        UserError: unreadable or empty log (no frame), or the bus refusing frames.
+        UserError: unreadable or empty log (no frame; nothing is sent), or the bus refusing frames.
     """
     import can
 
