@@ -260,6 +260,31 @@ def test_evaluate_refuses_a_run_without_a_usable_sample(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_an_unreadable_run_in_a_data_directory_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
+    """A run file that cannot be read (no permission) inside a directory given as --data is the request's mistake,
+    as the same file given itself is: exit 2 naming it (it was exit 1, the machine's error)."""
+    from pathlib import Path
+
+    import virtsensor.recordings.canlog as canlog
+    from virtsensor.cli import main
+
+    data = _write_runs(tmp_path / "data", n_runs=3, n=60)
+    real = canlog.read_csv
+
+    def denied(path, *a, **k):  # (the suite runs as root, whom file modes do not stop)
+        if Path(path).name == "run1.csv":
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(canlog, "read_csv", denied)
+    model = Path(__file__).resolve().parents[1] / "models" / "improved.onnx"
+    out = tmp_path / "s.json"
+    assert main(["score", "--model", str(model), "--data", str(data), "--json", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "run1.csv: not readable (Permission denied)" in err, err
+    assert not out.exists()
+
+
 def test_the_eq1_observer_is_fitted_on_column_torques_of_whole_runs():
     """Targets that are exactly the observer's model (a share of the column torque plus a constant): fitted on the
     random split's training rows, it recovers them, because the column torque (the steering angle's derivatives)

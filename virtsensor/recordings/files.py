@@ -129,12 +129,15 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
 
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix in TABLE_SUFFIXES:
-        return read_csv(path)
-    if suffix in MDF_SUFFIXES:
-        from virtsensor.recordings.mdf import read_mdf
+    if suffix not in SUFFIXES:
+        raise _unsupported(path)
+    try:
+        if suffix in TABLE_SUFFIXES:
+            return read_csv(path)
+        if suffix in MDF_SUFFIXES:
+            from virtsensor.recordings.mdf import read_mdf
 
-        return read_mdf(path)
-    if suffix in LOG_SUFFIXES:
+            return read_mdf(path)
         return dict(read_log(path).table)
-    raise _unsupported(path)
+    except PermissionError as exc:  # (a file of a directory given as --data: as one given itself, exit 2)
+        raise UserError(f"{path}: not readable ({exc.strerror})") from None
