@@ -272,14 +272,16 @@ def _bad_log(tmp_path, damage: str):
     import gzip
 
     t, sig = synthetic(3.0)
-    suffix = ".log" if damage in ("garbage line", "garbage line .gz") else ".asc"
+    suffix = ".log" if damage in ("garbage line", "garbage line .gz", "clock jump") else ".asc"
     plain = tmp_path / f"run{suffix}"
     write_log(plain, t, sig)
     lines = plain.read_bytes().splitlines(keepends=True)
     if damage.startswith("garbage line"):
         lines.insert(len(lines) // 2, b"garbage line here\n")
+    if damage == "clock jump":  # (a last frame stamped in Unix time: the replay would wait for 54 years)
+        lines.append(b"(1700000000.000000)" + lines[-1].split(b")", 1)[1])
     text = b"".join(lines)
-    if damage == "garbage line":
+    if damage in ("garbage line", "clock jump"):
         plain.write_bytes(text)
         return plain
     path = tmp_path / f"run{suffix}.gz"
@@ -289,7 +291,7 @@ def _bad_log(tmp_path, damage: str):
     return path
 
 
-@pytest.mark.parametrize("damage", ["garbage line", "garbage line .gz", "gzip cut", "text cut .gz"])
+@pytest.mark.parametrize("damage", ["garbage line", "garbage line .gz", "gzip cut", "text cut .gz", "clock jump"])
 def test_a_log_bad_past_its_middle_sends_nothing(tmp_path, channel, capsys, damage):
     """The whole log is read before the bus is opened: a garbage line in the middle of a .log (599 frames went out
     before exit 2), a .asc.gz cut by ``head -c`` (502 frames, then an EOFError), a garbage line or a text cut
@@ -313,7 +315,8 @@ def test_a_log_bad_past_its_middle_sends_nothing(tmp_path, channel, capsys, dama
     assert rc == 2 and out == "" and err.count("\n") == 1 and "Traceback" not in err, err
     assert f"{path}: " in err and str(e.value) in err, err
     want = {"garbage line": "unparsable line 'garbage line here'", "garbage line .gz": "unparsable line",
-            "gzip cut": "truncated: the gzip stream is cut", "text cut .gz": "truncated: line"}[damage]
+            "gzip cut": "truncated: the gzip stream is cut", "text cut .gz": "truncated: line",
+            "clock jump": "a replay covers at most 12 h"}[damage]
     assert want in err, err
 
 

@@ -173,19 +173,30 @@ def check_log(path: str | os.PathLike) -> CheckedLog:
     """Read a CAN log through once, a frame at a time (memory does not grow with the log), so that a bad log is
     refused before anything is sent and a bad line in the middle never leaves part of the log on the bus.
 
+    A recorded silence is replayed as it was (a daemon's timeouts are tested so), but not a log whose frames span
+    more than :data:`~virtsensor.frontend.MAX_SPAN_S` (12 h: a frame on another clock, a replay that would wait
+    for years).
+
     Raises:
         UserError: what :func:`virtsensor.recordings.canlog.iter_log` refuses (a missing, unsupported, empty,
-            binary, cut, corrupt or gzip-damaged log, or an unparsable frame, naming the file and where), or a log
-            without frames.
+            binary, cut, corrupt or gzip-damaged log, or an unparsable frame, naming the file and where), a log
+            without frames, or one that spans more than 12 h.
     """
+    from virtsensor.frontend import MAX_SPAN_S
     from virtsensor.recordings.canlog import iter_log
 
     path = Path(path)
     n = 0
-    for _ in iter_log(path):
+    lo = hi = math.nan
+    for m in iter_log(path):
         n += 1
+        t = float(m.timestamp)
+        lo, hi = (t, t) if n == 1 else (min(lo, t), max(hi, t))
     if n == 0:
         raise UserError(f"{path}: no CAN frames to replay (an empty log)")
+    if not hi - lo <= MAX_SPAN_S:
+        raise UserError(f"{path}: its frames span {hi - lo:.3g} s, from {lo:.6f} s to {hi:.6f} s; a replay covers "
+                        f"at most {MAX_SPAN_S / 3600:.0f} h (a frame stamped on another clock?)")
     return CheckedLog(path, n)
 
 
