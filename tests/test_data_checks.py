@@ -247,6 +247,36 @@ def test_a_log_cut_mid_record_is_refused_with_its_last_good_timestamp(tmp_path, 
     assert m and 0.5 < float(m.group(1)) < 3.0, msg
 
 
+def test_one_run_given_twice_is_refused_a_copy_or_its_table_beside_its_can_log(tmp_path, capsys):
+    """A copy under another name, or the run as a CAN log beside the same run as a table (a campaign written in
+    both formats): its files' bytes differ, its signals do not. Counted twice it would weigh double and sit on both
+    sides of the held-out split; refused in one line naming both files. Across options (held-out against training)
+    check_disjoint refuses it too."""
+    import shutil
+
+    from virtsensor.learning.dataset import check_disjoint
+    from virtsensor.recordings.files import read_table
+
+    d = tmp_path / "d"
+    d.mkdir()
+    for i in range(3):
+        write_csv(d / f"run{i}.csv", _table(seed=i))
+    shutil.copy(d / "run1.csv", d / "zcopy.csv")
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and err.count("\n") == 0 and "zcopy.csv: the same run as" in err and "run1.csv" in err, err
+
+    t, sig = _log_signals()
+    log = tmp_path / "r.blf"
+    write_log(log, t, sig)
+    write_csv(tmp_path / "r_table.csv", read_table(log))  # (the table of the same frames, as a campaign writes it)
+    with pytest.raises(UserError, match=r"r_table\.csv: the same run as .*r\.blf"):
+        load_runs([log, tmp_path / "r_table.csv"])
+    with pytest.raises(UserError, match=r"given both as --data and as --train-extra \(.*r\.blf, the same content\)"):
+        check_disjoint([("--data", load_runs([log])), ("--train-extra", load_runs([tmp_path / "r_table.csv"]))],
+                       "a held-out run must not be trained on")
+    assert len(load_runs([d / "run0.csv", d / "run1.csv", log])) == 3  # (different runs stay apart)
+
+
 def test_a_csv_table_cut_mid_row_is_refused(tmp_path):
     path = tmp_path / "a.csv"
     write_csv(path, _table())

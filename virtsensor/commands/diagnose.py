@@ -88,10 +88,10 @@ def run(args: argparse.Namespace) -> int:
     runs = load_measured(args.measured, skipped=skipped)
     if args.holdout:
         holdout = load_measured(args.holdout, skipped=skipped)
-        clash = {r.path.resolve() for r in runs} & {r.path.resolve() for r in holdout}
-        if clash:
-            raise UserError(f"{sorted(clash)[0]}: given both as --measured and --holdout; a held-out run must "
-                            "play no part in the diagnosis")
+        from virtsensor.recordings.identity import refuse_repeats
+
+        refuse_repeats([(r.path, r.digest) for r in (*runs, *holdout)],
+                       "given both as --measured and --holdout: a held-out run must play no part in the diagnosis")
     elif len(runs) >= 3 and not args.no_retrain:
         k = len(runs) // 3
         runs, holdout = runs[:-k], runs[-k:]

@@ -30,6 +30,7 @@ from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 from virtsensor.recordings.check import check_table
 from virtsensor.recordings.files import read_table, recording_files
+from virtsensor.recordings.identity import refuse_repeats, table_digest
 from virtsensor.recordings.manifest import check_rows, file_sha256
 
 
@@ -41,6 +42,9 @@ class Run:
     table: dict[str, np.ndarray]
     meta: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
+    #: the digest of its table as the CAN bus carries it (:func:`~virtsensor.recordings.identity.table_digest`;
+    #: empty: not computed)
+    digest: str = ""
 
 
 def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[Run]:
@@ -63,13 +67,16 @@ def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[R
             ``meta["pressure_unknown"] = True``.
 
     Raises:
-        UserError: the first file that fails, naming it (and column and row).
+        UserError: the first file that fails, naming it (and column and row); a run given twice (another file of
+            the same signals tick for tick: a copy, or the run as a table and as a CAN log;
+            :func:`~virtsensor.recordings.identity.refuse_repeats`).
     """
     targets = [s for s in needed if s in cat.OUTPUTS]
     runs = []
     for source in recording_files(paths):
         f = source.path
         table = read_table(f)
+        digest = table_digest(table) if len(table.get("time_s", ())) else ""
         unknown = [s for s in needed if s in cat.TPMS_SIGNALS and s not in table]
         for s in unknown:  # a recording without TPMS: its pressures are unknown (NaN), never taken as nominal
             table[s] = np.full(len(table["time_s"]) if "time_s" in table else 0, np.nan)
@@ -83,7 +90,8 @@ def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[R
             meta = {k: v for k, v in source.entry.items() if k != "file"}
         if unknown:
             meta["pressure_unknown"] = True
-        runs.append(Run(f.stem, table, meta, f))
+        runs.append(Run(f.stem, table, meta, f, digest))
+    refuse_repeats((r.path or r.name, r.digest) for r in runs)  # (a copy, or one run as a table and as a log)
     return runs
 
 
@@ -97,15 +105,19 @@ def run_digest(run: Run) -> str | None:
 
 
 def _identity(run: Run) -> list[object]:
-    """What makes two runs the same: their resolved file, their content's sha256."""
+    """What makes two runs the same: their resolved file, their file's sha256, their table's digest (the same
+    signals in another file or format)."""
     keys: list[object] = [] if run.path is None else [run.path.resolve()]
+    if run.digest:
+        keys.append(("table", run.digest))
     digest = run_digest(run)
     return keys if digest is None else [*keys, ("sha256", digest)]
 
 
 def check_disjoint(named: Sequence[tuple[str, Sequence[Run]]], why: str) -> None:
     """Refuse a run that is in two of the ``named`` sets (``(option, runs)``): the same file, or another file
-    with the same content (:func:`run_digest`), e.g. held-out runs also given on the training side.
+    with the same content (:func:`run_digest`) or the same run in another file or format (its table's digest), e.g.
+    held-out runs also given on the training side.
 
     Raises:
         UserError: ``<file>: given both as <option> and as <option> [(<other file>, the same content)]; <why>``.

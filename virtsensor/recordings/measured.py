@@ -42,6 +42,7 @@ from virtsensor import signals as cat
 from virtsensor.errors import UserError
 from virtsensor.recordings.check import check_table
 from virtsensor.recordings.files import read_table, recording_files
+from virtsensor.recordings.identity import refuse_repeats, table_digest
 from virtsensor.recordings.manifest import check_rows
 
 RATE_HZ = cat.TABLE_RATE_HZ
@@ -77,6 +78,9 @@ class MeasuredRun:
     segments: list[Segment]
     gaps: list[tuple[float, float]] = field(default_factory=list)  # (start, end) s
     notes: list[str] = field(default_factory=list)
+    #: the digest of the table as read (:func:`~virtsensor.recordings.identity.table_digest`): the same run in
+    #: another file or format has the same
+    digest: str = ""
 
     @property
     def duration_s(self) -> float:
@@ -205,6 +209,7 @@ def load_measured(paths: Iterable[str | Path], needed: Sequence[str] = NEEDED,
             check_rows(path, source.entry, len(table["time_s"]))
         table = {k: np.asarray(v, dtype=float) for k, v in table.items()}
         check_table(path, table, gaps=True)
+        digest = table_digest(table)
         _check_units(path, table)
         full, segs, gaps, notes = _segments(path, table, needed)
         if not _moving(table, 0, len(table["time_s"])):
@@ -218,7 +223,8 @@ def load_measured(paths: Iterable[str | Path], needed: Sequence[str] = NEEDED,
             skipped.append((str(path), why))
             continue
         full["time_s"] = full["time_s"] - full["time_s"][0]
-        runs.append(MeasuredRun(path.stem, path, full, segs, gaps, notes))
+        runs.append(MeasuredRun(path.stem, path, full, segs, gaps, notes, digest))
+    refuse_repeats((r.path, r.digest) for r in runs)  # (a copy, or one run as a table and as a CAN log)
     if not runs:
         raise UserError(f"no usable measured run: {'; '.join(f'{p}: {why}' for p, why in skipped or [])}")
     names = [r.name for r in runs]
