@@ -68,7 +68,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from sim.tir import TirError, TirFile, read_tir, require_keys
 
-__all__ = ["MagicFormula61", "TyreOutput", "REQUIRED_KEYS", "SCALING_FACTORS"]
+__all__ = ["MagicFormula61", "TyreOutput", "REQUIRED_KEYS", "SCALING_FACTORS", "PLAUSIBLE_RANGES",
+           "PlausibleRange", "implausible"]
 
 FloatArray = NDArray[np.float64]
 
@@ -138,6 +139,76 @@ _RANGE_DEFAULTS: dict[str, float] = {
     "PRESMIN": 0.0,
     "PRESMAX": math.inf,
 }
+
+
+class PlausibleRange(NamedTuple):
+    """Where a key lies for a passenger-car or light-truck tyre, and the unit slips that would move it out.
+
+    ``slips``: (factor, phrase) pairs: a value that lands in [low, high] once multiplied by the
+    factor was probably written in that other unit ("is it in kN?", "is it the diameter?").
+    """
+
+    low: float
+    high: float
+    unit: str
+    what: str  #: what the key is, for the message ("a nominal load")
+    slips: tuple[tuple[float, str], ...]
+
+
+_PRESSURE = PlausibleRange(1.0e5, 6.5e5, "Pa", "an inflation pressure",
+                           ((1e5, "in bar"), (1e3, "in kPa"), (6894.757, "in psi"), (1e6, "in MPa")))
+_CARCASS = ((1e3, "in N/mm (kN/m)"),)
+
+#: Plausible values of the keys whose unit slips are common, for a passenger-car or light-truck tyre (the
+#: model's domain: the sizes run from a 105/70 R14 temporary spare to a 40 x 15.50 R20 LT tyre). Each range
+#: is a few times wider than those sizes need, so that only a value in the wrong unit (or no tyre of this
+#: class) falls out, and each slip it names lands well inside:
+#:
+#: * FNOMIN 1-25 kN: the nominal load is a part of the tyre's maximum load, from load index 60 (250 kg,
+#:   2.5 kN) to light-truck index 130 (1900 kg, 18.6 kN). A file in kN gives 1-25, one in daN 100-2500.
+#: * UNLOADED_RADIUS 0.2-0.6 m: rim radius plus section height, 0.23 m (145/70 R10) to 0.51 m (40 in LT).
+#:   A radius in mm, cm or inches, or the diameter, falls out.
+#: * WIDTH 0.08-0.45 m: section width, 105 mm (spare) to 355 mm (355/25 R21) or 15.5 in (LT).
+#: * RIM_RADIUS 0.12-0.35 m: 10 to 26 in rims. The rim's size in inches is its diameter.
+#: * NOMPRES, INFLPRES 1-6.5 bar: passenger tyres run 1.6-3.5 bar, temporary spares 4.2 bar, light-truck
+#:   load range E 5.5 bar (80 psi); below 1 bar the tyre is flat, above 6.5 bar it is a truck tyre. A
+#:   pressure in bar, kPa, psi or MPa falls out (the file's [UNITS] cannot say: pressure has no entry).
+#: * LONGVL 1-40 m/s: the reference speed of the measurements, 10-30 m/s on flat-track and trailer rigs
+#:   (TNO: 16.7 m/s, 60 km/h). 60 (km/h) falls out; a speed in mph (1.6 times the m/s) does not always.
+#: * VERTICAL_STIFFNESS 50-1500 kN/m (passenger tyres 150-350, light trucks up to 700), LONGITUDINAL_ and
+#:   LATERAL_STIFFNESS 20-3000 kN/m (carcass stiffnesses, 150-600 kN/m measured): a value in N/mm falls out.
+#:
+#: Every other number of the model must only be finite (:class:`MagicFormula61` checks it).
+PLAUSIBLE_RANGES: dict[str, PlausibleRange] = {
+    "FNOMIN": PlausibleRange(1.0e3, 2.5e4, "N", "a nominal load",
+                             ((1e3, "in kN"), (10.0, "in daN"), (9.80665, "in kgf"))),
+    "UNLOADED_RADIUS": PlausibleRange(0.2, 0.6, "m", "a free radius",
+                                      ((1e-3, "in mm"), (1e-2, "in cm"), (0.0254, "in inches"),
+                                       (0.5, "the diameter"), (0.0127, "the diameter in inches"))),
+    "WIDTH": PlausibleRange(0.08, 0.45, "m", "a section width", ((1e-3, "in mm"), (0.0254, "in inches"))),
+    "RIM_RADIUS": PlausibleRange(0.12, 0.35, "m", "a rim radius",
+                                 ((1e-3, "in mm"), (0.5, "the diameter"), (0.0127, "the rim size in inches"))),
+    "NOMPRES": _PRESSURE,
+    "INFLPRES": _PRESSURE,
+    "LONGVL": PlausibleRange(1.0, 40.0, "m/s", "a reference speed", ((1.0 / 3.6, "in km/h"),)),
+    "VERTICAL_STIFFNESS": PlausibleRange(5.0e4, 1.5e6, "N/m", "a vertical stiffness", _CARCASS),
+    "LONGITUDINAL_STIFFNESS": PlausibleRange(2.0e4, 3.0e6, "N/m", "a longitudinal carcass stiffness", _CARCASS),
+    "LATERAL_STIFFNESS": PlausibleRange(2.0e4, 3.0e6, "N/m", "a lateral carcass stiffness", _CARCASS),
+}
+
+
+def implausible(key: str, value: float) -> str | None:
+    """Why ``value`` of ``key`` is no passenger-car or light-truck tyre's (see :data:`PLAUSIBLE_RANGES`), with
+    the likely unit slip; None when it is plausible or ``key`` has no range."""
+    r = PLAUSIBLE_RANGES.get(key)
+    if r is None or r.low <= value <= r.high:
+        return None
+    side = "below" if value < r.low else "above"
+    slips = [phrase for factor, phrase in r.slips if r.low <= value * factor <= r.high]
+    hint = f"is it {' or '.join(slips)}?" if slips else "is it in another unit?"
+    return (f"{key} = {value:g} {r.unit}: {r.what} {side} the {r.low:g} to {r.high:g} {r.unit} of a "
+            f"passenger-car or light-truck tyre; {hint}")
+
 
 _EPS = 1e-6  # Pacejka (4.E6a): epsilon_x,y,k,v
 _TWO_OVER_PI = 2.0 / math.pi
@@ -275,7 +346,9 @@ class MagicFormula61:
 
     Raises:
         TirError: a required coefficient is missing (MF 6.1 gives it no default), a
-            value is not a finite number or out of its range, or FITTYP is not 61/62.
+            value is not a finite number or out of its range, a size, load, pressure,
+            speed or stiffness no passenger-car or light-truck tyre has (a unit slip:
+            :data:`PLAUSIBLE_RANGES`), or FITTYP is not 61/62.
 
     Implementation: every coefficient that is a polynomial in dfz, gamma* and gamma
     (with the scaling factors, and the pressure and friction factors when they are
@@ -336,6 +409,15 @@ class MagicFormula61:
                 raise TirError(f"{at(key)}: coefficient {key} must not be 0")
         if full["LMUV"] != 0.0:
             raise TirError(f"{at('LMUV')}: LMUV (speed-decaying friction) is not supported; set it to 0")
+        for key in PLAUSIBLE_RANGES:  # a unit slip in a key the model reads or that states the tyre's size
+            value = full.get(key)
+            if value is None:
+                continue
+            if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+                raise TirError(f"{at(key)}: {key} = {value!r} is not a finite number")
+            why = implausible(key, float(value))
+            if why is not None:
+                raise TirError(f"{at(key)}: {why}")
 
         self.params = full
         self.use_alpha_star = bool(use_alpha_star)

@@ -712,3 +712,50 @@ def test_axle_tyres_split_the_wheel_axis(mf61: MagicFormula61, cseg: MagicFormul
         np.testing.assert_array_equal(both.relaxation_lengths(ins["fz"], pres)[1][:, cols],
                                       model.relaxation_lengths(ins["fz"][:, cols], pres[:, cols])[1])
     assert both.per_wheel("UNLOADED_RADIUS", 0.3).tolist() == [0.393581] * 2 + [0.3135] * 2
+
+
+# ------------------------------------------------------------- plausible values (unit slips)
+@pytest.mark.parametrize("name", [MF61, MFEVAL, CSEG])
+def test_every_slip_a_range_names_is_refused_and_named(name: str) -> None:
+    """Each bundled file's value of each key with a plausible range passes; written in each unit slip the range
+    names (kN for FNOMIN, mm or the diameter for UNLOADED_RADIUS, bar or psi for NOMPRES...) it falls out
+    and the message names that slip, the key and the line."""
+    from sim.tyre import PLAUSIBLE_RANGES, implausible
+
+    tir = read_tir(bundled_tir(name))
+    model = MagicFormula61(tir)
+    for key, plausible in PLAUSIBLE_RANGES.items():
+        value = float(model.params.get(key, tir.get(key, math.nan)))
+        assert plausible.low <= value <= plausible.high, (name, key, value)
+        assert implausible(key, value) is None
+        for factor, phrase in plausible.slips:
+            slipped = float(f"{value / factor:.6g}")  # as a person would write it
+            why = implausible(key, slipped)
+            assert why is not None and (f"is it {phrase}" in why or f"or {phrase}?" in why), (key, slipped, why)
+            edited = read_tir(bundled_tir(name))
+            edited[key] = slipped
+            if key in edited.lines:
+                with pytest.raises(TirError, match=rf"^f\.tir:{edited.lines[key]}: {key} = "):
+                    MagicFormula61(edited, source="f.tir")
+
+
+@pytest.mark.parametrize(("key", "value", "expected"), [
+    ("FNOMIN", 6.752, "FNOMIN = 6.752 N: a nominal load below the 1000 to 25000 N of a passenger-car or "
+                      "light-truck tyre; is it in kN?"),
+    ("UNLOADED_RADIUS", 0.787, "a free radius above the 0.2 to 0.6 m of a passenger-car or light-truck tyre; "
+                               "is it the diameter?"),
+    ("NOMPRES", 37.7, "an inflation pressure below the 100000 to 650000 Pa of a passenger-car or light-truck "
+                      "tyre; is it in psi?"),
+    ("LONGVL", 60.0, "a reference speed above the 1 to 40 m/s of a passenger-car or light-truck tyre; is it in "
+                     "km/h?"),
+    ("FNOMIN", 6.752e9, "a nominal load above the 1000 to 25000 N of a passenger-car or light-truck tyre; is it "
+                        "in another unit?"),
+    ("WIDTH", "wide", "WIDTH = 'wide' is not a finite number"),
+    ("RIM_RADIUS", math.inf, "RIM_RADIUS = inf is not a finite number"),
+])
+def test_an_implausible_value_names_key_range_and_likely_unit(key: str, value: float | str, expected: str) -> None:
+    params = dict(read_tir(bundled_tir(MF61)).params)
+    with pytest.raises(TirError) as exc:
+        MagicFormula61({**params, key: value}, source="t.tir")
+    assert str(exc.value) == f"t.tir: {expected}" or str(exc.value).endswith(expected), str(exc.value)
+

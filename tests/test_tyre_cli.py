@@ -114,6 +114,58 @@ def test_bad_value_is_refused_with_file_key_and_line(tmp_path: Path, capsys: pyt
     assert not (tmp_path / "f.json").exists()
 
 
+@pytest.mark.parametrize(("key", "edit", "expected"), [
+    ("FNOMIN", "FNOMIN = 6.752", "FNOMIN = 6.752 N: a nominal load below the 1000 to 25000 N of a passenger-car or "
+                                 "light-truck tyre; is it in kN?"),
+    ("UNLOADED_RADIUS", "UNLOADED_RADIUS = 394.3", "UNLOADED_RADIUS = 394.3 m: a free radius above the 0.2 to 0.6 m "
+                                                   "of a passenger-car or light-truck tyre; is it in mm?"),
+    ("WIDTH", "WIDTH = 255", "WIDTH = 255 m: a section width above the 0.08 to 0.45 m of a passenger-car or "
+                             "light-truck tyre; is it in mm?"),
+    ("NOMPRES", "NOMPRES = 2.6", "NOMPRES = 2.6 Pa: an inflation pressure below the 100000 to 650000 Pa of a "
+                                 "passenger-car or light-truck tyre; is it in bar?"),
+    ("INFLPRES", "INFLPRES = 260", "INFLPRES = 260 Pa: an inflation pressure below the 100000 to 650000 Pa of a "
+                                   "passenger-car or light-truck tyre; is it in kPa?"),
+    ("LONGVL", "LONGVL = 60", "LONGVL = 60 m/s: a reference speed above the 1 to 40 m/s of a passenger-car or "
+                              "light-truck tyre; is it in km/h?"),
+    ("VERTICAL_STIFFNESS", "VERTICAL_STIFFNESS = 314.9", "VERTICAL_STIFFNESS = 314.9 N/m: a vertical stiffness "
+                                                         "below the 50000 to 1.5e+06 N/m of a passenger-car or "
+                                                         "light-truck tyre; is it in N/mm (kN/m)?"),
+])
+def test_a_value_in_the_wrong_unit_is_refused_with_file_key_line_and_likely_unit(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, edit: str, expected: str) -> None:
+    """A .tir whose [UNITS] say SI but whose load, size, pressure, speed or stiffness is in another unit: a
+    nominal load of 6.752 N made the simulation diverge at t = 0 (a traceback) and 'virtsensor tyre' print it."""
+    path, line = _broken(tmp_path, edit, key)
+    assert _refused(capsys, path, "--json", str(tmp_path / "f.json")) == f"virtsensor tyre: error: {path}:{line}: " \
+                                                                         f"{expected}"
+    assert not (tmp_path / "f.json").exists()
+
+
+def test_a_value_in_the_wrong_unit_stops_simulate_and_campaign_before_any_work(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The reviewer's case: FNOMIN in kN. simulate (with --tyre or --set tyres.file) and campaign refuse it in one
+    line naming file, key and line; no run file, no campaign directory."""
+    path, line = _broken(tmp_path, "FNOMIN = 6.752", "FNOMIN")
+    out, camp = tmp_path / "dlc.csv", tmp_path / "camp"
+    dlc = ["simulate", "double-lane-change", "--speed", "80", "--mu", "1", "--out", str(out)]
+    for argv in ([*dlc, "--tyre", str(path)], [*dlc, "--set", f"tyres.file={path}"],
+                 ["campaign", "tiny", "--tyre", str(path), "--out", str(camp), "--quiet"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{path}:{line}: FNOMIN = 6.752 N: a nominal load below" in err[0], err
+        assert err[0].endswith("is it in kN?"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.tir"]
+
+
+def test_set_is_checked_as_the_file_is(capsys: pytest.CaptureFixture[str]) -> None:
+    """--set FNOMIN=1e308 printed RuntimeWarnings and null figures (exit 0)."""
+    assert main(["tyre", MF61, "--set", "FNOMIN=1e308", "--json", "-"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.strip() == (
+        f"virtsensor tyre: error: {bundled_tir(MF61)} with --set FNOMIN: FNOMIN = 1e+308 N: a nominal load above the "
+        "1000 to 25000 N of a passenger-car or light-truck tyre; is it in another unit?")
+
+
 def test_missing_fittyp_and_units_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path, _ = _broken(tmp_path, "", "FITTYP")
     model_line = 1 + bundled_tir(MFEVAL).read_text().splitlines().index("[MODEL]")

@@ -116,7 +116,7 @@ def check_tyre_file(name: str | Path, overrides: Mapping[str, float] | None = No
             for key in overrides:
                 tir.lines.pop(key, None)
             tir.update(overrides)
-            model = MagicFormula61(tir, source=str(path))
+            model = MagicFormula61(tir, source=f"{path} with --set {', '.join(overrides)}")
     except TirError as exc:
         raise UserError(str(exc)) from None
     defaults = {k: v for k, v in model.params.items() if k not in tir and isinstance(v, float)}
