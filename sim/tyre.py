@@ -59,17 +59,18 @@ folded into the cached coefficient matrix.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sim.tir import TirError, TirFile, read_tir, require_keys
+from sim.tir import TirError, TirFile, bundled_tir, read_tir, require_keys
 
 __all__ = ["MagicFormula61", "TyreOutput", "REQUIRED_KEYS", "SCALING_FACTORS", "PLAUSIBLE_RANGES",
-           "PlausibleRange", "implausible"]
+           "PlausibleRange", "TYPICAL_TYRE", "implausible", "non_finite_outputs", "overflow_message",
+           "overflow_problem", "overflowing"]
 
 FloatArray = NDArray[np.float64]
 
@@ -422,7 +423,8 @@ class MagicFormula61:
         self.params = full
         self.use_alpha_star = bool(use_alpha_star)
         self.source = src
-        self._setup()
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            self._setup()  # coefficients so large that this overflows give non-finite outputs: overflow_problem
 
     @classmethod
     def from_tir(cls, path: str | Path, *, use_alpha_star: bool = True) -> MagicFormula61:
@@ -551,9 +553,9 @@ class MagicFormula61:
         for name, (coefs, mu_pow, pname) in self._rows.items():
             factor = 1.0
             if mu_pow:
-                factor *= (p["LMUX"] if name in ("MUX", "SVX") else p["LMUY"]) ** mu_pow
+                factor *= _pow(p["LMUX"] if name in ("MUX", "SVX") else p["LMUY"], mu_pow)
                 if mu is not None:
-                    factor *= mu**mu_pow
+                    factor *= _pow(mu, mu_pow)
             if pname is not None and pt is not None:
                 factor *= getattr(pt, pname)
             if name == "KYA":
@@ -1007,7 +1009,7 @@ class MagicFormula61:
             k /= fz0
         elif qsy7 != 0.0:
             acc *= np.power(fz, qsy7)
-            k /= fz0**qsy7
+            k /= _pow(fz0, qsy7)
         acc *= k
         my = acc
         if sgn is not None:
@@ -1118,6 +1120,104 @@ class MagicFormula61:
         return w.reshape(shape)
 
 
+# ------------------------------------------------------------------ overflow
+#: the tyre whose coefficients stand for "a typical passenger-car tyre" when :func:`overflowing` looks for the
+#: coefficient that makes a model overflow (the default car's tyre)
+TYPICAL_TYRE = "c_segment_205_55R16.tir"
+#: most coefficients :func:`overflowing` names together
+_MOST_NAMED = 5
+#: outputs checked by :func:`non_finite_outputs`, by name
+_OUTPUT_NAMES = {"fx": "Fx", "fy": "Fy", "mz": "Mz", "my": "My", "t": "trail", "kya": "cornering stiffness",
+                 "kxk": "slip stiffness"}
+
+
+def non_finite_outputs(model: MagicFormula61) -> dict[str, int]:
+    """The outputs that are not finite somewhere in the tyre's usual range (name -> how many points).
+
+    The range: pure side slip to 30 deg (1 deg steps) and pure longitudinal slip to 0.3 (0.01 steps), at
+    0.5, 1 and 1.5 x FNOMIN, 0.9, 1 and 1.1 x INFLPRES, zero camber, LONGVL (the range of the figures and
+    plots of ``virtsensor tyre``). Finite coefficients can still overflow there (PKY1 = 1e308: Kya = inf),
+    and a model that does would make any simulation diverge.
+    """
+    p = model._p
+    fz = np.array([0.5, 1.0, 1.5])[:, None, None] * p["FNOMIN"]
+    pres = np.array([0.9, 1.0, 1.1])[None, :, None] * p["INFLPRES"]
+    with np.errstate(all="ignore"):
+        side = model.steady_state(fz, 0.0, np.linspace(-30.0, 30.0, 61) * (math.pi / 180.0), 0.0, p["LONGVL"], pres)
+        longi = model.steady_state(fz, np.linspace(-0.3, 0.3, 61), 0.0, 0.0, p["LONGVL"], pres)
+    counts = {name: int(np.sum(~np.isfinite(getattr(side, key))) + np.sum(~np.isfinite(getattr(longi, key))))
+              for key, name in _OUTPUT_NAMES.items()}
+    return {name: n for name, n in counts.items() if n}
+
+
+def _non_finite_with(params: Mapping[str, float | str], values: Mapping[str, float | str]) -> int:
+    """How many outputs :func:`non_finite_outputs` finds with ``values`` replacing some coefficients (-1: the
+    coefficients are refused then)."""
+    try:
+        return sum(non_finite_outputs(MagicFormula61({**params, **values})).values())
+    except TirError:
+        return -1
+
+
+def overflowing(model: MagicFormula61, given: Iterable[str] = (),
+                restore: Mapping[str, float | str] | None = None) -> list[str]:
+    """The coefficients that make the model's outputs non-finite (:func:`non_finite_outputs`).
+
+    A coefficient can be given back a sane value: one of ``restore`` its value there (what a --set replaced),
+    any other of ``given`` (the keys of the file) the value of :data:`TYPICAL_TYRE`. Named: those that each
+    alone make the outputs finite; else the fewest found greedily (each time the one that leaves the fewest
+    outputs non-finite, at most :data:`_MOST_NAMED`) that together do. Empty when none do.
+    """
+    params = model.params
+    left = sum(non_finite_outputs(model).values())
+    typical = MagicFormula61.from_tir(bundled_tir(TYPICAL_TYRE)).params
+    sane = dict(restore or {})
+    sane.update((key, typical[key]) for key in given if key not in sane and isinstance(params.get(key), float)
+                and isinstance(typical.get(key), float) and typical[key] != params[key])
+    chosen: dict[str, float | str] = {}
+    while left and len(chosen) < _MOST_NAMED:
+        trials = {key: _non_finite_with(params, {**chosen, key: value}) for key, value in sane.items()
+                  if key not in chosen}
+        trials = {key: n for key, n in trials.items() if 0 <= n < left}
+        if not chosen and 0 in trials.values():
+            return [key for key, n in trials.items() if n == 0]
+        if not trials:
+            return []
+        best = min(trials, key=trials.__getitem__)
+        chosen[best], left = sane[best], trials[best]
+    if left:
+        return []
+    for key in list(chosen):  # one that the later ones made unnecessary
+        rest = {k: v for k, v in chosen.items() if k != key}
+        if _non_finite_with(params, rest) == 0:
+            chosen = rest
+    return [key for key in sane if key in chosen]  # (--set ones first, then in the file's order)
+
+
+def overflow_message(model: MagicFormula61, what: str, given: Iterable[str] = (),
+                     restore: Mapping[str, float | str] | None = None) -> str:
+    """One line: the model (its source) overflows, ``what`` is not finite, and the coefficient(s) that cause
+    it (:func:`overflowing`), or which to check when no coefficient alone or few together do."""
+    keys = overflowing(model, given, restore)
+    where = model.source
+    if len(keys) == 1 and isinstance(given, TirFile) and keys[0] in given.lines:
+        where = given.where(keys[0])
+    head = f"{where}: the Magic Formula overflows ({what} not finite)"
+    if keys:
+        values = ", ".join(f"{key} = {model.params[key]:g}" for key in keys)
+        return f"{head}: {values}; give {'it a value' if len(keys) == 1 else 'them values'} of a tyre's size"
+    return f"{head}; check {'the --set coefficients ' + ', '.join(restore) if restore else 'its coefficients'}"
+
+
+def overflow_problem(model: MagicFormula61, given: Iterable[str] = (),
+                     restore: Mapping[str, float | str] | None = None) -> str | None:
+    """:func:`overflow_message` when some output is not finite in the tyre's usual range, else None."""
+    bad = non_finite_outputs(model)
+    if not bad:
+        return None
+    return overflow_message(model, f"{', '.join(bad)} at 0.5-1.5 FNOMIN, 0.9-1.1 INFLPRES", given, restore)
+
+
 class _PressureTerms:
     """Inflation-pressure factors of MF 6.1 for one pressure (float) or per element (array)."""
 
@@ -1136,7 +1236,8 @@ class _PressureTerms:
         self.muy = 1.0 + p["PPY3"] * dpi + p["PPY4"] * dpi * dpi  # (4.E23)
         self.dt = 1.0 - p["PPZ1"] * dpi  # (A60): PPZ1 > 0 -> higher pressure, shorter trail
         self.dr = 1.0 + p["PPZ2"] * dpi  # (4.E47)
-        self.my = (pressure / p["NOMPRES"]) ** p["QSY8"]  # (A48)
+        self.my = np.power(pressure / p["NOMPRES"], p["QSY8"]) if isinstance(pressure, np.ndarray) \
+            else _pow(pressure / p["NOMPRES"], p["QSY8"])  # (A48)
         self.cx = 1.0 + p["PCFX3"] * dpi  # Besselink 2010 eq. 17
         self.cy = 1.0 + p["PCFY3"] * dpi  # eq. 18
         self.cz = 1.0 + p["PFZ1"] * dpi  # eq. 5
@@ -1150,6 +1251,12 @@ def _as_float(x: ArrayLike) -> FloatArray | float:
         return float(x)
     arr = np.asarray(x, dtype=np.float64)
     return float(arr) if arr.ndim == 0 else arr
+
+
+def _pow(x: float, y: float) -> float:
+    """x ** y of two floats, inf when it overflows (as numpy's power, under the caller's np.errstate): Python's
+    float power raises OverflowError instead, which would escape as a crash rather than a non-finite output."""
+    return float(np.power(np.float64(x), y))
 
 
 def _f64(x: ArrayLike) -> FloatArray:

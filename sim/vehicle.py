@@ -49,7 +49,8 @@ from typing import Any
 import numpy as np
 
 from sim.params import resolve_data_file
-from sim.tyre import MagicFormula61, TyreOutput
+from sim.tir import TirError, read_tir
+from sim.tyre import MagicFormula61, TyreOutput, overflow_problem
 
 # ---- state layout -----------------------------------------------------------------
 IX, IY, IPSI, IVX, IVY, IR = range(6)
@@ -102,7 +103,14 @@ class Inputs:
 
 @functools.lru_cache(maxsize=8)
 def _load_tyre(path: str, mtime: float) -> MagicFormula61:
-    return MagicFormula61.from_tir(path)
+    """The model of a property file; TirError names what is wrong, as well a model that overflows in the
+    tyre's usual range (:func:`sim.tyre.overflow_problem`: it could only make the simulation diverge)."""
+    tir = read_tir(path)
+    model = MagicFormula61(tir, source=tir.path)
+    problem = overflow_problem(model, tir)
+    if problem is not None:
+        raise TirError(problem)
+    return model
 
 
 def tyre_files(params: Mapping[str, Any]) -> tuple[str, str]:

@@ -759,3 +759,17 @@ def test_an_implausible_value_names_key_range_and_likely_unit(key: str, value: f
         MagicFormula61({**params, key: value}, source="t.tir")
     assert str(exc.value) == f"t.tir: {expected}" or str(exc.value).endswith(expected), str(exc.value)
 
+
+def test_a_power_that_overflows_gives_inf_not_an_exception() -> None:
+    """QSY7 (the load exponent of My), QSY8 (the pressure exponent) and 1/LMUX were Python float powers: an
+    overflow raised OverflowError out of steady_state (a crash where numpy gives inf, and a check can see it)."""
+    from sim.tyre import non_finite_outputs
+
+    for key, value in (("QSY7", 1e300), ("QSY8", 1e300), ("LMUY", 1e-320)):
+        with np.errstate(all="ignore"):
+            model = _model(MF61, **{key: value})
+            out = model.steady_state(6752.0, 0.0, 0.05, 0.0, VX, 1.1 * 2.6e5)
+        assert not np.all(np.isfinite([out.fx, out.fy, out.mz, out.my])), key
+        assert non_finite_outputs(model), key
+    for name in (MF61, MFEVAL, CSEG):
+        assert non_finite_outputs(MagicFormula61.from_tir(bundled_tir(name))) == {}

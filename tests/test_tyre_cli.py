@@ -166,6 +166,70 @@ def test_set_is_checked_as_the_file_is(capsys: pytest.CaptureFixture[str]) -> No
         "1000 to 25000 N of a passenger-car or light-truck tyre; is it in another unit?")
 
 
+def _no_runtime_warning(argv: list[str]) -> int:
+    """main(argv), asserting numpy warned nothing (pytest would keep a warning off the captured stderr)."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rc = main(argv)
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in caught]
+    return rc
+
+
+def test_a_coefficient_that_overflows_the_magic_formula_is_named(capsys: pytest.CaptureFixture[str]) -> None:
+    """--set PKY1=1e308 gave RuntimeWarnings and null figures (exit 0): now one line naming the coefficient."""
+    assert _no_runtime_warning(["tyre", MF61, "--set", "PKY1=1e308", "--json", "-"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.strip() == (
+        f"virtsensor tyre: error: {bundled_tir(MF61)} with --set PKY1: the Magic Formula overflows (Fy, Mz, trail, "
+        "cornering stiffness at 0.5-1.5 FNOMIN, 0.9-1.1 INFLPRES not finite): PKY1 = 1e+308; give it a value of a "
+        "tyre's size")
+
+
+def test_figures_that_come_out_non_finite_are_refused_naming_them_and_the_coefficient(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The figures' own check, behind check_tyre_file's coarser one (switched off here)."""
+    import virtsensor.tyres
+
+    monkeypatch.setattr(virtsensor.tyres, "overflow_problem", lambda *args: None)
+    assert _no_runtime_warning(["tyre", MF61, "--set", "PKY1=1e308"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.strip() == (
+        f"virtsensor tyre: error: {bundled_tir(MF61)} with --set PKY1: the Magic Formula overflows (the figures "
+        "cornering stiffness, Fy peak, Mz peak at alpha > 0, Mz peak at alpha < 0, pneumatic trail at zero slip "
+        "not finite): PKY1 = 1e+308; give it a value of a tyre's size")
+
+
+def test_coefficients_of_a_file_that_overflow_together_are_named(tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """Neither PKY1 nor PDY1 alone makes the figures finite again: both are named, in the file's order."""
+    lines = bundled_tir(MFEVAL).read_text().splitlines()
+    for i, ln in enumerate(lines):
+        if ln.split("=")[0].strip() in ("PKY1", "PDY1"):
+            lines[i] = f"{ln.split('=')[0].strip()} = 1e308"
+    path = tmp_path / "huge.tir"
+    path.write_text("\n".join(lines) + "\n")
+    msg = _refused(capsys, path)
+    assert msg.startswith(f"virtsensor tyre: error: {path}: the Magic Formula overflows (") and \
+        msg.endswith("not finite): PDY1 = 1e+308, PKY1 = 1e+308; give them values of a tyre's size"), msg
+
+
+def test_an_overflowing_rolling_resistance_is_refused_before_a_simulation(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """QSY7 = 1e300 leaves the figures finite but My not: 'virtsensor tyre' printed the figures, and a simulation
+    with it ended in a traceback (an OverflowError of a Python float power, or a divergence at t = 0)."""
+    path, line = _broken(tmp_path, "QSY7 = 1e300", "QSY7")
+    expected = (f"{path}:{line}: the Magic Formula overflows (My at 0.5-1.5 FNOMIN, 0.9-1.1 INFLPRES not finite): "
+                "QSY7 = 1e+300; give it a value of a tyre's size")
+    assert _refused(capsys, path) == f"virtsensor tyre: error: {expected}"
+    out = tmp_path / "dlc.csv"
+    assert _no_runtime_warning(["simulate", "double-lane-change", "--speed", "80", "--mu", "1",
+                                "--set", f"tyres.file={path}", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.strip() == f"virtsensor simulate: error: {expected}"
+    assert not out.exists()
+
+
 def test_missing_fittyp_and_units_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path, _ = _broken(tmp_path, "", "FITTYP")
     model_line = 1 + bundled_tir(MFEVAL).read_text().splitlines().index("[MODEL]")

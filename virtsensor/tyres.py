@@ -26,14 +26,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sim.tir import TirError, TirFile, bundled_tir, bundled_tyres, read_tir
-from sim.tyre import MagicFormula61
+from sim.tyre import MagicFormula61, overflow_message, overflow_problem
 from virtsensor import plotting
 from virtsensor.errors import UserError
 
@@ -53,6 +53,7 @@ class CheckedTyre:
     tir: TirFile
     model: MagicFormula61
     defaults: dict[str, float]  # key the file does not give -> standard value used
+    replaced: dict[str, float | str] = field(default_factory=dict)  # --set key -> the value it replaced
 
 
 def resolve_tyre_file(name: str | Path) -> Path:
@@ -109,18 +110,23 @@ def check_tyre_file(name: str | Path, overrides: Mapping[str, float] | None = No
             where = f"{path}:{line}: [MODEL]" if line is not None else f"{path}:"
             raise TirError(f"{where} no FITTYP (Magic Formula version; 61 or 62 expected)")
         model = MagicFormula61(tir, source=str(path))
+        replaced: dict[str, float | str] = {}
         if overrides:
             unknown = sorted(k for k in overrides if k not in tir and k not in model.params)
             if unknown:
                 raise TirError(f"--set {unknown[0]}: not a coefficient of the MF 6.1 model or of {path.name}")
+            replaced = {k: model.params.get(k, tir.get(k, "")) for k in overrides}
             for key in overrides:
                 tir.lines.pop(key, None)
             tir.update(overrides)
             model = MagicFormula61(tir, source=f"{path} with --set {', '.join(overrides)}")
     except TirError as exc:
         raise UserError(str(exc)) from None
+    problem = overflow_problem(model, tir, replaced)
+    if problem is not None:
+        raise UserError(problem)
     defaults = {k: v for k, v in model.params.items() if k not in tir and isinstance(v, float)}
-    return CheckedTyre(path, tir, model, defaults)
+    return CheckedTyre(path, tir, model, defaults, replaced)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -159,16 +165,26 @@ def _figures_at(model: MagicFormula61, fz: float, pressure: float, vx: float) ->
 
 
 def tyre_figures(tyre: CheckedTyre) -> dict[str, Any]:
-    """The figures of the module docstring, one entry per (pressure factor, load factor), as a JSON-able dict."""
+    """The figures of the module docstring, one entry per (pressure factor, load factor), as a JSON-able dict.
+
+    Raises:
+        UserError: a figure comes out non-finite (a coefficient so large that the Magic Formula overflows);
+            the message names the figures and the coefficient(s) that cause it
+            (:func:`sim.tyre.overflow_message`).
+    """
     m = tyre.model
     p = m.params
     fz0, pres0, vx = float(p["FNOMIN"]), float(p["INFLPRES"]), float(p["LONGVL"])
     conditions = []
-    for pf in PRESSURE_FACTORS:
-        for lf in LOAD_FACTORS:
-            fig = _figures_at(m, lf * fz0, pf * pres0, vx)
-            conditions.append({"load_factor": lf, "pressure_factor": pf, "fz_n": lf * fz0, "pressure_pa": pf * pres0,
-                               **fig})
+    with np.errstate(all="ignore"):  # an overflow shows as a non-finite figure, refused below with its cause
+        for pf in PRESSURE_FACTORS:
+            for lf in LOAD_FACTORS:
+                fig = _figures_at(m, lf * fz0, pf * pres0, vx)
+                conditions.append({"load_factor": lf, "pressure_factor": pf, "fz_n": lf * fz0,
+                                   "pressure_pa": pf * pres0, **fig})
+    bad = [key for key in conditions[0] if not all(math.isfinite(c[key]) for c in conditions)]
+    if bad:  # (check_tyre_file's coarser grid saw none)
+        raise UserError(overflow_message(m, f"the figures {_figures_named(bad)}", tyre.tir, tyre.replaced))
     return {
         "file": str(tyre.path),
         "fittyp": p.get("FITTYP"),
@@ -196,6 +212,16 @@ _ROWS = (
     ("pneumatic trail at zero slip", "mm", "trail_at_zero_slip_m", 1000.0, "{:.1f}"),
     ("longitudinal slip stiffness", "kN", "slip_stiffness_n", 0.001, "{:.0f}"),
 )
+
+
+def _figures_named(figures: list[str]) -> str:
+    """The figures' keys by their labels in the report (an "  at slip angle" row: the slip angle of the row above)."""
+    labels: dict[str, str] = {}
+    previous = ""
+    for label, _unit, key, _scale, _fmt in _ROWS:
+        labels[key] = f"{previous}: slip angle" if label.startswith(" ") else label.replace(", ", " at ")
+        previous = labels[key]
+    return ", ".join(labels.get(key, key) for key in figures)
 
 
 def format_report(figures: Mapping[str, Any]) -> str:
