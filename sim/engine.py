@@ -7,6 +7,7 @@ stages), the truth is recorded on the 100 Hz base grid.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -95,7 +96,19 @@ def simulate_batch(
         plans: one driving programme per run.
         params: one parameter tree per run (:func:`sim.params.car_parameters`).
         progress: called with the number of simulated control steps done so far.
+
+    Raises:
+        FloatingPointError: a run's state became non-finite (the simulation diverged); the message names
+            the time and the run(s), and numpy's floating-point warnings of that step are not shown
+            (:class:`_FloatingPointEvents`).
     """
+    events = _FloatingPointEvents()
+    with events.caught():
+        return _simulate_batch(plans, params, progress, events)
+
+
+def _simulate_batch(plans: Sequence[Plan], params: Sequence[Mapping[str, Any]],
+                    progress: Callable[[int], None] | None, events: _FloatingPointEvents) -> BatchResult:
     if len(plans) != len(params):
         raise ValueError("one parameter tree per plan")
     dt, sub, rec_every = _steps(params)
@@ -149,10 +162,11 @@ def simulate_batch(
         done = (np.maximum(aborted_at, 1) < j) | (j >= plan_samples)
         if done.any():
             x = np.where(done[:, None], x_prev, x)
-        if not np.all(np.isfinite(x)):  # a run still live diverged: an error
-            bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))[:3]
-            names = ", ".join(f"{plans[i].name}{plans[i].label}" for i in bad)
-            raise FloatingPointError(f"simulation diverged at t={k * CONTROL_DT:.2f} s in run(s) {names}")
+        if not np.all(np.isfinite(x)):  # a run still live diverged: an error (it says what numpy saw)
+            bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
+            raise FloatingPointError(f"the simulation diverged (its state became non-finite) at "
+                                     f"t={k * CONTROL_DT:.2f} s in {_runs_named(plans, bad)}")
+        events.warn(k, plans)
         if progress is not None and (k % 100 == 0 or k == n_ctl - 1):
             progress(k + 1)
         if done.all():
@@ -160,6 +174,53 @@ def simulate_batch(
     time_s = np.arange(n_rec) * (rec_every * CONTROL_DT)
     n_valid, driven = _finish(plans, plan_samples, aborted_at, ended_by, station, j)
     return BatchResult(time_s, rec, n_valid, plans, params, ended_by, driven)
+
+
+def _run_name(plan: Plan) -> str:
+    """A run as a person names it: its manoeuvre, and its entry speed, friction and seed when its label gives
+    them (``double-lane-change at 80 km/h, mu 1, seed 0``)."""
+    label = plan.label
+    parts = [f"{label['speed_kmh']:g} km/h" if isinstance(label.get("speed_kmh"), int | float) else "",
+             f"mu {label['mu']:g}" if isinstance(label.get("mu"), int | float) else "",
+             f"seed {label['seed']}" if "seed" in label else ""]
+    details = ", ".join(p for p in parts if p)
+    return f"{plan.name} at {details}" if details else plan.name
+
+
+def _runs_named(plans: Sequence[Plan], which: Sequence[int] | np.ndarray) -> str:
+    """The runs ``which`` of a batch, named (:func:`_run_name`; the first three and how many more)."""
+    names = "; ".join(_run_name(plans[int(i)]) for i in which[:3])
+    return f"{names} (and {len(which) - 3} more)" if len(which) > 3 else names
+
+
+class _FloatingPointEvents:
+    """numpy's floating-point errors (overflow, invalid value, division by zero) of each control step.
+
+    The loop runs under ``np.errstate(call=...)`` (thread- and context-local): numpy reports each error here
+    instead of warning at once. A step whose state then diverges raises FloatingPointError, which says all
+    that its warnings would (a bad car or tyre gives one line, not a screen of RuntimeWarnings before it);
+    any other step's errors are warned as RuntimeWarning, once per kind and batch, naming the runs.
+    """
+
+    def __init__(self) -> None:
+        self.kinds: list[str] = []
+        self.warned: set[str] = set()
+
+    def __call__(self, kind: str, flag: int) -> None:
+        self.kinds.append(kind)
+
+    def caught(self) -> np.errstate:
+        """The context in which numpy reports its floating-point errors here."""
+        return np.errstate(over="call", invalid="call", divide="call", call=self)
+
+    def warn(self, k: int, plans: Sequence[Plan]) -> None:
+        """Warn the errors of control step ``k`` that no divergence explained (each kind once per batch)."""
+        new = sorted(set(self.kinds) - self.warned)
+        self.kinds.clear()
+        if new:
+            self.warned.update(new)
+            warnings.warn(f"floating-point {' and '.join(new)} in the simulation at t={k * CONTROL_DT:.2f} s "
+                          f"(batch of {_runs_named(plans, range(len(plans)))})", RuntimeWarning, stacklevel=2)
 
 
 def _steps(params: Sequence[Mapping[str, Any]]) -> tuple[float, int, int]:

@@ -255,3 +255,102 @@ def test_a_run_never_takes_over_another_recordings_metadata(tmp_path, capsys):
         meta.write_text(json.dumps({"file": other}))
         assert main(["simulate", "single-sine", "--speed", "60", "--mu", "0.5", "--out", str(blf)]) == 0
         blf.unlink()
+
+
+# ------------------------------------------------------------------ a simulation that diverges (last line of defence)
+#: Vehicle.derivatives made to overflow in the runs on a road of friction 1.0 (the tiny campaign's steering pulse):
+#: a car that passed every check but that the integration cannot take
+_OVERFLOW_AT_MU_1 = """
+def _overflowing(derivatives):
+    def overflowing(self, x, u):
+        import numpy as np
+
+        k, aux = derivatives(self, x, u)
+        factor = np.where(np.asarray(u.mu) == 1.0, 1e300, 1.0)[:, None]
+        return k * factor * factor, aux
+    return overflowing
+"""
+
+
+def _overflow_at_mu_1(monkeypatch):
+    from sim.vehicle import Vehicle
+
+    scope: dict = {}
+    exec(_OVERFLOW_AT_MU_1, scope)
+    monkeypatch.setattr(Vehicle, "derivatives", scope["_overflowing"](Vehicle.derivatives))
+
+
+def test_a_simulation_that_diverges_is_one_line_naming_the_run(tmp_path, capsys, monkeypatch):
+    """It was a FloatingPointError traceback after a screen of RuntimeWarnings (exit 1)."""
+    import warnings
+
+    _overflow_at_mu_1(monkeypatch)
+    out = tmp_path / "x.csv"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main(["simulate", "double-lane-change", "--speed", "80", "--mu", "1", "--out", str(out)]) == 2
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in caught]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["virtsensor simulate: error: the simulation diverged (its state became non-finite) at t=0.00 s in "
+                   "double-lane-change at 80 km/h, mu 1, seed 0: the car's parameters or tyre coefficients (--set, "
+                   "--params, --tyre) hold a value it cannot be simulated with"], err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_campaign_whose_worker_diverges_is_one_line_and_leaves_nothing(tmp_path):
+    """The divergence happens in a loky worker (one batch per run, two workers) while the other runs are written;
+    joblib re-raises it in the campaign's process, which removes what was written and says which run. Injected
+    at the workers' start (sitecustomize), as nothing else reaches into a worker."""
+    import os
+    from pathlib import Path
+
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(
+        "import os\n" + _OVERFLOW_AT_MU_1 +
+        "if os.environ.setdefault('VS_TEST_CAMPAIGN_PID', str(os.getpid())) != str(os.getpid()):  # a worker\n"
+        "    import sim.vehicle\n"
+        "    sim.vehicle.Vehicle.derivatives = _overflowing(sim.vehicle.Vehicle.derivatives)\n")
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(root), os.environ.get("PYTHONPATH", "")])}
+    env.pop("VS_TEST_CAMPAIGN_PID", None)
+    out = tmp_path / "camp"
+    res = subprocess.run([sys.executable, "-m", "virtsensor.cli", "campaign", "tiny", "--out", str(out), "--jobs",
+                          "2", "--batch-size", "1", "--quiet"], capture_output=True, text=True, timeout=300, env=env)
+    assert res.returncode == 2, res.stderr
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("virtsensor campaign: error: the simulation diverged (its state "
+                                               "became non-finite) at t=0.00 s in steering-pulse at 50 km/h, mu 1, "
+                                               "seed "), res.stderr
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["site"]
+    # the same run in the campaign's own process is not made to diverge: it was the worker's divergence
+    pulse = tmp_path / "pulse.csv"
+    ok = subprocess.run([sys.executable, "-m", "virtsensor.cli", "simulate", "steering-pulse", "--speed", "50",
+                         "--mu", "1", "--out", str(pulse)], capture_output=True, text=True, timeout=300, env=env)
+    assert ok.returncode == 0 and pulse.exists(), ok.stderr
+
+
+def test_floating_point_errors_of_a_run_that_goes_on_are_warned_once(monkeypatch):
+    """The engine keeps numpy's floating-point errors of each step until it knows whether the step diverged;
+    those of a run that goes on are still warned, once per kind, naming the batch's runs."""
+    import warnings
+
+    import numpy as np
+
+    from sim.api import simulate
+    from sim.vehicle import Vehicle
+
+    derivatives = Vehicle.derivatives
+
+    def with_a_division_by_zero(self, x, u):
+        np.divide(np.ones(1), np.zeros(1))  # (the result is not used)
+        return derivatives(self, x, u)
+
+    monkeypatch.setattr(Vehicle, "derivatives", with_a_division_by_zero)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run = simulate("steering-pulse", 50.0, 1.0, seed=1)
+    assert run.outcome["status"] == "completed"
+    messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert messages == ["floating-point divide by zero in the simulation at t=0.00 s (batch of steering-pulse at "
+                        "50 km/h, mu 1, seed 1)"], messages

@@ -35,7 +35,13 @@ def add_car_arguments(parser: argparse.ArgumentParser) -> None:
 
 @contextmanager
 def sim_errors() -> Iterator[None]:
-    """Turn the simulator's input errors into one-line user errors (exit code 2)."""
+    """Turn the simulator's input errors into one-line user errors (exit code 2).
+
+    A simulation that diverged (:class:`FloatingPointError` from :func:`sim.engine.simulate_batch`, in this
+    process or re-raised by joblib from a campaign's worker; the campaign has removed its files by then) is
+    one too: the last line of defence behind the checks of the car and its tyres, its cause is a car that
+    passed them but cannot be integrated. The message names the run(s) and the time.
+    """
     from sim.manoeuvres import ManoeuvreError
     from sim.params import ParamError
     from sim.tir import TirError
@@ -44,6 +50,9 @@ def sim_errors() -> Iterator[None]:
         yield
     except (ManoeuvreError, ParamError, TirError) as exc:
         raise UserError(str(exc)) from None
+    except FloatingPointError as exc:
+        raise UserError(f"{exc}: the car's parameters or tyre coefficients (--set, --params, --tyre) hold a "
+                        "value it cannot be simulated with") from None
 
 
 def car_from_args(args: argparse.Namespace) -> dict[str, Any]:
