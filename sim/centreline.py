@@ -38,7 +38,8 @@ Checks (each raises :class:`TrackError` with one line naming the file): too
 few points, a loop that is open (the gap from the last point back to the
 first is longer than ``OPEN_GAP_M`` and than ``OPEN_GAP_RATIO`` times any other
 step), shorter than
-``MIN_LENGTH_M``, a smoothed centreline that crosses itself, and a corner
+``MIN_LENGTH_M`` or longer than ``MAX_LENGTH_M`` (a file in the wrong unit: checked before
+any work is sized by the length), a smoothed centreline that crosses itself, and a corner
 tighter than the car can steer round (:func:`check_steerable`).
 """
 
@@ -55,11 +56,11 @@ import scipy.sparse.linalg as sparse_linalg
 from scipy import interpolate
 from scipy.spatial import cKDTree
 
-from sim.track import Track, TrackError
+from sim.track import MAX_LAP_M, MIN_LAP_M, Track, TrackError, check_lap_length
 
 __all__ = [
-    "MIN_LENGTH_M", "OPEN_GAP_M", "OPEN_GAP_RATIO", "derive", "read_points", "read_geojson_lonlat", "equirectangular",
-    "enu_exact", "signed_area", "fit_periodic_pspline", "check_steerable", "track_from_points",
+    "MAX_LENGTH_M", "MIN_LENGTH_M", "OPEN_GAP_M", "OPEN_GAP_RATIO", "derive", "read_points", "read_geojson_lonlat",
+    "equirectangular", "enu_exact", "signed_area", "fit_periodic_pspline", "check_steerable", "track_from_points",
 ]
 
 # WGS84 ellipsoid.
@@ -67,8 +68,9 @@ WGS84_A_M = 6378137.0
 WGS84_F = 1.0 / 298.257223563
 WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 
-#: shortest lap accepted (m): a few smoothing wavelengths, room for one corner and a straight
-MIN_LENGTH_M = 200.0
+#: shortest and longest lap accepted (m), see :data:`sim.track.MIN_LAP_M` and :data:`sim.track.MAX_LAP_M`
+MIN_LENGTH_M = MIN_LAP_M
+MAX_LENGTH_M = MAX_LAP_M
 #: a closing gap (last point back to the first) longer than this and than ``OPEN_GAP_RATIO`` times
 #: the longest other step is an open line (a sparse trace may close with one long straight edge)
 OPEN_GAP_M = 30.0
@@ -359,7 +361,7 @@ def derive(
         included) and facts (length, input order, fit quality...).
 
     Raises:
-        TrackError: too few points, an open loop, too short, or a centreline that
+        TrackError: too few points, an open loop, too short or too long, or a centreline that
             crosses itself.
     """
     if direction not in (None, "clockwise", "counter-clockwise"):
@@ -371,12 +373,14 @@ def derive(
     if direction is not None and facts["input_order"] != direction:
         pts = np.vstack([pts[:1], pts[:0:-1]])
     closed = np.vstack([pts, pts[:1]])
+    # the length along the points, before any work is sized by it (points every metre, knots every 2 m, a
+    # 5 cm arc-length grid; up to here the work is linear in the number of points), and before the smoothing
+    # length is measured in steps between points (a file in km has thousands in 8 "m")
+    check_lap_length(float(np.sum(np.hypot(*np.diff(closed, axis=0).T))), origin)
     u_vert = _arc_parameter(closed, smoothing_length)
     period = float(u_vert[-1])
     facts.update(polygon_length_m=period, mean_spacing_m=period / len(pts))
-    if period < MIN_LENGTH_M:
-        raise TrackError(f"{origin}: the loop is {period:.0f} m long, shorter than the {MIN_LENGTH_M:.0f} m "
-                         "a circuit needs")
+    check_lap_length(period, origin)  # a dense trace is measured along its moving average: shorter
 
     n_dense = int(round(period / 1.0))
     u_dense = np.arange(n_dense) * (period / n_dense)

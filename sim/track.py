@@ -22,8 +22,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["Track", "TrackSample", "TrackError", "BUNDLED_TRACKS", "load_magny_cours", "load_track",
-           "speed_profile", "lap_time"]
+__all__ = ["Track", "TrackSample", "TrackError", "BUNDLED_TRACKS", "MAX_LAP_M", "MIN_LAP_M", "check_lap_length",
+           "load_magny_cours", "load_track", "speed_profile", "lap_time"]
 
 COLUMNS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm")
 MAGNY_COURS_CSV = "magny_cours_centreline.csv"
@@ -38,8 +38,36 @@ BUNDLED_TRACKS: dict[str, str] = {
 }
 
 
+#: shortest lap accepted (m): a few smoothing wavelengths, room for one corner and a straight
+MIN_LAP_M = 200.0
+#: longest lap accepted (m). The longest road circuits are about 25 km (the Nordschleife 20.8 km, with the GP
+#: circuit 25.4 km; Le Mans 13.6 km): twice that leaves room for any of them, while a centreline in the wrong
+#: unit (millimetres give 1000 times the length) falls far outside. It also bounds the work that a lap's length
+#: sets: its derivation samples the loop every metre and every 5 cm, and a lap of 6e9 m asked for 47 GiB.
+MAX_LAP_M = 50_000.0
+
+
 class TrackError(ValueError):
     """A centreline that cannot be driven: unreadable, open, crossing itself, too short or too tight."""
+
+
+def check_lap_length(length: float, origin: str) -> None:
+    """Refuse a lap shorter than :data:`MIN_LAP_M` or longer than :data:`MAX_LAP_M` (or not finite).
+
+    Raises:
+        TrackError: naming ``origin`` (the file), the length found and the unit it suggests.
+    """
+    if MIN_LAP_M <= length <= MAX_LAP_M:
+        return
+    if length > MAX_LAP_M:
+        units = [name for scale, name in ((1e-3, "millimetres"), (1e-2, "centimetres"))
+                 if MIN_LAP_M <= length * scale <= MAX_LAP_M]
+        raise TrackError(f"{origin}: the loop is {length / 1000.0:.6g} km long, longer than the "
+                         f"{MAX_LAP_M / 1000.0:g} km any circuit is (the longest, about 25 km); wrong unit? "
+                         f"(coordinates in metres{', not ' + units[0] if units else ''})")
+    units = [name for scale, name in ((1e3, "kilometres"), (1609.344, "miles")) if length * scale >= MIN_LAP_M]
+    raise TrackError(f"{origin}: the loop is {length:.3g} m long, shorter than the {MIN_LAP_M:.0f} m a circuit "
+                     f"needs; wrong unit? (coordinates in metres{', not ' + units[0] if units else ''})")
 
 
 class TrackSample(NamedTuple):
@@ -195,7 +223,7 @@ def load_track(spec: str | Path, **derive_options: float) -> Track:
 
     Raises:
         TrackError: unknown name, missing or malformed file, or a centreline that is
-            open, crosses itself or is too short.
+            open, crosses itself, or shorter or longer than a circuit (:func:`check_lap_length`).
     """
     name = str(spec)
     from sim.randomtrack import parse_name, random_track
@@ -216,9 +244,11 @@ def load_track(spec: str | Path, **derive_options: float) -> Track:
         header = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
         if tuple(c.strip() for c in header.split(",")) == COLUMNS:
             try:
-                return Track._from_text(text, str(path))
+                track = Track._from_text(text, str(path))
             except ValueError as exc:
                 raise TrackError(str(exc)) from None
+            check_lap_length(track.length, str(path))
+            return track
     from sim.centreline import read_points, track_from_points
 
     points, _ = read_points(path)

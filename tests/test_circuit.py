@@ -183,6 +183,53 @@ def test_refuses_a_too_short_centreline(tmp_path: Path, capsys) -> None:
     _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "shorter than")
 
 
+def _magny_cours_points(scale: float) -> np.ndarray:
+    """The bundled Magny-Cours centreline's points (about 4.4 km round), times ``scale``."""
+    tr = load_track("magny-cours")
+    return scale * np.column_stack([tr.x[:-1], tr.y[:-1]])
+
+
+@pytest.mark.parametrize(("scale", "fragment"), [
+    (1000.0, "the loop is 4444.76 km long, longer than the 50 km any circuit is (the longest, about 25 km); wrong "
+             "unit? (coordinates in metres, not millimetres)"),
+    (0.001, "the loop is 4.44 m long, shorter than the 200 m a circuit needs; wrong unit? (coordinates in metres, "
+            "not kilometres)"),
+])
+def test_refuses_a_centreline_in_the_wrong_unit(tmp_path: Path, capsys, scale: float, fragment: str) -> None:
+    """Magny-Cours in millimetres ran 170 s and took 20 GB before it was killed; in kilometres it was 'shorter
+    than 200 m' with a length of 2 mm (the dense trace's moving average), and no hint."""
+    track = tmp_path / "mc.csv"
+    track.write_text("x_m,y_m\n" + "".join(f"{x:.9g},{y:.9g}\n" for x, y in _magny_cours_points(scale)))
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, f"{track}: {fragment}")
+
+
+def test_refuses_a_huge_loop_before_any_work_is_sized_by_it(tmp_path: Path, capsys) -> None:
+    """A circle of radius 1e9 m (400 points) asked for 46.8 GiB (one point a metre) before any check."""
+    a = np.linspace(0.0, 2 * np.pi, 400, endpoint=False)
+    track = write_xy(tmp_path / "big.csv", 1e9 * np.column_stack([np.cos(a), np.sin(a)]))
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "km long, longer than the 50 km")
+    with pytest.raises(TrackError, match=r"^big: the loop is 6283\.1\d km long, longer than the 50 km"):
+        derive(1e6 * np.column_stack([np.cos(a), np.sin(a)]), origin="big")
+
+
+def test_refuses_a_derived_centreline_in_the_wrong_unit(tmp_path: Path, capsys) -> None:
+    """A centreline already derived (s_m,x_m,y_m,heading_rad,curvature_1pm, used as is) in millimetres."""
+    tr = load_track("magny-cours")
+    path = tmp_path / "mc_derived.csv"
+    rows = np.column_stack([1000.0 * tr.s, 1000.0 * tr.x, 1000.0 * tr.y, tr.heading, tr.curvature / 1000.0])
+    path.write_text("s_m,x_m,y_m,heading_rad,curvature_1pm\n" + "".join(",".join(f"{v:.6f}" for v in row) + "\n"
+                                                                      for row in rows))
+    _refused(_circuit_argv(tmp_path, str(path)), capsys, tmp_path, "km long, longer than the 50 km any circuit is")
+
+
+def test_a_loop_as_long_as_the_longest_circuits_is_accepted() -> None:
+    """26 km (the Nordschleife with the GP circuit is 25.4 km): derived, neither too long nor too big to derive."""
+    a = np.linspace(0.0, 2 * np.pi, 1300, endpoint=False)
+    r = 26_000.0 / (2 * np.pi)
+    cols, facts = derive(np.column_stack([r * np.cos(a), 0.6 * r * np.sin(a)]))
+    assert 20_000.0 < facts["length_m"] < 50_000.0 and len(cols["s_m"]) == facts["n_samples"] + 1
+
+
 def test_refuses_a_corner_too_tight_for_the_car(tmp_path: Path, capsys) -> None:
     track = write_xy(tmp_path / "hairpin.csv", stadium(radius=4.0, straight=150.0, step=2.0))
     _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "tighter than the car")
