@@ -2,9 +2,14 @@
 
 A ``.tir`` file is checked before anything is built on it: it must parse, have an SI
 ``[UNITS]`` section and a ``FITTYP`` of 61 or 62 (Magic Formula 6.1/6.2), give every
-coefficient the MF 6.1 model needs and MF 6.1 has no default for, and give numbers
-where numbers belong. Every failure is a :class:`~virtsensor.errors.UserError` whose
-one-line message names the file, the key and the line. Optional keys the file
+coefficient the MF 6.1 model needs and MF 6.1 has no default for, give numbers where
+numbers belong, give a load, size, pressure, reference speed and stiffnesses that a
+passenger-car or light-truck tyre has (a value in the wrong unit is named with the
+unit it looks like: :data:`sim.tyre.PLAUSIBLE_RANGES`), and give a model whose
+outputs are finite over the figures' range (a coefficient so large that the Magic
+Formula overflows is named: :func:`sim.tyre.overflow_problem`). Every failure is a
+:class:`~virtsensor.errors.UserError` whose one-line message names the file, the key
+and the line (a ``--set`` key: the file and ``--set``). Optional keys the file
 leaves out take their standard MF 6.1 defaults (scaling factors 1, ``LMUV`` 0, other
 coefficients 0, operating ranges unbounded, ``VXLOW`` 1 m/s, ``INFLPRES`` =
 ``NOMPRES``); :attr:`CheckedTyre.defaults` lists them.
@@ -97,7 +102,8 @@ def check_tyre_file(name: str | Path, overrides: Mapping[str, float] | None = No
         overrides: coefficients KEY -> value that replace (or add to) the file's.
 
     Raises:
-        UserError: one line naming the file, the key and the line of the first problem.
+        UserError: one line naming the file, the key and the line of the first problem (an implausible
+            value: the unit it looks like; an overflow: the coefficient(s) that cause it).
     """
     path = resolve_tyre_file(name)
     try:

@@ -8,8 +8,9 @@ Examples::
     virtsensor tyre my_tyre.tir --set LMUY=0.7            # the same tyre on a 30 % less grippy surface
 
 A malformed file (syntax, non-SI units, FITTYP other than 61/62, a missing coefficient that
-MF 6.1 has no default for, a value that is not a number) is refused with one line naming the
-file, the key and the line (exit code 2). See :mod:`virtsensor.tyres`.
+MF 6.1 has no default for, a value that is not a number, a load, size, pressure, speed or
+stiffness in the wrong unit, a coefficient that makes the Magic Formula overflow) is refused
+with one line naming the file, the key and the line (exit code 2). See :mod:`virtsensor.tyres`.
 """
 
 from __future__ import annotations
