@@ -836,7 +836,8 @@ def test_score_reports_grip_per_run_and_overall(model, run_frames, tmp_path):
     _, run, _ = run_frames
     write_run_file(run, tmp_path / "fh.csv")
     write_run_file(run, tmp_path / "fh.blf")  # a CAN log carries no grip truth
-    res = score_runs(model, load_runs([tmp_path / "fh.csv", tmp_path / "fh.blf"]))
+    # (loaded apart: given together, the same run as a table and as a log is refused as one run given twice)
+    res = score_runs(model, load_runs([tmp_path / "fh.csv"]) + load_runs([tmp_path / "fh.blf"]))
     keys = {"mu_within_0_1_share", "mu_abs_err_p90", "mu_given_share_above_0_6", "warning_lead_s_median",
             "false_warnings_per_10min", "mu_interval_cover_share"}
     g = res["overall"]["grip"]
