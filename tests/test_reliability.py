@@ -442,6 +442,61 @@ def test_a_bad_recording_is_one_line_exit_2_for_every_command_that_reads_it(tmp_
     assert sorted(tmp_path.rglob("*")) == before
 
 
+def _nested(depth: int = 200_000, file: str | None = None) -> str:
+    """A JSON object whose value is ``depth`` nested arrays (Python's parser gives up: RecursionError)."""
+    head = f'"file": "{file}", ' if file else ""
+    return "{" + head + '"runs": ' + "[" * depth + "]" * depth + "}"
+
+
+#: Where a deeply nested JSON file sits -> (argv, what the one line says) ({d}: a directory of two runs, the
+#: bundled recordings as run0.blf and run1.blf).
+NESTED_JSON = {
+    "manifest.json": (["train", "--data", "{d}", "--out", "{tmp}/m.onnx", "--quiet"],
+                      "{d}/manifest.json: campaign manifest is nested too deeply"),
+    ".campaign-incomplete.json": (["train", "--data", "{d}", "--out", "{tmp}/m.onnx", "--quiet"],
+                                  "{d}: campaign did not complete: no manifest.json, 2 runs written"),
+    "run0.json": (["train", "--data", "{d}/run0.blf", "--out", "{tmp}/m.onnx", "--quiet"],
+                  "at least 2"),  # (no run's metadata: not an input; the one run is then too few to train on)
+    "run1.json": (["diagnose", "--measured", "{d}", "--json", "{tmp}/d.json", "--quiet"],
+                  "{d}/run1.json: conditions file is nested too deeply"),
+}
+
+
+@pytest.mark.parametrize("name", list(NESTED_JSON))
+def test_a_deeply_nested_json_file_is_one_line_exit_2_never_a_recursion_error(tmp_path, capsys, name):
+    """A manifest, an in-progress marker or a run's ``.json`` nested 200,000 deep: Python's parser raises
+    RecursionError, which was a traceback (exit 1) in train's reading of the directory, in the argument
+    checks (is ``run0.json`` the metadata of ``run0.csv``?) and in diagnose's conditions. Each reader now takes
+    it as the malformed JSON it is (virtsensor.fileio.read_json): one line, exit 2, nothing written."""
+    import shutil
+
+    from virtsensor import cli
+    from virtsensor.assets import bundled_recordings_dir
+
+    d = tmp_path / "d"
+    d.mkdir()
+    for k, run in enumerate(sorted(bundled_recordings_dir().glob("*.blf"))[:2]):
+        shutil.copy(run, d / f"run{k}.blf")
+    (d / name).write_text(_nested(file=name.replace(".json", ".blf")))
+    argv, line = NESTED_JSON[name]
+    before = sorted(tmp_path.rglob("*"))
+    rc = cli.main([a.replace("{d}", str(d)).replace("{tmp}", str(tmp_path)) for a in argv])
+    out, err = capsys.readouterr()
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert line.replace("{d}", str(d)) in err, err
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_demo_takes_a_deeply_nested_sidecar_for_no_metadata(tmp_path):
+    """demo's line about its recording and its road friction come from the ``.json`` beside it: nested too
+    deeply, it is no metadata (the recording's name, no friction), as any other unreadable one."""
+    from virtsensor import demo
+
+    run = tmp_path / "run.csv"
+    run.with_suffix(".json").write_text(_nested(file="run.csv"))
+    assert demo._road_mu(run) is None and demo._describe(run) == "run.csv"
+
+
 # ------------------------------------------------------------------------------------ fault-injection soak
 def _fault_soak():
     import importlib

@@ -28,7 +28,6 @@ first at full speed when the demo runs on its bundled defaults; under ``sim/data
 from __future__ import annotations
 
 import io
-import json
 import math
 import os
 import sys
@@ -46,7 +45,7 @@ from virtsensor import plotting
 from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
 from virtsensor.demogrip import GRIP_SIGNALS, grip_line, grip_summary, plot_grip
 from virtsensor.errors import UserError
-from virtsensor.fileio import check_writable, staged_files, write_json
+from virtsensor.fileio import check_writable, read_json, staged_files, write_json
 from virtsensor.metrics import mae, r2
 
 __all__ = [
@@ -127,19 +126,19 @@ def _shown(path: Path) -> str:
 def _road_mu(recording: Path) -> float | None:
     """The road friction the recording's ``.json`` sidecar states (a simulated run), or None."""
     try:
-        return float(json.loads(recording.with_suffix(".json").read_text())["mu"])
-    except (OSError, ValueError, KeyError, TypeError):
+        return float(read_json(recording.with_suffix(".json"), "metadata")["mu"])
+    except (UserError, ValueError, KeyError, TypeError, OverflowError):
         return None
 
 
 def _describe(recording: Path) -> str:
     """One line about a recording, from its ``.json`` sidecar when there is one."""
     try:
-        info = json.loads(recording.with_suffix(".json").read_text())
+        info = read_json(recording.with_suffix(".json"), "metadata")
         road = "a wet road" if float(info["mu"]) < 0.9 else "a dry road"
         return (f"{info['manoeuvre']} at {info['speed_kmh']:g} km/h on {road} (mu {info['mu']:g}), "
                 f"seed {info['seed']}, simulated")
-    except (OSError, ValueError, KeyError, TypeError):
+    except (UserError, ValueError, KeyError, TypeError, OverflowError):
         return recording.name
 
 

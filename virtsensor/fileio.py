@@ -14,6 +14,9 @@ Contracts:
 * :func:`json_safe`: the same object with non-finite floats as ``None`` (JSON has no NaN/inf), numpy
   scalars and arrays as Python numbers and lists, paths as strings, sets as sorted lists, mapping keys as
   strings.
+* :func:`read_json`: the JSON value in a file the program reads (a manifest, a marker, a run's metadata, a
+  conditions file), every way it can fail (unreadable, not UTF-8, not JSON, nested too deeply, a number too
+  long) one :class:`~virtsensor.errors.UserError` naming the file, never quoting its content.
 * :func:`json_default`: the ``default=`` hook of ``json.dumps`` for writers that refuse non-finite floats
   instead (``allow_nan=False``): the same conversions, ``TypeError`` for any other type.
 """
@@ -36,7 +39,8 @@ import numpy as np
 from virtsensor.errors import UserError
 
 __all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "check_writable", "dumps", "json_default",
-           "json_safe", "name_the_file", "staged_dir", "staged_files", "write_json", "write_texts"]
+           "json_safe", "name_the_file", "read_json", "read_user_text", "staged_dir", "staged_files", "write_json",
+           "write_texts"]
 
 #: Prefix of the temporary file of an atomic write (readers of recordings skip such files).
 PARTIAL_PREFIX = ".partial-"
@@ -57,6 +61,28 @@ def read_user_text(path: str | os.PathLike[str], what: str) -> str:
         return raw.decode("utf-8")
     except UnicodeDecodeError:
         raise UserError(f"{what} {path} is not UTF-8 text") from None
+
+
+def read_json(path: str | os.PathLike[str], what: str) -> Any:
+    """The JSON value in the file ``path`` (``what``: e.g. ``"campaign manifest"``), whatever the value is (the
+    caller checks its shape).
+
+    Raises:
+        UserError: the only error, naming ``path`` and never quoting its content: the file cannot be read or is
+            not UTF-8 (:func:`read_user_text`), ``{path}:{line}: {what} is not valid JSON: ...``,
+            ``{path}: {what} is nested too deeply`` (``RecursionError`` of the parser), or ``{path}: {what} is
+            not JSON that can be read: ...`` (any other ``ValueError`` of the parser, e.g. an integer longer than
+            Python reads).
+    """
+    text = read_user_text(path, what)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}:{exc.lineno}: {what} is not valid JSON: {exc.msg}") from None
+    except RecursionError:
+        raise UserError(f"{path}: {what} is nested too deeply") from None
+    except ValueError as exc:  # (e.g. an integer of more digits than int() converts)
+        raise UserError(f"{path}: {what} is not JSON that can be read: {exc}") from None
 
 
 def json_safe(obj: Any) -> Any:

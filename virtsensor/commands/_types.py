@@ -275,13 +275,14 @@ def input_slots(text: str) -> list[tuple[Path, str]]:
 def _is_metadata_of(meta: Path, recording: Path) -> bool:
     """Whether ``meta`` is a recording's metadata sidecar: a JSON object (at most 1 MiB) whose ``file`` is the
     recording's name."""
-    import json
+    from virtsensor.errors import UserError
+    from virtsensor.fileio import read_json
 
     try:
         if not meta.is_file() or meta.stat().st_size > TEXT_PROBE_BYTES:
             return False
-        doc = json.loads(meta.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        doc = read_json(meta, "metadata")
+    except (OSError, UserError):  # (unreadable, not JSON, nested too deeply: no run's metadata)
         return False
     return isinstance(doc, dict) and doc.get("file") == recording.name
 

@@ -28,7 +28,6 @@ are rarely all the same).
 from __future__ import annotations
 
 import csv
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -104,10 +103,9 @@ def parse_value(name: str, raw: Any, where: str) -> tuple[float, float]:
 
 def _from_json(path: Path) -> dict[str, tuple[float, float]] | None:
     """The conditions in a JSON beside a run (None: the file holds none)."""
-    try:
-        obj = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: not a readable JSON file ({type(exc).__name__})") from None
+    from virtsensor.fileio import read_json
+
+    obj = read_json(path, "conditions file")  # (UserError naming it: unreadable, not JSON, nested too deeply)
     if not isinstance(obj, dict):
         raise UserError(f"{path}: expected a JSON object of conditions")
     if "conditions" in obj:

@@ -95,11 +95,13 @@ def incomplete_campaign(directory: Path) -> str | None:
     marker = directory / MARKER
     if not marker.exists() or (directory / MANIFEST).exists():
         return None
-    try:
-        info = json.loads(marker.read_text())
+    from virtsensor.fileio import read_json  # (here: fileio imports numpy, which listing recordings need not)
+
+    try:  # (what the marker says only details the refusal: a marker that says nothing readable details none)
+        info = read_json(marker, "campaign marker")
         planned = f" of {int(info['runs'])}"
         preset = f" {info['preset']!r}"
-    except (OSError, ValueError, KeyError, TypeError):
+    except (UserError, ValueError, KeyError, TypeError, OverflowError):
         planned, preset = "", ""
     done = len(_visible_files(directory))
     return (f"{directory}: campaign{preset} did not complete: no {MANIFEST}, {done}{planned} runs written "
@@ -116,12 +118,13 @@ def unverifiable_campaign(directory: Path) -> str | None:
 
 
 def _read_manifest(path: Path) -> list[dict[str, Any]]:
-    try:
-        runs = json.loads(path.read_text())["runs"]
-        if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
-            raise TypeError("'runs' is not a list of objects")
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise UserError(f"{path}: not a campaign manifest ({exc})") from None
+    """The run entries of the manifest ``path``, each checked (:data:`ENTRY_KEYS`, types, plain unique names)."""
+    from virtsensor.fileio import read_json  # (here: see incomplete_campaign)
+
+    doc = read_json(path, "campaign manifest")
+    runs = doc.get("runs") if isinstance(doc, dict) else None
+    if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
+        raise UserError(f"{path}: not a campaign manifest (a JSON object whose 'runs' is a list of objects)")
     seen: set[str] = set()
     for i, r in enumerate(runs):
         missing = [k for k in ENTRY_KEYS if k not in r]
