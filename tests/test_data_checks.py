@@ -124,6 +124,50 @@ def test_manifest_rows_and_entries_are_checked(tmp_path):
         load_runs([d])
 
 
+def _drop_run(d, name: str) -> None:
+    """What a hand edit leaves: the run's file deleted and its entry taken out of the manifest (nothing else)."""
+    (d / name).unlink()
+    m = json.loads((d / "manifest.json").read_text())
+    m["runs"] = [r for r in m["runs"] if r["file"] != name]
+    (d / "manifest.json").write_text(json.dumps(m))
+
+
+def test_a_run_removed_from_the_manifest_by_hand_is_refused_as_the_campaigns_records_disagree(tmp_path, capsys):
+    """A run deleted with its manifest entry left a manifest that checked out run by run: train took the other
+    runs (card ``runs: 3``) though the campaign's provenance says it wrote 4 and the manifest's ``samples`` no
+    longer adds up. Refused, by directory and by a run's name, in one line naming the disagreement; a manifest
+    of a campaign older than the provenance and the ``samples`` total is still read."""
+    d = _campaign_dir(tmp_path / "c", n_runs=4)
+    m = json.loads((d / "manifest.json").read_text())
+    (d / "manifest.json").write_text(json.dumps({**m, "samples": 800}))  # (as a campaign writes it: 4 x 200 rows)
+    assert len(load_runs([d])) == 4
+    _drop_run(d, "run3.csv")
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and err.endswith(f"{d}: manifest.json says 800 samples but its 3 runs list 600 rows: it was "
+                                      f"changed after the campaign wrote it; run the campaign again"), err
+    with pytest.raises(UserError, match=r"says 800 samples but its 3 runs list 600 rows"):
+        load_measured([d / "run0.csv"])
+    m = json.loads((d / "manifest.json").read_text())
+    (d / "manifest.json").write_text(json.dumps({**m, "samples": 600}))  # (the total mended too)
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and err.endswith(f"{d}: manifest.json lists 3 runs but .campaign.json says the campaign "
+                                      f"wrote 4: the manifest was changed after the campaign wrote it; run the "
+                                      f"campaign again"), err
+    with pytest.raises(UserError, match=r"lists 3 runs but \.campaign\.json says the campaign wrote 4"):
+        load_runs([d / "run1.csv"])
+    (d / ".campaign.json").write_text("[" * 200_000 + "]" * 200_000)
+    with pytest.raises(UserError, match=r"\.campaign\.json: campaign provenance is nested too deeply"):
+        load_runs([d])
+    (d / ".campaign.json").write_text(json.dumps({"written_by": "virtsensor campaign", "runs": "3"}))
+    with pytest.raises(UserError, match=r"\.campaign\.json: not a campaign provenance"):
+        load_runs([d])
+    (d / ".campaign.json").unlink()  # a campaign written before the provenance and the total: read as it is
+    m = json.loads((d / "manifest.json").read_text())
+    del m["samples"]
+    (d / "manifest.json").write_text(json.dumps(m))
+    assert [r.name for r in load_runs([d])] == ["run0", "run1", "run2"]
+
+
 def test_an_unfinished_campaign_is_refused_in_one_line(tmp_path, capsys):
     d = tmp_path / "c"
     d.mkdir()

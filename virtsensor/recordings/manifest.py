@@ -14,9 +14,11 @@ A campaign (``virtsensor campaign``) writes, in this order:
 
 So a directory with a marker and no manifest holds a campaign that did not
 complete (stopped, killed, crashed); a directory with a manifest holds exactly
-the manifest's runs, each of which can be checked; a directory with the
-provenance and no manifest holds a campaign whose manifest was lost, whose
-runs cannot be checked (:func:`unverifiable_campaign`). A directory with none
+the manifest's runs, each of which can be checked, and its manifest agrees with
+the campaign's own totals (its ``samples``, the provenance's run count: a run
+removed from it by hand is seen); a directory with the provenance and no
+manifest holds a campaign whose manifest was lost, whose runs cannot be
+checked (:func:`unverifiable_campaign`). A directory with none
 of these files is a plain directory of recordings. Readers apply these rules
 through :func:`listed_runs` and :func:`check_rows`; every violation is a
 :class:`~virtsensor.errors.UserError` naming the file.
@@ -118,7 +120,8 @@ def unverifiable_campaign(directory: Path) -> str | None:
 
 
 def _read_manifest(path: Path) -> list[dict[str, Any]]:
-    """The run entries of the manifest ``path``, each checked (:data:`ENTRY_KEYS`, types, plain unique names)."""
+    """The run entries of the manifest ``path``, each checked (:data:`ENTRY_KEYS`, types, plain unique names),
+    and the manifest checked against the campaign's other records (:func:`_check_records`)."""
     from virtsensor.fileio import read_json  # (here: see incomplete_campaign)
 
     doc = read_json(path, "campaign manifest")
@@ -141,7 +144,44 @@ def _read_manifest(path: Path) -> list[dict[str, Any]]:
         if name in seen:
             raise UserError(f"{path}: run {name} is listed twice")
         seen.add(name)
+    _check_records(path, doc, runs)
     return runs
+
+
+def _check_records(path: Path, doc: Mapping[str, Any], runs: Sequence[Mapping[str, Any]]) -> None:
+    """Refuse a manifest (``path``, its object ``doc``, its checked ``runs``) that the campaign's own records
+    contradict, as a run removed from it by hand leaves it:
+
+    * its ``"samples"`` must be the sum of its entries' ``rows`` (every campaign that writes ``rows`` writes
+      it; a manifest without it, written by another tool, is not checked for it);
+    * the provenance :data:`PROVENANCE` beside it, when there is one, must be a JSON object whose ``"runs"``
+      is the number of its entries (campaigns older than the provenance leave none: not checked).
+
+    Raises:
+        UserError: one line naming the directory (or the provenance) and the disagreement.
+    """
+    directory = path.parent
+    rows = sum(int(r["rows"]) for r in runs)
+    if "samples" in doc:
+        samples = doc["samples"]
+        if not isinstance(samples, int) or isinstance(samples, bool):
+            raise UserError(f"{path}: samples is not a count of rows (a {type(samples).__name__})")
+        if samples != rows:
+            raise UserError(f"{directory}: {MANIFEST} says {samples} samples but its {len(runs)} runs list {rows} "
+                            f"rows: it was changed after the campaign wrote it; run the campaign again")
+    provenance = directory / PROVENANCE
+    if not provenance.exists():
+        return
+    from virtsensor.fileio import read_json  # (here: see incomplete_campaign)
+
+    info = read_json(provenance, "campaign provenance")
+    planned = info.get("runs") if isinstance(info, dict) else None
+    if not isinstance(planned, int) or isinstance(planned, bool):
+        raise UserError(f"{provenance}: not a campaign provenance (a JSON object whose 'runs' counts the runs)")
+    if planned != len(runs):
+        raise UserError(f"{directory}: {MANIFEST} lists {len(runs)} runs but {PROVENANCE} says the campaign "
+                        f"wrote {planned}: the manifest was changed after the campaign wrote it; run the "
+                        f"campaign again")
 
 
 def listed_runs(directory: Path, only: Sequence[Path] | None = None) -> list[tuple[Path, dict[str, Any]]]:
@@ -154,7 +194,8 @@ def listed_runs(directory: Path, only: Sequence[Path] | None = None) -> list[tup
 
     Raises:
         UserError: a listed run missing, a file not listed, a sha256 mismatch, a
-            malformed manifest; the message names the file.
+            malformed manifest, a manifest its campaign's totals contradict
+            (:func:`_check_records`); the message names the file.
     """
     directory = Path(directory)
     manifest = directory / MANIFEST
