@@ -76,6 +76,53 @@ def test_hidden_and_partial_files_are_never_runs(tmp_path, capsys):
     assert code == 2 and "unfinished write" in err and len(err.splitlines()) == 1
 
 
+def test_a_link_is_judged_by_its_target_not_by_its_own_name_and_folder(tmp_path, capsys):
+    """Links in a folder of the user's own made the runs of an unfinished campaign, or a killed campaign's staging
+    leftover (``.partial-*``), look like plain recordings: train took them. A link now counts as its target
+    would: refused in one line naming the link and the target, given by name or found in a directory; links to
+    a complete campaign's listed runs are read, with their manifest entries."""
+    unfinished = tmp_path / "unfinished"
+    unfinished.mkdir()
+    start_marker(unfinished, {"preset": "smoke", "runs": 4})
+    for i in range(2):
+        write_csv(unfinished / f"run{i}.csv", _table(seed=i))
+    write_csv(unfinished / ".partial-run2.csv", _table(seed=2))
+    links = tmp_path / "links"
+    links.mkdir()
+    for i in range(2):
+        (links / f"run{i}.csv").symlink_to(unfinished / f"run{i}.csv")
+    for given in (links, links / "run0.csv"):
+        code, err = _train(capsys, tmp_path, given)
+        assert code == 2 and len(err.splitlines()) == 1, err
+        assert f"{links / 'run0.csv'} -> {unfinished / 'run0.csv'}: {unfinished}: campaign 'smoke' did not " \
+               f"complete" in err, err
+    staged = tmp_path / "staged"
+    staged.mkdir()
+    write_csv(staged / "mine.csv", _table(seed=5))
+    (staged / "a.csv").symlink_to(unfinished / ".partial-run2.csv")
+    for given in (staged, staged / "a.csv"):
+        code, err = _train(capsys, tmp_path, given)
+        assert code == 2 and err.endswith(f"{staged / 'a.csv'} -> {unfinished / '.partial-run2.csv'}: an "
+                                          f"unfinished write ('.partial-*'), never a recording"), err
+    # a complete campaign's runs through links: read as the runs they are; a file it does not list is not one
+    c = _campaign_dir(tmp_path / "c")
+    good = tmp_path / "good"
+    good.mkdir()
+    for i in (1, 2):
+        (good / f"r{i}.csv").symlink_to(c / f"run{i}.csv")
+    runs = load_runs([good])
+    assert [r.name for r in runs] == ["r1", "r2"] and runs[0].meta["rows"] == 200
+    (good / "r0.csv").symlink_to(c / "run0.csv")
+    (c / "run0.csv").write_text((c / "run0.csv").read_text().replace("0.05,", "0.050,", 1))  # (changed since)
+    with pytest.raises(UserError, match=r"^\S*r0\.csv -> \S*c/run0\.csv: \S*c/run0\.csv: sha256 .* differs"):
+        load_measured([good / "r0.csv"])
+    write_csv(c / "stray.csv", _table(seed=7))
+    (good / "r0.csv").unlink()
+    (good / "r3.csv").symlink_to(c / "stray.csv")
+    with pytest.raises(UserError, match=r"r3\.csv -> \S*c/stray\.csv: \S*c/stray\.csv: not listed in"):
+        load_runs([good])
+
+
 @pytest.mark.parametrize("damage, needle", [
     (lambda d: (d / "run1.csv").unlink(), r"run1\.csv: listed in .*manifest\.json but missing"),
     (lambda d: write_csv(d / "stray.csv", _table()), r"stray\.csv: not listed in .*manifest\.json"),

@@ -16,6 +16,13 @@ A directory is read as follows:
 
 A file given by name whose directory holds a manifest must be one of its runs,
 with its listed sha256.
+
+A symbolic link (given by name, or found in a directory) is judged also by
+its target (``Path.resolve``): the target must not be hidden (so no
+``.partial-*`` write), its directory must pass the checks above, and a target
+in a campaign directory must be one of its manifest's runs with its listed
+sha256. A link cannot make a run of an unfinished campaign, or of a staging
+leftover, look like a plain recording.
 """
 
 from __future__ import annotations
@@ -63,6 +70,40 @@ def _check_campaign(d: Path) -> None:
         raise UserError(why)
 
 
+def _hidden(p: Path) -> str:
+    """What the hidden file ``p`` is, never a recording."""
+    kind = "an unfinished write ('.partial-*')" if p.name.startswith(".partial-") else "a hidden file"
+    return f"{kind}, never a recording"
+
+
+def _as_campaign_run(p: Path) -> Source:
+    """``p`` (not hidden, with a recording suffix) judged by its directory: refused when the directory is an
+    incomplete or unverifiable campaign, with its manifest entry when the directory is a campaign's."""
+    _check_campaign(p.parent)
+    if (p.parent / MANIFEST).exists():
+        ((_, entry),) = listed_runs(p.parent, only=[p])
+        return Source(p, entry)
+    return Source(p)
+
+
+def _linked(link: Path, entry: dict[str, Any] | None) -> Source:
+    """The recording a symbolic link names (which passed its own directory's checks, with ``entry`` when that
+    is a campaign's), judged by its target too (module docstring). The source keeps the link's name (as the
+    user gave it) and ``entry``, else the target's manifest entry.
+
+    Raises:
+        UserError: ``{link} -> {target}: {why}``: the target is hidden, or fails its directory's checks.
+    """
+    target = link.resolve()
+    if is_hidden(target):
+        raise UserError(f"{link} -> {target}: {_hidden(target)}")
+    try:
+        theirs = _as_campaign_run(target).entry
+    except UserError as exc:
+        raise UserError(f"{link} -> {target}: {exc}") from None
+    return Source(link, entry if entry is not None else theirs)
+
+
 def _directory(d: Path) -> list[Source]:
     _check_campaign(d)
     if (d / MANIFEST).exists():
@@ -70,27 +111,23 @@ def _directory(d: Path) -> list[Source]:
         for path, entry in listed_runs(d):
             if path.suffix.lower() not in SUFFIXES:
                 raise _unsupported(path)
-            out.append(Source(path, entry))
+            out.append(_linked(path, entry) if path.is_symlink() else Source(path, entry))
         if not out:
             raise UserError(f"{d / MANIFEST}: lists no runs")
         return out
     found = sorted(f for f in d.iterdir() if not is_hidden(f) and f.is_file() and f.suffix.lower() in SUFFIXES)
     if not found:
         raise UserError(f"{d}: no recordings ({', '.join(SUFFIXES)}) in this directory")
-    return [Source(f) for f in found]
+    return [_linked(f, None) if f.is_symlink() else Source(f) for f in found]
 
 
 def _file(p: Path) -> Source:
     if is_hidden(p):
-        kind = "an unfinished write ('.partial-*')" if p.name.startswith(".partial-") else "a hidden file"
-        raise UserError(f"{p}: {kind}, never a recording")
+        raise UserError(f"{p}: {_hidden(p)}")
     if p.suffix.lower() not in SUFFIXES:
         raise _unsupported(p)
-    _check_campaign(p.parent)
-    if (p.parent / MANIFEST).exists():
-        ((path, entry),) = listed_runs(p.parent, only=[p])
-        return Source(p, entry)
-    return Source(p)
+    source = _as_campaign_run(p)
+    return _linked(p, source.entry) if p.is_symlink() else source
 
 
 def recording_files(paths: Iterable[Path | str]) -> list[Source]:
