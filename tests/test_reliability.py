@@ -497,6 +497,19 @@ def test_demo_takes_a_deeply_nested_sidecar_for_no_metadata(tmp_path):
     assert demo._road_mu(run) is None and demo._describe(run) == "run.csv"
 
 
+def test_simulate_and_the_grip_parameters_take_a_deeply_nested_json_as_malformed(tmp_path):
+    """simulate's check of the ``.json`` beside ``--out`` (whose recording it describes) and the grip parameters'
+    reader met the same RecursionError: the first takes it for no run's metadata, the second refuses it."""
+    from virtsensor.commands.simulate import _check_metadata_free
+    from virtsensor.errors import UserError
+    from virtsensor.grip import load_params
+
+    (tmp_path / "x.json").write_text(_nested(file="x.csv"))
+    _check_metadata_free(tmp_path / "x.blf")  # (no refusal, no traceback)
+    with pytest.raises(UserError, match=r"x\.json: grip parameters is nested too deeply"):
+        load_params(tmp_path / "x.json")
+
+
 # ------------------------------------------------------------------------------------ fault-injection soak
 def _fault_soak():
     import importlib

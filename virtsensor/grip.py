@@ -330,11 +330,9 @@ def load_params(path: str | Path | None = None) -> GripParams:
     if path is None:
         with as_file(files("virtsensor") / PARAMS_FILE) as p:
             return load_params(Path(p))
-    try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path}: cannot read grip parameters ({exc})") from None
-    return GripParams.from_json(doc, str(path))
+    from virtsensor.fileio import read_json
+
+    return GripParams.from_json(read_json(path, "grip parameters"), str(path))
 
 
 def _locate(x: float, xs: Sequence[float]) -> tuple[int, float]:

@@ -98,8 +98,8 @@ def _check_metadata_free(out: Path) -> None:
     meta = metadata_path(out)
     try:
         other = json.loads(meta.read_text()).get("file")
-    except (OSError, ValueError, AttributeError):
-        return  # (none, or not a run's metadata: the output checks already decided on it)
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return  # (none, or not a run's metadata, nested too deeply included: the output checks decided on it)
     name = Path(other).name if isinstance(other, str) else ""
     if name not in ("", ".", "..", out.name) and (meta.parent / name).is_file():
         raise UserError(f"--out {out}: {meta} is the metadata of another recording, {name}; "
