@@ -399,3 +399,25 @@ def test_a_cut_mdf4_file_is_refused(tmp_path):
     path.write_bytes(data[: len(data) // 2])
     with pytest.raises(UserError, match=r"m\.mf4: truncated: .*past the end of the file.*timestamp"):
         load_measured([path])
+
+
+def test_whose_metadata_a_json_beside_a_run_is(tmp_path):
+    """The one test every reader applies (:func:`virtsensor.recordings.sidecar.sidecar_of`): by its ``file``."""
+    from virtsensor.recordings.sidecar import sidecar_of
+
+    run, meta = tmp_path / "run.blf", tmp_path / "run.json"
+    assert sidecar_of(run).doc is None and not sidecar_of(run).matches and not sidecar_of(run).foreign  # none
+    cases = [  # (content, matches, foreign, usable)
+        ({"file": "run.blf", "mu": 0.6}, True, False, True),
+        ({"file": "other.blf", "mu": 0.7}, False, True, False),  # another run's: ignored, with a note
+        ({"file": None}, False, True, False),
+        ({"mu": 0.6}, False, False, True),  # names no file (conditions, a description): used as before
+    ]
+    for doc, matches, foreign, usable in cases:
+        meta.write_text(json.dumps(doc))
+        sc = sidecar_of(run)
+        assert (sc.matches, sc.foreign, sc.usable is not None) == (matches, foreign, usable), doc
+        assert (sc.note is not None) == foreign and (not foreign or f"{meta} ignored" in sc.note)
+    for text in ("[1, 2]", "{", "[" * 100_000 + "]" * 100_000, "\udcff", " " * (2 << 20)):  # no object: none
+        meta.write_text(text, errors="surrogateescape")
+        assert sidecar_of(run).doc is None and sidecar_of(run).note is None

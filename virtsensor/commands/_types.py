@@ -258,33 +258,20 @@ def input_slots(text: str) -> list[tuple[Path, str]]:
     """The files an input path is read with: itself; for a model (``.onnx``) its card
     (:func:`virtsensor.model.card_path_for`); for a recording file its metadata sidecar ``<stem>.json`` when
     there is one (read by ``demo`` and ``diagnose``): a JSON object whose ``file`` names the recording, as
-    ``simulate`` writes it. Any other ``<stem>.json`` (say the output of an earlier ``score --json``) is no
+    ``simulate`` writes it (:attr:`virtsensor.recordings.sidecar.Sidecar.matches`, the one test of whose a
+    ``<stem>.json`` is). Any other ``<stem>.json`` (say the output of an earlier ``score --json``) is no
     input, so running a command twice is not refused."""
     from virtsensor.recordings.files import SUFFIXES
+    from virtsensor.recordings.sidecar import sidecar_of, sidecar_path
 
     p = Path(text)
     out = [(p, "")]
     suffix = p.suffix.lower()
     if suffix == ".onnx":
         out.append((_card_path(p), "the model card of"))
-    elif suffix in SUFFIXES and _is_metadata_of(p.with_suffix(".json"), p):
-        out.append((p.with_suffix(".json"), "the metadata of"))
+    elif suffix in SUFFIXES and sidecar_of(p).matches:
+        out.append((sidecar_path(p), "the metadata of"))
     return out
-
-
-def _is_metadata_of(meta: Path, recording: Path) -> bool:
-    """Whether ``meta`` is a recording's metadata sidecar: a JSON object (at most 1 MiB) whose ``file`` is the
-    recording's name."""
-    from virtsensor.errors import UserError
-    from virtsensor.fileio import read_json
-
-    try:
-        if not meta.is_file() or meta.stat().st_size > TEXT_PROBE_BYTES:
-            return False
-        doc = read_json(meta, "metadata")
-    except (OSError, UserError):  # (unreadable, not JSON, nested too deeply: no run's metadata)
-        return False
-    return isinstance(doc, dict) and doc.get("file") == recording.name
 
 
 def _card_path(p: Path) -> Path:

@@ -93,13 +93,13 @@ def run(args: argparse.Namespace) -> int:
 def _check_metadata_free(out: Path) -> None:
     """Refuse an ``out`` whose metadata file (``<stem>.json``) describes another recording (``x.blf`` beside
     ``x.csv``): writing it would leave that recording with this run's metadata."""
-    import json
+    from virtsensor.recordings.sidecar import read_json_object
 
     meta = metadata_path(out)
-    try:
-        other = json.loads(meta.read_text()).get("file")
-    except (OSError, ValueError, AttributeError, RecursionError):
-        return  # (none, or not a run's metadata, nested too deeply included: the output checks decided on it)
+    doc = read_json_object(meta)
+    if doc is None:
+        return  # (none, or not a run's metadata: the output checks already decided on it)
+    other = doc.get("file")
     name = Path(other).name if isinstance(other, str) else ""
     if name not in ("", ".", "..", out.name) and (meta.parent / name).is_file():
         raise UserError(f"--out {out}: {meta} is the metadata of another recording, {name}; "

@@ -1,0 +1,98 @@
+"""A recording's metadata sidecar: the JSON ``<stem>.json`` beside it, and whose it is.
+
+``simulate`` writes each run with its metadata beside it (:func:`virtsensor.recordings.simulated.write_metadata`):
+a JSON object whose ``file`` is the run's file name, with its conditions (``mu``...) and its ``samples`` (rows of
+its 20 Hz table). Other JSON files may share a run's stem: a test engineer's conditions (``{"mu": 0.5}``, no
+``file``, :mod:`virtsensor.diagnose.conditions`), the bundled demo recordings' descriptions (no ``file``), the
+output of an earlier ``score --json``, or the metadata of *another* run copied or renamed beside this one.
+
+Every reader decides whose a ``<stem>.json`` is through :func:`sidecar_of`, by its ``file`` field alone:
+
+* it names the recording (:attr:`Sidecar.matches`): the run's own metadata;
+* it names another file (:attr:`Sidecar.foreign`): the metadata of another run. It is **ignored**, never
+  refused: every command that reads it (``demo``, ``diagnose``) also works on a run without metadata (a
+  measured run has none), so it works on this run as on one without, and says in its output and its JSON that it
+  ignored that file (:attr:`Sidecar.note`); nothing from it (conditions, description, row count) is used;
+* it names no file (an object without ``file``): no run's metadata, nor another run's; readers that take
+  conditions or a description from such a file (``diagnose``, ``demo``) keep doing so, no row count is checked.
+
+A file that is absent, not a regular file, larger than :data:`MAX_BYTES`, unreadable, not UTF-8, not JSON (or
+nested too deep to parse) or not a JSON object is no sidecar (:attr:`Sidecar.doc` is None): this module never
+raises for it (a reader that needs the file, such as ``diagnose``'s conditions, reports it itself).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+#: A sidecar larger than this is not read (a run's metadata is a few hundred bytes).
+MAX_BYTES = 1 << 20
+
+
+def sidecar_path(recording: Path | str) -> Path:
+    """Where the metadata of ``recording`` is: ``<stem>.json`` beside it."""
+    return Path(recording).with_suffix(".json")
+
+
+def read_json_object(path: Path) -> dict[str, Any] | None:
+    """The JSON object in ``path`` (read by :func:`virtsensor.fileio.read_json`), or None when it is not one
+    (see the module docstring); never raises."""
+    from virtsensor.errors import UserError
+    from virtsensor.fileio import read_json
+
+    try:
+        if not path.is_file() or path.stat().st_size > MAX_BYTES:
+            return None
+        doc = read_json(path, "metadata")
+    except (OSError, UserError):  # (unreadable, not UTF-8, not JSON, nested too deeply: no sidecar)
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+@dataclass(frozen=True)
+class Sidecar:
+    """The ``<stem>.json`` beside a recording and whose it is (see the module docstring).
+
+    Attributes:
+        recording: the recording file.
+        path: the sidecar's path (``<stem>.json``; it may not exist).
+        doc: its JSON object, None when there is none (absent, unreadable, not an object).
+    """
+
+    recording: Path
+    path: Path
+    doc: dict[str, Any] | None
+
+    @property
+    def matches(self) -> bool:
+        """Whether it is the recording's own metadata: its ``file`` is the recording's name."""
+        return self.doc is not None and self.doc.get("file") == self.recording.name
+
+    @property
+    def foreign(self) -> bool:
+        """Whether it is the metadata of another file: it has a ``file`` that is not the recording's name."""
+        return self.doc is not None and "file" in self.doc and not self.matches
+
+    @property
+    def usable(self) -> dict[str, Any] | None:
+        """What a reader may take from it: its object unless it is :attr:`foreign` (None then, and when none)."""
+        return None if self.doc is None or self.foreign else self.doc
+
+    @property
+    def note(self) -> str | None:
+        """One line saying it was ignored, when :attr:`foreign` (the line the commands print and write), else
+        None."""
+        if not self.foreign or self.doc is None:
+            return None
+        return (f"{self.path} ignored: its \"file\" is {self.doc.get('file')!r}, not {self.recording.name}, so it is "
+                f"the metadata of another run")
+
+
+def sidecar_of(recording: Path | str, meta: Path | str | None = None) -> Sidecar:
+    """The sidecar of ``recording``: ``meta``, default :func:`sidecar_path` (never the recording itself)."""
+    recording = Path(recording)
+    path = Path(meta) if meta is not None else sidecar_path(recording)
+    return Sidecar(recording, path, None if path == recording else read_json_object(path))
+
