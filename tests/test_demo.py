@@ -285,6 +285,41 @@ def _write_log(path, frames):
         writer.stop()
 
 
+@pytest.fixture(scope="module")
+def single_sine(tmp_path_factory):
+    """A run as ``simulate`` writes it, as ``single-sine.blf`` and ``single-sine-log.log``, each with its metadata
+    ``<stem>.json`` beside it."""
+    d = tmp_path_factory.mktemp("single")
+    for name in ("single-sine.blf", "single-sine-log.log"):
+        assert main(["simulate", "single-sine", "--speed", "60", "--mu", "0.6", "--out", str(d / name)]) == 0
+    return d
+
+
+def test_a_recording_is_described_by_its_own_metadata_only(single_sine, tmp_path):
+    """A ``.json`` beside the recording that names another file is another run's metadata: never this run's
+    description nor its road friction; the demo says it ignored it."""
+    rec = tmp_path / "single-sine.blf"
+    rec.write_bytes((single_sine / "single-sine.blf").read_bytes())
+    own = json.loads((single_sine / "single-sine.json").read_text())
+    js = tmp_path / "d.json"
+    argv = ["--recording", str(rec), "--rate", "max", "--no-live", "--json", str(js), "--plot", str(tmp_path / "d.png")]
+    (tmp_path / "single-sine.json").write_text(json.dumps(own))  # its own: used
+    rc, text = run_demo_cli(*argv)
+    r = json.loads(js.read_text())
+    assert rc == 0 and r["recording_description"].startswith("single-sine at 60 km/h on a wet road (mu 0.6)"), text
+    assert r["grip"]["road_mu"] == 0.6 and r.get("recording_metadata_ignored") is None and "ignored" not in text
+    other = {**own, "file": "random-steer.blf", "manoeuvre": "random-steer", "speed_kmh": 70.0, "mu": 0.7}
+    (tmp_path / "single-sine.json").write_text(json.dumps(other))  # another run's, copied beside it
+    rc, text = run_demo_cli(*argv)
+    r = json.loads(js.read_text())
+    assert rc == 0, text
+    assert r["recording_description"] == "single-sine.blf" and "random-steer" not in text.splitlines()[0], text
+    assert r["grip"]["road_mu"] is None  # no friction to compare the estimate with, rather than another run's
+    note = (f"{tmp_path / 'single-sine.json'} ignored: its \"file\" is 'random-steer.blf', not single-sine.blf, "
+            "so it is the metadata of another run")
+    assert r["recording_metadata_ignored"] == note and f"note: {note}" in text, text
+
+
 def test_demo_on_a_recording_without_reference_gives_estimates_only(tmp_path):
     from virtsensor.canbus.codec import CanMatrix
     from virtsensor.demo import run_demo

@@ -563,6 +563,52 @@ def test_a_bad_json_beside_a_run_is_refused(tmp_path, capsys):
     assert "run01.json: conditions: mu [0.5] is not a number or a range" in err and len(err.strip().splitlines()) == 1
 
 
+def test_a_json_beside_a_run_that_names_another_file_is_ignored_and_said_so(tmp_path, capsys, monkeypatch):
+    """Another run's metadata beside a run (copied or renamed: its ``file`` names that run) states nothing about
+    this one: the run is diagnosed as one without a JSON (friction not known, or ``--mu``), and the summary, the
+    JSON's ``run_conditions`` and the report say that the file was ignored."""
+    from types import SimpleNamespace
+
+    from test_measured import _table
+
+    import virtsensor.diagnose as dg
+    from virtsensor.cli import main
+    from virtsensor.diagnose.conditions import load_conditions
+    from virtsensor.diagnose.report import _conditions_lines
+    from virtsensor.recordings.canlog import write_csv
+
+    run, beside = tmp_path / "single-sine.csv", tmp_path / "single-sine.json"
+    write_csv(run, _table())
+    beside.write_text(json.dumps({"file": "random-steer.blf", "manoeuvre": "random-steer", "mu": 0.7}))
+    note = (f"{beside} ignored: its \"file\" is 'random-steer.blf', not single-sine.csv, so it is the metadata of "
+            f"another run")
+    (c,) = load_conditions([run])
+    assert c.values == {"mu": (0.2, 1.2)} and c.source == {"mu": "not known"} and c.notes == [note]
+    assert load_conditions([run], default_mu=0.6)[0].values == {"mu": (0.6, 0.6)}
+    for doc in ({"file": "single-sine.csv", "mu": 0.6}, {"mu": 0.6}):  # its own metadata; conditions naming no file
+        beside.write_text(json.dumps(doc))
+        (c,) = load_conditions([run])
+        assert c.values == {"mu": (0.6, 0.6)} and c.source == {"mu": "single-sine.json"} and c.notes == [], doc
+    beside.write_text(json.dumps({"file": "random-steer.blf", "manoeuvre": "random-steer", "mu": 0.7}))
+
+    given = []
+
+    def identification(runs, holdout, base, *, conditions, **kw):  # (stubbed: what the diagnosis is given)
+        given.append(conditions)
+        idn = SimpleNamespace(day=[{"mu": 0.62}], nuisance=[{}])
+        return {"cause": "none", "run_conditions": dg._run_conditions(idn, runs, conditions)}, {}
+
+    monkeypatch.setattr(dg, "diagnose", identification)
+    capsys.readouterr()
+    assert main(["diagnose", "--measured", str(run), "--no-retrain", "--json", str(tmp_path / "d.json"),
+                 "--quiet"]) == 0
+    assert given[0][0].values == {"mu": (0.2, 1.2)}
+    assert f"single-sine: {note}" in capsys.readouterr().out.splitlines()
+    res = json.loads((tmp_path / "d.json").read_text())
+    assert res["run_conditions"] == [{"name": "single-sine", "used": {"mu": 0.62}, "identified": {}, "notes": [note]}]
+    assert f"- single-sine: {note}" in _conditions_lines(res)
+
+
 def test_a_nuisance_interval_is_read_off_its_profile():
     from virtsensor.diagnose.nuisance import _interval
 

@@ -45,7 +45,7 @@ from virtsensor import plotting
 from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
 from virtsensor.demogrip import GRIP_SIGNALS, grip_line, grip_summary, plot_grip
 from virtsensor.errors import UserError
-from virtsensor.fileio import check_writable, read_json, staged_files, write_json
+from virtsensor.fileio import check_writable, staged_files, write_json
 from virtsensor.metrics import mae, r2
 
 __all__ = [
@@ -123,18 +123,27 @@ def _shown(path: Path) -> str:
         return str(path)
 
 
+def _metadata(recording: Path) -> dict[str, Any]:
+    """What the recording's ``.json`` sidecar says (:func:`virtsensor.recordings.sidecar.sidecar_of`): its object,
+    or {} when there is none or when it names another file: the metadata of another run is ignored (the demo
+    says so, :attr:`_Plan.metadata_note`), never taken for this one's."""
+    from virtsensor.recordings.sidecar import sidecar_of
+
+    return sidecar_of(recording).usable or {}
+
+
 def _road_mu(recording: Path) -> float | None:
-    """The road friction the recording's ``.json`` sidecar states (a simulated run), or None."""
+    """The road friction the recording's ``.json`` sidecar states (a simulated run, :func:`_metadata`), or None."""
     try:
-        return float(read_json(recording.with_suffix(".json"), "metadata")["mu"])
+        return float(_metadata(recording)["mu"])
     except (UserError, ValueError, KeyError, TypeError, OverflowError):
         return None
 
 
 def _describe(recording: Path) -> str:
-    """One line about a recording, from its ``.json`` sidecar when there is one."""
+    """One line about a recording, from its ``.json`` sidecar when there is one (:func:`_metadata`)."""
     try:
-        info = read_json(recording.with_suffix(".json"), "metadata")
+        info = _metadata(recording)
         road = "a wet road" if float(info["mu"]) < 0.9 else "a dry road"
         return (f"{info['manoeuvre']} at {info['speed_kmh']:g} km/h on {road} (mu {info['mu']:g}), "
                 f"seed {info['seed']}, simulated")
@@ -285,6 +294,7 @@ class _Plan:
     merged: list[Any]  # frames and sync frames, time order
     n_sync: int
     grip_id: int | None = None  # VS_Grip (None: the matrix has none)
+    metadata_note: str | None = None  # the recording's .json sidecar names another file: ignored, and why
 
 
 def _options(model: str | os.PathLike | None, recording: str | os.PathLike | None, rate: float | str | None,
@@ -320,9 +330,13 @@ def _options(model: str | os.PathLike | None, recording: str | os.PathLike | Non
 
 
 def _plan(rec_path: Path) -> _Plan:
-    """Load the recording (UserError when it has no frame) and merge in the sync frames on a free id."""
-    from virtsensor.canbus.codec import CanMatrix
+    """Load the recording (UserError when it has no frame) and merge in the sync frames on a free id.
 
+    A sidecar that names another file is ignored (:func:`_metadata`); the plan's ``metadata_note`` says so."""
+    from virtsensor.canbus.codec import CanMatrix
+    from virtsensor.recordings.sidecar import sidecar_of
+
+    meta = sidecar_of(rec_path)
     matrix = CanMatrix.load()
     frames, dropped = _load_frames(rec_path, matrix)
     sync_id = _free_id(frames, matrix)
@@ -332,7 +346,8 @@ def _plan(rec_path: Path) -> _Plan:
     duration = frames[-1].timestamp - frames[0].timestamp
     merged, n_sync = _with_sync(frames, sync_id)
     grip_id = matrix.messages["VS_Grip"].frame_id if "VS_Grip" in matrix.messages else None
-    return _Plan(matrix, frames, dropped, sync_id, te, sat_id, has_truth, duration, merged, n_sync, grip_id)
+    return _Plan(matrix, frames, dropped, sync_id, te, sat_id, has_truth, duration, merged, n_sync, grip_id,
+                 meta.note)
 
 
 def run_demo(
@@ -361,6 +376,10 @@ def run_demo(
 
     Raises:
         UserError: missing/unreadable recording or model, an output path that cannot be written, a bad rate.
+
+    A ``.json`` beside the recording that names another file is another run's metadata: ignored (neither the
+    description nor the road friction comes from it), and ``result["recording_metadata_ignored"]`` and a line
+    under the header say so (None otherwise).
     """
     out = out or sys.stdout
     wall0 = time.monotonic()
@@ -460,7 +479,8 @@ def _add_figures(result: dict[str, Any], ticks: _Ticks, stats: dict[str, Any], o
     lat = np.array(ticks.latency_ms, dtype=float)
     result["grip"] = grip_summary(ticks.t, ticks.grip, _road_mu(opts.rec_path)) if ticks.grip else None
     result.update(
-        recording=str(opts.rec_path), recording_description=_describe(opts.rec_path), model=str(opts.model_path),
+        recording=str(opts.rec_path), recording_description=_describe(opts.rec_path),
+        recording_metadata_ignored=plan.metadata_note, model=str(opts.model_path),
         model_sha256=model_sha256, rate="max" if opts.rate_f is None else opts.rate_f,
         duration_s=round(plan.duration, 3), own_frames_dropped=plan.dropped, has_reference=plan.has_truth,
         ticks=len(ticks.t), sync_frames_planned=plan.n_sync, daemon_ticks=stats.get("ticks"),
@@ -592,6 +612,8 @@ def _print_header(opts: _Options, plan: _Plan, live: bool, out: TextIO) -> float
     """Print what runs (and the live lines' column heads); returned: the live line period (s)."""
     rate_txt = "as fast as possible" if opts.rate_f is None else f"at {opts.rate_f:g}x real time"
     print(f"virtsensor demo: {_describe(opts.rec_path)} ({plan.duration:.1f} s, {_shown(opts.rec_path)})", file=out)
+    if plan.metadata_note:
+        print(f"  note: {plan.metadata_note}", file=out)
     print(f"  replayed {rate_txt} on a virtual CAN bus to the daemon running {_shown(opts.model_path)} "
           f"(sync mode, id 0x{plan.sync_id:X})", file=out)
     if not plan.has_truth:

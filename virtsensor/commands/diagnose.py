@@ -11,7 +11,8 @@ Measured runs are CAN logs (decoded through the DBC), MDF4 files or canonical
 are used only to measure the estimator before and after the calibration; without
 it, the last third of the ``--measured`` runs is held out (when there are 3 or more).
 ``--conditions`` (or a JSON beside each run) states what is known of each run (see
-:mod:`virtsensor.diagnose.conditions`); ``--backend ray`` runs the re-simulations on
+:mod:`virtsensor.diagnose.conditions`; a JSON whose ``file`` names another file is another run's metadata:
+ignored, and the summary and the JSON say so); ``--backend ray`` runs the re-simulations on
 a Ray cluster.
 """
 
@@ -165,6 +166,8 @@ def _summary(res) -> str:
                          f"(95 % CI {c['ci95'][0]:.4g} to {c['ci95'][1]:.4g}; nominal {c['nominal']:.4g})")
         line = "cause: " + "\nand: ".join(parts)
     for rc in res.get("run_conditions", []):
+        for note in rc.get("notes", []):
+            line += f"\n{rc['name']}: {note}"
         for q, v in rc["identified"].items():
             how = "" if v["excited"] else " (the run does not excite it)"
             line += (f"\n{rc['name']}: {q} {v['estimate']:.3g} (95 % CI {v['ci95'][0]:.3g} to "

@@ -74,7 +74,7 @@ def diagnose(
         conditions = load_conditions([r.path for r in runs], None, default_mu=mu) if all(
             r.path is not None for r in runs) else [RunConditions({"mu": (mu, mu)} if mu else {}) for r in runs]
     idn = identify(runs, base, names, conditions=conditions, n_jobs=n_jobs, backend=backend, log=log)
-    result = _identification_result(idn, runs, holdout, time.perf_counter() - t0)
+    result = _identification_result(idn, runs, holdout, time.perf_counter() - t0, conditions)
     comparison = compare(runs, idn, names)
     result["comparison"] = comparison.as_dict()
     art: dict[str, Any] = {"comparison": comparison}
@@ -89,15 +89,15 @@ def diagnose(
 
 
 def _identification_result(idn, runs: Sequence[MeasuredRun], holdout: Sequence[MeasuredRun],
-                           seconds: float) -> dict[str, Any]:
+                           seconds: float, conditions: Sequence[Any] = ()) -> dict[str, Any]:
     """The diagnosis part of the result: the cause named, its fit, every candidate, the runs used;
-    ``seconds`` is the identification's wall time."""
+    ``seconds`` is the identification's wall time; ``conditions``: each run's stated ones (their notes)."""
     best = idn.best if idn.unexplained is None else None
     return {
         "cause": idn.cause,
         "causes": [_cause_entry(f) for f in _named(idn)],
         "unexplained": idn.unexplained,
-        "run_conditions": _run_conditions(idn, runs),
+        "run_conditions": _run_conditions(idn, runs, conditions),
         "signal": best.candidate.signal if best else None,
         "estimate": best.estimate if best else None,
         "ci95": list(best.ci95) if best else None,
@@ -127,14 +127,17 @@ def _cause_entry(fit) -> dict[str, Any]:
             "variance_explained": fit.variance_explained}
 
 
-def _run_conditions(idn, runs: Sequence[MeasuredRun]) -> list[dict[str, Any]]:
+def _run_conditions(idn, runs: Sequence[MeasuredRun], conditions: Sequence[Any] = ()) -> list[dict[str, Any]]:
     """Per run: the condition values the re-simulation used and, for the ranged ones, their identification
-    (estimate, 95 % interval, whether the run excites them)."""
+    (estimate, 95 % interval, whether the run excites them); ``notes``: what was left out of its stated
+    conditions (:attr:`~virtsensor.diagnose.conditions.RunConditions.notes`, e.g. a JSON beside it that is
+    another run's metadata, ignored)."""
     out = []
     for r, run in enumerate(runs):
         day = idn.day[r] if r < len(idn.day) else {}
         ident = idn.nuisance[r] if r < len(idn.nuisance) else {}
-        out.append({"name": run.name, "used": dict(day), "identified": ident})
+        notes = list(getattr(conditions[r], "notes", ())) if r < len(conditions) else []
+        out.append({"name": run.name, "used": dict(day), "identified": ident, "notes": notes})
     return out
 
 

@@ -5,8 +5,12 @@ polished basalt, a tyre topped up at lunch, a passenger on board for the
 afternoon. Each run may come with its conditions, from
 
 * a JSON beside it (same stem, ``run03.json``): an object ``{"conditions": {...}}``
-  or the quantities at its top level (``{"mu": "0.5..0.8"}``); a JSON with
-  neither (the simulator's own run record) gives no conditions;
+  or the quantities at its top level (``{"mu": "0.5..0.8"}``, as in the metadata
+  ``simulate`` writes beside a run); a JSON with neither gives no conditions. A
+  JSON whose ``file`` names another file is the metadata of another run
+  (:mod:`virtsensor.recordings.sidecar`): it is ignored, the run taken as one
+  without a JSON, and the run's :attr:`RunConditions.notes` say so (``diagnose``
+  prints them and writes them into its JSON's ``run_conditions``);
 * ``--conditions FILE.csv``: a ``file`` column (the run's file name, or its
   path as given) and a column per quantity; an empty cell is "not known".
   The CSV wins over a JSON beside the run, quantity by quantity.
@@ -56,10 +60,12 @@ QUANTITIES: dict[str, Quantity] = {q.name: q for q in (
 
 @dataclass
 class RunConditions:
-    """One run's conditions: quantity -> (lo, hi); lo == hi is exact; absent is not known."""
+    """One run's conditions: quantity -> (lo, hi); lo == hi is exact; absent is not known. ``notes``: one line
+    each about what was left out of them (a JSON beside the run that is another run's metadata)."""
 
     values: dict[str, tuple[float, float]] = field(default_factory=dict)
     source: dict[str, str] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
     def exact(self, name: str) -> float | None:
         v = self.values.get(name)
@@ -151,14 +157,18 @@ def read_csv(path: Path) -> dict[str, dict[str, tuple[float, float]]]:
 def load_conditions(paths: Sequence[Path], csv_path: Path | None = None, *,
                     default_mu: float | None = None, also: Sequence[Path | str] = ()) -> list[RunConditions]:
     """The conditions of each run (``paths``: the runs' files, in order); ``also``: files given but left out
-    (a CSV may list them)."""
+    (a CSV may list them). A JSON beside a run that names another file is ignored, with a note (module docstring)."""
+    from virtsensor.recordings.sidecar import sidecar_of
+
     table = read_csv(csv_path) if csv_path is not None else {}
     used: set[str] = {k for p in map(Path, also) for k in (str(p), p.name, p.stem)}
     out = []
     for p in paths:
         rc = RunConditions()
         beside = p.with_suffix(".json")
-        if beside.is_file() and beside != p:
+        if (note := sidecar_of(p, beside).note) is not None:
+            rc.notes.append(note)
+        elif beside.is_file() and beside != p:
             for k, v in (_from_json(beside) or {}).items():
                 rc.values[k], rc.source[k] = v, beside.name
         for key in (str(p), p.name, p.stem):

@@ -157,7 +157,8 @@ def _cause_lines(res: Mapping[str, Any]) -> list[str]:
 
 
 def _conditions_lines(res: Mapping[str, Any]) -> list[str]:
-    """Per-run conditions: the values the re-simulation used and the identified ones with their intervals."""
+    """Per-run conditions: the values the re-simulation used and the identified ones with their intervals, then
+    the runs' notes (a JSON beside a run that was ignored)."""
     rcs = res.get("run_conditions") or []
     if not any(rc["used"] for rc in rcs):
         return []
@@ -170,7 +171,8 @@ def _conditions_lines(res: Mapping[str, Any]) -> list[str]:
             + ("" if v["excited"] else ": the run does not excite it")
             for q, v in rc["identified"].items()) or "-"
         out.append(f"| {rc['name']} | {used} | {ident} |")
-    return out
+    notes = [f"- {rc['name']}: {note}" for rc in rcs for note in rc.get("notes", [])]
+    return out + (["", *notes] if notes else [])
 
 
 def plots(art: Mapping[str, Any], res: Mapping[str, Any], out_dir: Path) -> list[Path]:
