@@ -401,6 +401,73 @@ def test_a_cut_mdf4_file_is_refused(tmp_path):
         load_measured([path])
 
 
+# ------------------------------------------------------------- runs cut at a line boundary: their metadata's samples
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """One short run as ``simulate`` writes it in each line-based format (no trailer that could show a cut), each
+    with its metadata ``<stem>.json`` beside it (``file``, ``samples``...)."""
+    d = tmp_path_factory.mktemp("simulated")
+    for suffix in ("csv", "log", "trc"):
+        out = d / f"run-{suffix}.{suffix}"
+        assert main(["simulate", "single-sine", "--speed", "60", "--mu", "0.6", "--out", str(out)]) == 0
+    return d
+
+
+def _head(src, dst, meta: dict | None = None) -> None:
+    """``head -n <half> src > dst`` (a cut at a line boundary) and, when given, ``meta`` as ``dst``'s ``.json``."""
+    lines = src.read_text().splitlines(keepends=True)
+    dst.write_text("".join(lines[: len(lines) // 2]))
+    if meta is not None:
+        dst.with_suffix(".json").write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("suffix", ["csv", "log", "trc"])
+def test_a_run_cut_at_a_line_boundary_is_refused_by_the_samples_its_metadata_lists(simulated, tmp_path, capsys,
+                                                                                    suffix):
+    from virtsensor.assets import model_path
+
+    src = simulated / f"run-{suffix}.{suffix}"
+    meta = json.loads(src.with_suffix(".json").read_text())
+    cut = tmp_path / f"cut.{suffix}"
+    _head(src, cut, {**meta, "file": cut.name})  # its metadata copied with it, as this file's
+    pattern = rf"^{re.escape(str(cut))}: (\d+) rows read, its metadata cut\.json lists {meta['samples']} samples"
+    for load in (load_runs, load_measured):  # (train, score, evaluate, simulate recorded; diagnose)
+        with pytest.raises(UserError) as e:
+            load([cut])
+        m = re.search(pattern, str(e.value))
+        assert m and 0 < int(m.group(1)) < meta["samples"] and "\n" not in str(e.value), str(e.value)
+    capsys.readouterr()
+    code = main(["score", "--model", str(model_path()), "--data", str(cut), "--json", str(tmp_path / "s.json")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and re.search(pattern[1:], err), err
+    assert not (tmp_path / "s.json").exists()
+
+
+def test_runs_without_their_own_metadata_are_read_as_they_are(simulated, tmp_path):
+    """Whole runs with their metadata are read; a run with no metadata of its own (a measured run, one beside
+    another run's metadata or beside a JSON of conditions naming no file) cannot show a cut and is read as it is."""
+    src = simulated / "run-csv.csv"
+    meta = json.loads(src.with_suffix(".json").read_text())
+    assert len(load_runs([src])[0].table["time_s"]) == meta["samples"]
+    for case, beside in [("measured", None), ("another run's", meta), ("conditions", {"mu": 0.6})]:
+        d = tmp_path / case.replace("'", "")
+        d.mkdir()
+        _head(src, d / "cut.csv", beside)
+        n = len(load_runs([d / "cut.csv"])[0].table["time_s"])
+        assert 0 < n < meta["samples"], case
+
+
+def test_metadata_whose_samples_is_no_count_is_refused_naming_it(simulated, tmp_path):
+    src = simulated / "run-csv.csv"
+    meta = json.loads(src.with_suffix(".json").read_text())
+    run = tmp_path / "run.csv"
+    run.write_bytes(src.read_bytes())
+    for bad in ("139", -1, 1.5, True):
+        run.with_suffix(".json").write_text(json.dumps({**meta, "file": "run.csv", "samples": bad}))
+        with pytest.raises(UserError, match=rf"run\.json: samples {re.escape(repr(bad))} is not a count of rows"):
+            load_runs([run])
+
+
 def test_whose_metadata_a_json_beside_a_run_is(tmp_path):
     """The one test every reader applies (:func:`virtsensor.recordings.sidecar.sidecar_of`): by its ``file``."""
     from virtsensor.recordings.sidecar import sidecar_of

@@ -320,6 +320,23 @@ def test_a_recording_is_described_by_its_own_metadata_only(single_sine, tmp_path
     assert r["recording_metadata_ignored"] == note and f"note: {note}" in text, text
 
 
+def test_a_log_cut_at_a_line_boundary_is_refused_by_its_metadatas_samples(single_sine, tmp_path, capsys):
+    """A ``.log`` has no trailer: cut at a line boundary, only its metadata's ``samples`` shows it is not whole."""
+    rec = tmp_path / "cut.log"
+    lines = (single_sine / "single-sine-log.log").read_text().splitlines(keepends=True)
+    rec.write_text("".join(lines[: len(lines) // 2]))
+    meta = json.loads((single_sine / "single-sine-log.json").read_text())
+    (tmp_path / "cut.json").write_text(json.dumps({**meta, "file": "cut.log"}))
+    js = tmp_path / "d.json"
+    capsys.readouterr()
+    rc, text = run_demo_cli("--recording", str(rec), "--rate", "max", "--no-live", "--json", str(js),
+                            "--plot", str(tmp_path / "d.png"))
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert f"{rec}: " in err and f"rows read, its metadata cut.json lists {meta['samples']} samples" in err, err
+    assert not js.exists() and "ticks:" not in text
+
+
 def test_demo_on_a_recording_without_reference_gives_estimates_only(tmp_path):
     from virtsensor.canbus.codec import CanMatrix
     from virtsensor.demo import run_demo

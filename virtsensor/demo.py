@@ -332,11 +332,17 @@ def _options(model: str | os.PathLike | None, recording: str | os.PathLike | Non
 def _plan(rec_path: Path) -> _Plan:
     """Load the recording (UserError when it has no frame) and merge in the sync frames on a free id.
 
-    A sidecar that names another file is ignored (:func:`_metadata`); the plan's ``metadata_note`` says so."""
+    A recording with its own metadata (a ``.json`` sidecar whose ``file`` is its name, as ``simulate`` writes it)
+    must have the 20 Hz rows it lists as ``samples`` (:func:`virtsensor.recordings.files.read_table`): a ``.log``
+    or ``.trc`` cut at a line boundary is refused (UserError), never evaluated as if whole. A sidecar that names
+    another file is ignored (:func:`_metadata`); the plan's ``metadata_note`` says so."""
     from virtsensor.canbus.codec import CanMatrix
+    from virtsensor.recordings.files import LOG_SUFFIXES, read_table
     from virtsensor.recordings.sidecar import sidecar_of
 
     meta = sidecar_of(rec_path)
+    if meta.matches and "samples" in (meta.doc or {}) and rec_path.suffix.lower() in LOG_SUFFIXES:
+        read_table(rec_path)  # (its row count against the metadata's)
     matrix = CanMatrix.load()
     frames, dropped = _load_frames(rec_path, matrix)
     sync_id = _free_id(frames, matrix)
@@ -375,7 +381,8 @@ def run_demo(
         The figures (what ``--json`` writes); ``result["interrupted"]`` after Ctrl-C.
 
     Raises:
-        UserError: missing/unreadable recording or model, an output path that cannot be written, a bad rate.
+        UserError: missing/unreadable recording or model, an output path that cannot be written, a bad rate, a
+            recording whose rows are not the ``samples`` its own metadata lists (cut: :func:`_plan`).
 
     A ``.json`` beside the recording that names another file is another run's metadata: ignored (neither the
     description nor the road friction comes from it), and ``result["recording_metadata_ignored"]`` and a line

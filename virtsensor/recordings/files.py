@@ -159,10 +159,18 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
     CSV as written, a CAN log decoded through the DBC by the runtime's front-end,
     an MDF4 file sampled on the ticks (:func:`virtsensor.recordings.mdf.read_mdf`).
 
+    A run read with its own metadata beside it (``<stem>.json`` whose ``file`` is its name, as ``simulate``
+    writes it) must have the rows that metadata lists as ``samples``
+    (:func:`virtsensor.recordings.sidecar.check_samples`): a CSV, ``.log`` or ``.trc`` cut at a line boundary
+    shows no cut in itself. A run without such metadata (a measured run, a campaign's run: its manifest lists
+    its rows) is read as it is.
+
     Raises:
-        UserError: an unreadable, malformed or truncated file, naming it.
+        UserError: an unreadable, malformed or truncated file, or rows other than its metadata's samples,
+            naming it.
     """
     from virtsensor.recordings.canlog import read_csv, read_log
+    from virtsensor.recordings.sidecar import check_samples
 
     path = Path(path)
     suffix = path.suffix.lower()
@@ -170,11 +178,15 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
         raise _unsupported(path)
     try:
         if suffix in TABLE_SUFFIXES:
-            return read_csv(path)
-        if suffix in MDF_SUFFIXES:
+            table = read_csv(path)
+        elif suffix in MDF_SUFFIXES:
             from virtsensor.recordings.mdf import read_mdf
 
-            return read_mdf(path)
-        return dict(read_log(path).table)
+            table = read_mdf(path)
+        else:
+            table = dict(read_log(path).table)
     except PermissionError as exc:  # (a file of a directory given as --data: as one given itself, exit 2)
         raise UserError(f"{path}: not readable ({exc.strerror})") from None
+    if "time_s" in table:  # (a table without time is the input check's to refuse, naming the column)
+        check_samples(path, len(table["time_s"]))
+    return table

@@ -8,7 +8,10 @@ output of an earlier ``score --json``, or the metadata of *another* run copied o
 
 Every reader decides whose a ``<stem>.json`` is through :func:`sidecar_of`, by its ``file`` field alone:
 
-* it names the recording (:attr:`Sidecar.matches`): the run's own metadata;
+* it names the recording (:attr:`Sidecar.matches`): the run's own metadata. Its ``samples`` is the run's row
+  count, checked by :func:`check_samples` wherever the run's table is read
+  (:func:`virtsensor.recordings.files.read_table`): a run file cut at a line boundary (CSV, ``.log``, ``.trc``
+  have no trailer to show it) is refused;
 * it names another file (:attr:`Sidecar.foreign`): the metadata of another run. It is **ignored**, never
   refused: every command that reads it (``demo``, ``diagnose``) also works on a run without metadata (a
   measured run has none), so it works on this run as on one without, and says in its output and its JSON that it
@@ -27,6 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from virtsensor.errors import UserError
+
 #: A sidecar larger than this is not read (a run's metadata is a few hundred bytes).
 MAX_BYTES = 1 << 20
 
@@ -39,7 +44,6 @@ def sidecar_path(recording: Path | str) -> Path:
 def read_json_object(path: Path) -> dict[str, Any] | None:
     """The JSON object in ``path`` (read by :func:`virtsensor.fileio.read_json`), or None when it is not one
     (see the module docstring); never raises."""
-    from virtsensor.errors import UserError
     from virtsensor.fileio import read_json
 
     try:
@@ -96,3 +100,22 @@ def sidecar_of(recording: Path | str, meta: Path | str | None = None) -> Sidecar
     path = Path(meta) if meta is not None else sidecar_path(recording)
     return Sidecar(recording, path, None if path == recording else read_json_object(path))
 
+
+def check_samples(recording: Path | str, rows: int) -> None:
+    """Refuse a run whose table has not the rows its own metadata lists (:attr:`Sidecar.matches`, its
+    ``samples``): the file was cut or changed after it was written. A run without its own metadata, or whose
+    metadata lists no ``samples``, is not checked here.
+
+    Raises:
+        UserError: ``<file>: N rows read, its metadata <stem>.json lists M samples ...``, or the metadata's
+            ``samples`` is not a count of rows.
+    """
+    sc = sidecar_of(recording)
+    if not sc.matches or sc.doc is None or "samples" not in sc.doc:
+        return
+    listed = sc.doc["samples"]
+    if not isinstance(listed, int) or isinstance(listed, bool) or listed < 0:
+        raise UserError(f"{sc.path}: samples {listed!r} is not a count of rows (the metadata of {sc.recording.name})")
+    if listed != rows:
+        raise UserError(f"{sc.recording}: {rows} rows read, its metadata {sc.path.name} lists {listed} samples: the "
+                        f"file was cut or changed after it was written")
