@@ -457,6 +457,22 @@ def test_runs_without_their_own_metadata_are_read_as_they_are(simulated, tmp_pat
         assert 0 < n < meta["samples"], case
 
 
+def test_a_link_to_a_cut_run_is_refused_by_its_targets_metadata(simulated, tmp_path):
+    """A symbolic link is judged by its target: a link (without metadata of its own) to a cut run with its
+    metadata is the cut run; a link to a whole run is read."""
+    src = simulated / "run-csv.csv"
+    meta = json.loads(src.with_suffix(".json").read_text())
+    cut = tmp_path / "cut.csv"
+    _head(src, cut, {**meta, "file": cut.name})
+    (tmp_path / "link.csv").symlink_to(cut)
+    (tmp_path / "whole.csv").symlink_to(src)
+    link = re.escape(f"{tmp_path / 'link.csv'} -> {cut.resolve()}")
+    with pytest.raises(UserError, match=rf"^{link}: \d+ rows read, its metadata cut\.json lists {meta['samples']} "
+                                        rf"samples"):
+        load_runs([tmp_path / "link.csv"])
+    assert len(load_runs([tmp_path / "whole.csv"])[0].table["time_s"]) == meta["samples"]
+
+
 def test_metadata_whose_samples_is_no_count_is_refused_naming_it(simulated, tmp_path):
     src = simulated / "run-csv.csv"
     meta = json.loads(src.with_suffix(".json").read_text())

@@ -338,10 +338,10 @@ def _plan(rec_path: Path) -> _Plan:
     another file is ignored (:func:`_metadata`); the plan's ``metadata_note`` says so."""
     from virtsensor.canbus.codec import CanMatrix
     from virtsensor.recordings.files import LOG_SUFFIXES, read_table
-    from virtsensor.recordings.sidecar import sidecar_of
+    from virtsensor.recordings.sidecar import metadata_with_samples, sidecar_of
 
     meta = sidecar_of(rec_path)
-    if meta.matches and "samples" in (meta.doc or {}) and rec_path.suffix.lower() in LOG_SUFFIXES:
+    if rec_path.suffix.lower() in LOG_SUFFIXES and metadata_with_samples(rec_path):
         read_table(rec_path)  # (its row count against the metadata's)
     matrix = CanMatrix.load()
     frames, dropped = _load_frames(rec_path, matrix)

@@ -11,7 +11,7 @@ Every reader decides whose a ``<stem>.json`` is through :func:`sidecar_of`, by i
 * it names the recording (:attr:`Sidecar.matches`): the run's own metadata. Its ``samples`` is the run's row
   count, checked by :func:`check_samples` wherever the run's table is read
   (:func:`virtsensor.recordings.files.read_table`): a run file cut at a line boundary (CSV, ``.log``, ``.trc``
-  have no trailer to show it) is refused;
+  have no trailer to show it) is refused; a symbolic link is checked against its target's own metadata too;
 * it names another file (:attr:`Sidecar.foreign`): the metadata of another run. It is **ignored**, never
   refused: every command that reads it (``demo``, ``diagnose``) also works on a run without metadata (a
   measured run has none), so it works on this run as on one without, and says in its output and its JSON that it
@@ -101,21 +101,31 @@ def sidecar_of(recording: Path | str, meta: Path | str | None = None) -> Sidecar
     return Sidecar(recording, path, None if path == recording else read_json_object(path))
 
 
+def metadata_with_samples(recording: Path | str) -> list[Sidecar]:
+    """The metadata that lists the rows of ``recording`` (:attr:`Sidecar.matches` and has ``samples``): its own
+    and, when ``recording`` is a symbolic link, its target's own too (a link is judged by its target: a link to
+    a cut run is the cut run)."""
+    recording = Path(recording)
+    files = [recording, recording.resolve()] if recording.is_symlink() else [recording]
+    return [sc for sc in map(sidecar_of, files) if sc.matches and sc.doc is not None and "samples" in sc.doc]
+
+
 def check_samples(recording: Path | str, rows: int) -> None:
-    """Refuse a run whose table has not the rows its own metadata lists (:attr:`Sidecar.matches`, its
+    """Refuse a run whose table has not the rows its own metadata lists (:func:`metadata_with_samples`, its
     ``samples``): the file was cut or changed after it was written. A run without its own metadata, or whose
     metadata lists no ``samples``, is not checked here.
 
     Raises:
-        UserError: ``<file>: N rows read, its metadata <stem>.json lists M samples ...``, or the metadata's
-            ``samples`` is not a count of rows.
+        UserError: ``<file>: N rows read, its metadata <stem>.json lists M samples ...`` (a link's target's:
+            ``<link> -> <target>: ...``), or the metadata's ``samples`` is not a count of rows.
     """
-    sc = sidecar_of(recording)
-    if not sc.matches or sc.doc is None or "samples" not in sc.doc:
-        return
-    listed = sc.doc["samples"]
-    if not isinstance(listed, int) or isinstance(listed, bool) or listed < 0:
-        raise UserError(f"{sc.path}: samples {listed!r} is not a count of rows (the metadata of {sc.recording.name})")
-    if listed != rows:
-        raise UserError(f"{sc.recording}: {rows} rows read, its metadata {sc.path.name} lists {listed} samples: the "
-                        f"file was cut or changed after it was written")
+    recording = Path(recording)
+    for sc in metadata_with_samples(recording):
+        listed = sc.doc["samples"] if sc.doc is not None else None
+        if not isinstance(listed, int) or isinstance(listed, bool) or listed < 0:
+            raise UserError(f"{sc.path}: samples {listed!r} is not a count of rows (the metadata of "
+                            f"{sc.recording.name})")
+        if listed != rows:
+            shown = recording if sc.recording == recording else f"{recording} -> {sc.recording}"
+            raise UserError(f"{shown}: {rows} rows read, its metadata {sc.path.name} lists {listed} samples: the "
+                            f"file was cut or changed after it was written")
