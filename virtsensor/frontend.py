@@ -226,28 +226,35 @@ class Collected(NamedTuple):
 
 
 def collect(frames: Iterable, signals: Sequence[str]) -> Collected:
-    """One streaming pass over decoded frames keeping the usable values of ``signals`` (and every
-    frame's timestamp, 8 bytes a frame, for :attr:`Collected.jump`)."""
+    """One streaming pass over decoded frames keeping the usable values of ``signals`` (and, in constant
+    memory, the first and last timestamps and the largest step between consecutive frames:
+    :attr:`Collected.jump`)."""
     wanted = set(signals)
     times: dict[str, list[float]] = {s: [] for s in signals}
     values: dict[str, list[float]] = {s: [] for s in signals}
-    stamps: list[float] = []
-    stamp = stamps.append
+    t_first, t_last = math.inf, -math.inf
+    prev, step, jump = math.nan, -1.0, (math.nan, math.nan)
+    n = 0
     for f in frames:
         if f is None:
             continue
+        n += 1
         t = f.timestamp
-        stamp(t)
+        if t < t_first:
+            t_first = t
+        if t > t_last:
+            t_last = t
+        d = abs(t - prev)  # (nan at the first frame: never the largest)
+        if d > step:
+            step, jump = d, (prev, t)
+        prev = t
         if f.status not in USABLE:
             continue
         for name, v in f.values.items():
             if name in wanted:
                 times[name].append(t)
                 values[name].append(v)
-    if not stamps:
-        return Collected(times, values, float("inf"), float("-inf"), 0)
-    ts = np.asarray(stamps, dtype=np.float64)
-    return Collected(times, values, float(ts.min()), float(ts.max()), ts.size, largest_step(ts))
+    return Collected(times, values, float(t_first), float(t_last), n, jump)
 
 
 def table_from_collected(

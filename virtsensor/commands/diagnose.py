@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 HELP = "sim-to-real: compare measured runs with their re-simulation, name the cause, calibrate, measure the gain"
 
@@ -180,7 +181,7 @@ def _summary(res) -> str:
     return line
 
 
-def _export(est, res, args) -> tuple[bytes, object]:
+def _export(est, res, args) -> tuple[bytes, Any]:
     """The calibrated estimator as ONNX bytes and its sealed card (nothing written: :func:`_write_outputs`); sets
     ``res["exported_model"]``."""
     import numpy as np

@@ -36,8 +36,7 @@ def table_digest(table: Mapping[str, Any]) -> str:
     for name in sorted(k for k in table if k in cat.SIGNALS and cat.SIGNALS[k].message):
         x = np.asarray(table[name], dtype=float)
         steps = np.round(x / (cat.SIGNALS[name].resolution or 1e-9))
-        steps = np.where(np.isnan(x), _NAN, np.where(np.isposinf(x), _POS_INF, np.where(np.isneginf(x), _NEG_INF,
-                                                                                         steps)))
+        steps[np.isnan(x)], steps[np.isposinf(x)], steps[np.isneginf(x)] = _NAN, _POS_INF, _NEG_INF
         h.update(name.encode())
         h.update(np.ascontiguousarray(steps, dtype=np.float64).tobytes())
     return h.hexdigest()

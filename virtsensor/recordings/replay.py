@@ -187,11 +187,11 @@ def check_log(path: str | os.PathLike) -> CheckedLog:
 
     path = Path(path)
     n = 0
-    lo = hi = math.nan
+    lo, hi = math.inf, -math.inf
     for m in iter_log(path):
         n += 1
         t = float(m.timestamp)
-        lo, hi = (t, t) if n == 1 else (min(lo, t), max(hi, t))
+        lo, hi = min(lo, t), max(hi, t)
     if n == 0:
         raise UserError(f"{path}: no CAN frames to replay (an empty log)")
     if not hi - lo <= MAX_SPAN_S:
