@@ -504,3 +504,42 @@ def test_whose_metadata_a_json_beside_a_run_is(tmp_path):
     for text in ("[1, 2]", "{", "[" * 100_000 + "]" * 100_000, "\udcff", " " * (2 << 20)):  # no object: none
         meta.write_text(text, errors="surrogateescape")
         assert sidecar_of(run).doc is None and sidecar_of(run).note is None
+
+
+def test_one_run_rounded_to_fewer_decimals_is_still_the_same_run(tmp_path, capsys):
+    """A copy re-saved by another tool with 3 decimals has another table digest (values near a half step of the
+    CAN resolution round the other way), but it is still the run: refused in training, across --data and
+    --train-extra, and among measured runs. A run that differs by two CAN steps at one row, written at full
+    precision, is another run; so is a rounded copy one of whose signals was changed beyond the rounding."""
+    from virtsensor.learning.dataset import check_disjoint
+    from virtsensor.recordings.identity import find_repeat, same_run, table_digest
+
+    a = _table(seed=1)
+    a["susp_defl_fl_m"] = 0.004 + 0.002 * np.sin(np.arange(len(a["time_s"])) * 0.37)  # (many values near 0.5e-4)
+    rounded = {k: np.round(v, 3) for k, v in a.items()}
+    assert table_digest(rounded) != table_digest(a)
+    assert same_run(a, rounded) and same_run(rounded, a)
+    d = tmp_path / "d"
+    d.mkdir()
+    write_csv(d / "run0.csv", _table(seed=0))
+    write_csv(d / "run1.csv", a)
+    write_csv(d / "run1_export.csv", rounded)
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and err.count("\n") == 0 and "run1_export.csv: the same run as" in err, err
+    assert "other decimals" in err and "run1.csv" in err, err
+    with pytest.raises(UserError, match=r"given both as --data and as --train-extra \(.*run1\.csv, the same signals"):
+        check_disjoint([("--data", load_runs([d / "run0.csv", d / "run1.csv"])),
+                        ("--train-extra", load_runs([d / "run1_export.csv"]))], "a held-out run must not be trained on")
+
+    with pytest.raises(UserError, match=r"run1_export\.csv: the same run as .*run1\.csv .*other decimals"):
+        load_measured([d / "run1.csv", d / "run1_export.csv"])
+
+    other = {k: v.copy() for k, v in a.items()}
+    other["vx_mps"][100] += 0.02  # (two CAN steps of vx at one row, full precision)
+    assert not same_run(a, other)
+    bent = {k: v.copy() for k, v in rounded.items()}
+    bent["steer_angle_rad"][50] += 0.002  # (beyond 3-decimal rounding: another run)
+    assert not same_run(a, bent)
+    assert find_repeat([_table(seed=i) for i in range(4)]) is None
+    assert find_repeat([a, _table(seed=0), rounded]) == (0, 2)
+    assert find_repeat([a, rounded], groups=[0, 0]) is None

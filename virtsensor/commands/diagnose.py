@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         holdout = load_measured(args.holdout, skipped=skipped)
         from virtsensor.recordings.identity import refuse_repeats
 
-        refuse_repeats([(r.path, r.digest) for r in (*runs, *holdout)],
+        refuse_repeats([(r.path, r.digest, r.table) for r in (*runs, *holdout)],
                        "given both as --measured and --holdout: a held-out run must play no part in the diagnosis")
     elif len(runs) >= 3 and not args.no_retrain:
         k = len(runs) // 3

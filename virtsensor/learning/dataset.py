@@ -30,7 +30,7 @@ from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 from virtsensor.recordings.check import check_table
 from virtsensor.recordings.files import read_table, recording_files
-from virtsensor.recordings.identity import refuse_repeats, table_digest
+from virtsensor.recordings.identity import find_repeat, refuse_repeats, table_digest
 from virtsensor.recordings.manifest import check_rows, file_sha256
 
 
@@ -91,7 +91,7 @@ def load_runs(paths: Iterable[Path | str], needed: Sequence[str] = ()) -> list[R
         if unknown:
             meta["pressure_unknown"] = True
         runs.append(Run(f.stem, table, meta, f, digest))
-    refuse_repeats((r.path or r.name, r.digest) for r in runs)  # (a copy, or one run as a table and as a log)
+    refuse_repeats((r.path or r.name, r.digest, r.table) for r in runs)  # (a copy, one run as a table and a log)
     return runs
 
 
@@ -120,7 +120,9 @@ def check_disjoint(named: Sequence[tuple[str, Sequence[Run]]], why: str) -> None
     held-out runs also given on the training side.
 
     Raises:
-        UserError: ``<file>: given both as <option> and as <option> [(<other file>, the same content)]; <why>``.
+        UserError: ``<file>: given both as <option> and as <option> [(<other file>, the same content)]; <why>``, or
+            ``(<other file>, the same signals written with other decimals)`` (:func:`~virtsensor.recordings.identity.
+            find_repeat`).
     """
     seen: dict[object, tuple[str, Run]] = {}
     for option, runs in named:
@@ -135,6 +137,12 @@ def check_disjoint(named: Sequence[tuple[str, Sequence[Run]]], why: str) -> None
         for r, keys in identities:
             for k in keys:
                 seen.setdefault(k, (option, r))
+    flat = [(k, option, r) for k, (option, runs) in enumerate(named) for r in runs if len(r.table.get("time_s", ()))]
+    pair = find_repeat([r.table for _, _, r in flat], [k for k, _, _ in flat])
+    if pair is not None:
+        (_, first, a), (_, second, b) = flat[pair[0]], flat[pair[1]]
+        raise UserError(f"{b.path or b.name}: given both as {first} and as {second} ({a.path or a.name}, the same "
+                        f"signals written with other decimals); {why}")
 
 
 @dataclass

@@ -4,12 +4,15 @@ A run copied, renamed, or written once as a table (``.csv``) and once as a CAN l
 other bytes but the same signals: its files' sha256 differ, its :func:`table_digest` does not. A set of runs that
 holds one run twice would weigh it twice in training, and a run on both sides of a split (training and held out)
 would score the model on what it learned; :func:`refuse_repeats` refuses both.
+
+The digest is exact: one value written with fewer decimals (a table re-saved by another tool) changes it.
+:func:`same_run` compares two tables with that tolerance, and :func:`find_repeat` finds such a pair among many.
 """
 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +21,14 @@ import numpy as np
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
 
-__all__ = ["table_digest", "refuse_repeats"]
+__all__ = ["TIME_TOL_S", "table_digest", "same_run", "find_repeat", "refuse_repeats"]
 
 #: what a non-finite value counts as in the digest (SNA, a gap): apart from every finite one and from each other
 _NAN, _POS_INF, _NEG_INF = 2.0**60, 2.0**61, -(2.0**61)
+#: two tables of one run have their rows' times (s, from their first row) this close
+TIME_TOL_S = 1e-3
+#: relative slack on a tolerance (floating-point rounding of the values compared)
+_SLACK = 1e-6
 
 
 def table_digest(table: Mapping[str, Any]) -> str:
@@ -42,15 +49,110 @@ def table_digest(table: Mapping[str, Any]) -> str:
     return h.hexdigest()
 
 
-def refuse_repeats(runs: Iterable[tuple[str | Path, str]], what: str = "a run must count once") -> None:
-    """Refuse a run given twice: ``runs`` are ``(file, table digest)``; the second file whose digest an earlier one
-    has is refused.
+def _bus_signals(table: Mapping[str, Any]) -> set[str]:
+    return {k for k in table if k in cat.SIGNALS and cat.SIGNALS[k].message}
+
+
+def _decimal_step(x: np.ndarray) -> float:
+    """The decimal step a column's finite values are whole multiples of: ``10**-d`` for the least ``d`` (0..9); 0 when
+    there is none (full precision); inf without a finite value."""
+    f = x[np.isfinite(x)]
+    if not len(f):
+        return np.inf
+    for d in range(10):
+        s = f * 10.0**d
+        if np.all(np.abs(s - np.round(s)) <= _SLACK * np.maximum(1.0, np.abs(s))):
+            return 10.0**-d
+    return 0.0
+
+
+def _written_step(table: Mapping[str, Any], names: Iterable[str]) -> float:
+    """The decimal step a table was written in: the finest of its columns' ``names`` (a column that happens to hold
+    whole numbers, or a constant, tells nothing by itself); 0 at full precision."""
+    steps = [_decimal_step(np.asarray(table[n], dtype=float)) for n in names]
+    finest = min(steps, default=np.inf)
+    return 0.0 if not np.isfinite(finest) else finest
+
+
+def same_run(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    """Whether two tables hold one run, written twice with other decimals or through other tools: as many rows, the
+    rows' times (from the first row) within :data:`TIME_TOL_S`, and at least one catalogue signal with a DBC mapping
+    in both, each such signal non-finite at the same rows and elsewhere apart by at most the larger of its CAN
+    resolution and half the sum of the decimal steps the two tables were written in (a value rounded to ``d``
+    decimals moves by at most half of ``10**-d``; a table's step is the finest of its bus signals'). Columns the bus
+    does not carry do not count."""
+    return _same(a, b, {})
+
+
+def _same(a: Mapping[str, Any], b: Mapping[str, Any], steps: dict[int, float]) -> bool:
+    """:func:`same_run`, with the tables' written steps kept in ``steps`` (by ``id``) for the next pair."""
+    ta, tb = np.asarray(a["time_s"], dtype=float), np.asarray(b["time_s"], dtype=float)
+    if len(ta) != len(tb) or not len(ta) or np.max(np.abs((ta - ta[0]) - (tb - tb[0]))) > TIME_TOL_S:
+        return False
+    names = sorted(_bus_signals(a) & _bus_signals(b))
+    worst_over = 0.0  # the largest gap beyond a signal's resolution
+    for name in names:
+        xa, xb = np.asarray(a[name], dtype=float), np.asarray(b[name], dtype=float)
+        fa = np.isfinite(xa)
+        if not np.array_equal(fa, np.isfinite(xb)):
+            return False
+        worst = float(np.max(np.abs(xa[fa] - xb[fa]))) if fa.any() else 0.0
+        if worst > (cat.SIGNALS[name].resolution or 0.0) * (1 + _SLACK):
+            if worst > 1.0 + _SLACK:  # (beyond any rounding: a written step is at most 1)
+                return False
+            worst_over = max(worst_over, worst)
+    if worst_over > 0.0:
+        for t in (a, b):
+            if id(t) not in steps:
+                steps[id(t)] = _written_step(t, _bus_signals(t))
+        if worst_over > 0.5 * (steps[id(a)] + steps[id(b)]) * (1 + _SLACK):
+            return False
+    return bool(names)
+
+
+def find_repeat(tables: Sequence[Mapping[str, Any]], groups: Sequence[int] | None = None) -> tuple[int, int] | None:
+    """The first pair ``(i, j)``, ``i < j``, of ``tables`` that are one run (:func:`same_run`), or None; with
+    ``groups`` (one label per table), only pairs from different groups count. Tables are compared only with those of
+    as many rows whose mean ``vx_mps`` is within 1 m/s (the most two copies of one run can differ by), so a large
+    campaign costs about a sort."""
+    steps: dict[int, float] = {}
+    by_rows: dict[int, list[int]] = {}
+    for i, t in enumerate(tables):
+        by_rows.setdefault(len(t["time_s"]), []).append(i)
+    for idx in by_rows.values():
+        keyed = sorted((_mean_speed(tables[i]), i) for i in idx)
+        for k, (vi, i) in enumerate(keyed):
+            for vj, j in keyed[k + 1:]:
+                if vj - vi > 1.0:  # (-inf, no speed: compared with each other only; -inf - -inf is nan)
+                    break
+                if (groups is None or groups[i] != groups[j]) and _same(tables[i], tables[j], steps):
+                    return (min(i, j), max(i, j))
+    return None
+
+
+def _mean_speed(table: Mapping[str, Any]) -> float:
+    v = np.asarray(table.get("vx_mps", ()), dtype=float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if len(v) else -np.inf
+
+
+def refuse_repeats(runs: Iterable[tuple[str | Path, str, Mapping[str, Any]]], what: str = "a run must count once"
+                   ) -> None:
+    """Refuse a run given twice: ``runs`` are ``(file, table digest, table)``. A file whose digest an earlier one
+    has is refused, then a file whose table is an earlier one's written with other decimals (:func:`find_repeat`).
 
     Raises:
-        UserError: ``<file>: the same run as <earlier file> (the same signals, tick for tick); <what>``.
+        UserError: ``<file>: the same run as <earlier file> (the same signals, tick for tick[, written with other
+            decimals]); <what>``.
     """
+    items = list(runs)
     seen: dict[str, str | Path] = {}
-    for path, digest in runs:
+    for path, digest, _ in items:
         if digest in seen:
             raise UserError(f"{path}: the same run as {seen[digest]} (the same signals, tick for tick); {what}")
         seen[digest] = path
+    pair = find_repeat([table for _, _, table in items])
+    if pair is not None:
+        i, j = pair
+        raise UserError(f"{items[j][0]}: the same run as {items[i][0]} (the same signals, tick for tick, written with "
+                        f"other decimals); {what}")

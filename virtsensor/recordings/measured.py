@@ -224,7 +224,7 @@ def load_measured(paths: Iterable[str | Path], needed: Sequence[str] = NEEDED,
             continue
         full["time_s"] = full["time_s"] - full["time_s"][0]
         runs.append(MeasuredRun(path.stem, path, full, segs, gaps, notes, digest))
-    refuse_repeats((r.path, r.digest) for r in runs)  # (a copy, or one run as a table and as a CAN log)
+    refuse_repeats((r.path, r.digest, r.table) for r in runs)  # (a copy, or one run as a table and a CAN log)
     if not runs:
         raise UserError(f"no usable measured run: {'; '.join(f'{p}: {why}' for p, why in skipped or [])}")
     names = [r.name for r in runs]
