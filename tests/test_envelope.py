@@ -161,13 +161,18 @@ def models(tmp_path_factory):
     return OnnxModel.load(d / "with.onnx"), OnnxModel.load(d / "without.onnx")
 
 
-def _drive(model):
-    """The 12 s stream (the training stream's start) with vx at 70 m/s during EXCURSION_S, in sync mode."""
-    t, sig = synthetic_streams(12.0, seed=11)
+def _fast(t, sig) -> None:
+    """vx at 70 m/s during EXCURSION_S."""
     inside = (t >= EXCURSION_S[0]) & (t < EXCURSION_S[1])
     sig["vx_mps"] = np.where(inside, 70.0, sig["vx_mps"])
     for w in ("fl", "fr"):  # the wheels roll at that speed: plausible, just never trained on
         sig[f"wheel_speed_{w}_radps"] = sig["vx_mps"] / cat.ROLLING_RADIUS_M
+
+
+def _drive(model, excursion=_fast):
+    """The 12 s stream (the training stream's start) with an ``excursion`` (default: :func:`_fast`), in sync mode."""
+    t, sig = synthetic_streams(12.0, seed=11)
+    excursion(t, sig)
     frames = list(iter_frames(t, sig))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
     vs = VirtualSensor(_Capture(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
@@ -197,13 +202,32 @@ def test_the_daemon_degrades_counts_and_logs_each_excursion_once(models):
     exits = [e for e in events if e["event"] == "envelope_exit"]
     returns = [e for e in events if e["event"] == "envelope_return"]
     assert len(exits) == 1 and len(returns) == 1
-    assert lo - 0.06 <= exits[0]["t"] <= lo + 0.06 and hi - 0.06 <= returns[0]["t"] <= hi + 0.06
+    # (back inside, the features read rows of the excursion for 2 more ticks: the steering angle's lag of 2)
+    assert lo - 0.06 <= exits[0]["t"] <= lo + 0.06 and hi + 0.1 <= returns[0]["t"] <= hi + 0.16
     assert any(r.startswith("vx_mps=70") for r in exits[0]["outside"])
     # VS_Health: the flag follows the excursion, the excursion count stays at 1 after it
     flags = [int(h["VS_OutOfEnvelope"]) for h in health]
     assert flags == [int(o) for _, _, o in ticks]
     assert int(health[-1]["VS_EnvelopeExits"]) == 1 and int(health[0]["VS_EnvelopeExits"]) == 0
     assert vs.stats()["envelope_exits"] == 1
+
+
+def test_the_ticks_whose_features_still_read_an_excursion_are_degraded(models):
+    """A kerb strike: one front deflection far beyond the training rows for 60 ms (one tick sees it), back in range
+    after. The two ticks after it are inside by their inputs, but their features read the strike's row (the
+    deflection's rate, from the previous tick; the history reaches 2 ticks back): DEGRADED and flagged, then
+    VALID again. Before, they were VALID on a deflection rate some 30 times the training rows' largest."""
+    def kerb(t, sig) -> None:
+        sig["susp_defl_fl_m"] = np.where((t >= 5.98) & (t < 6.04), 0.14, sig["susp_defl_fl_m"])
+
+    vs, ticks, health, events = _drive(models[0], kerb)
+    k = next(i for i, (tk, _, o) in enumerate(ticks) if o)
+    assert 5.95 <= ticks[k][0] <= 6.1 and vs.counters["envelope_exits"] == 1
+    assert [(s, o) for _, s, o in ticks[k:k + 3]] == [((DEGRADED, DEGRADED), True)] * 3
+    assert all(s == (VALID, VALID) and not o for _, s, o in ticks[k + 3:k + 40])
+    assert all(s == (VALID, VALID) and not o for _, s, o in ticks[k - 40:k])
+    assert [int(h["VS_OutOfEnvelope"]) for h in health] == [int(o) for _, _, o in ticks]
+    assert sum(e["event"] == "envelope_return" for e in events) == 1
 
 
 def test_a_card_without_an_envelope_checks_none(models):

@@ -54,6 +54,7 @@ from virtsensor.daemon.validity import (
     INIT,
     INVALID,
     STATUS_NAMES,
+    EnvelopeMemory,
     EnvelopeRules,
     Plausibility,
     ValidityState,
@@ -167,6 +168,7 @@ class VirtualSensor:
         self._fill_grip = hook("grip", self._out.grip.fill_tick)
         self.envelope = _card_envelope(model)
         self._env_rules = None if self.envelope is None else EnvelopeRules.from_envelope(self.envelope, lay.signals)
+        self._env_memory = EnvelopeMemory(max(self._rules.sig_hist, default=0))  # (the rows the features read)
         #: the latest tick's inputs were outside the model card's validity envelope
         self.outside_envelope = False
         self._msg_err = [False] * len(lay.input_messages)  # the tick's E2E errors (for the logs)
@@ -329,7 +331,7 @@ class VirtualSensor:
         x_ok = total - total == 0.0  # every feature finite (a nan or an inf makes the sum's difference nan)
         y = predict(x).tolist() if x_ok else None
         rules = self._env_rules
-        outside = x_ok and rules is not None and self._outside(self.inputs.values, rules)
+        outside = self._env_memory.update(x_ok and rules is not None and self._outside(self.inputs.values, rules))
         for k, est, st, lo, hi in self._wheels:
             v = y[k] if (y is not None and k >= 0) else math.nan
             s = envelope_status(wheel_status(status, v, lo, hi), outside)

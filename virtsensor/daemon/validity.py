@@ -22,8 +22,9 @@ is not finite or outside the catalogue range.
 Envelope (:class:`EnvelopeRules`, :func:`outside_envelope`): the inputs are *outside the envelope* when a
 bounded input lies outside the training range the model card states, or the grip used (``|ay|``,
 ``hypot(ax, ay)``) exceeds the ceiling of the speed band, or the speed band had no training rows
-(:mod:`virtsensor.model.envelope`). Then a VALID wheel is DEGRADED (:func:`envelope_status`); INVALID and
-INIT are kept.
+(:mod:`virtsensor.model.envelope`), or were at one of the ticks whose rows the features still read (their
+rates, accelerations and lags: :class:`EnvelopeMemory`). Then a VALID wheel is DEGRADED (:func:`envelope_status`);
+INVALID and INIT are kept.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from typing import Any
 
 __all__ = ["VALID", "DEGRADED", "INVALID", "INIT", "STATUS_NAMES", "ValidityRules", "ValidityState", "FrameOrder",
            "restart_recovery", "PlausibilityRule", "Plausibility", "judge", "assess_inputs", "wheel_status",
-           "EnvelopeRules", "outside_envelope", "envelope_status"]
+           "EnvelopeRules", "outside_envelope", "EnvelopeMemory", "envelope_status"]
 
 #: Per-wheel status codes of ``SAT_FRONT.SAT_xx_Status`` (DBC value table).
 VALID, DEGRADED, INVALID, INIT = 0, 1, 2, 3
@@ -544,6 +545,34 @@ def outside_envelope(values: Sequence[float], rules: EnvelopeRules) -> bool:
         return False
     acc_cap = rules.acc_max[k]
     return not (acc_cap != acc_cap or math.hypot(values[rules.i_ax], ay) <= acc_cap)
+
+
+class EnvelopeMemory:
+    """Whether the features read a row outside the envelope: the latest tick's inputs (:func:`outside_envelope`),
+    or those of one of the ``history`` ticks before it, which the features' rates, accelerations and lags still
+    read once the inputs are back inside (a kerb strike's deflection, back in range after a tick, still makes
+    a deflection rate far beyond any training row at the tick after it).
+
+    Attributes:
+        history: the most ticks of history a feature reads (:attr:`ValidityRules.sig_hist`).
+    """
+
+    __slots__ = ("history", "_left")
+
+    def __init__(self, history: int) -> None:
+        self.history = max(int(history), 0)
+        self._left = 0  # ticks the features still read a row from outside
+
+    def update(self, outside: bool) -> bool:
+        """This tick's verdict from whether its inputs are ``outside``: True while they are, and for ``history``
+        ticks after."""
+        if outside:
+            self._left = self.history
+            return True
+        if self._left > 0:
+            self._left -= 1
+            return True
+        return False
 
 
 def envelope_status(status: int, outside: bool) -> int:
