@@ -284,6 +284,28 @@ def test_friction_is_held_while_excited_and_only_so_far():
     assert math.isfinite(unheld.state.force_ratio) and math.isnan(unheld.state.mu)
 
 
+def test_reversing_drives_the_held_friction_s_metres_too():
+    """The held friction is given on for ``hold_m`` metres driven after the latest, its half-width growing with
+    them. Reversing drives metres too: it counted them negative, so that the half-width shrank below the one
+    measured and the hold outlasted its distance for as long as the car had reversed."""
+    p = load_params()
+    est = GripEstimator(p)
+    _steady(est, 60, 0.4 * 9.81, 0.0)
+    mu, hw = est.state.mu, est.state.halfwidth
+    assert math.isfinite(mu)
+    ay, vx = 0.4 * 9.81, -5.0  # reversing round a bend, the axle as used as in the turn; the trail not read
+    fy = p.mass_kg * p.front_load_fraction * ay
+    metres = 0.0
+    while metres < 100.0:
+        s = est.step(-0.02 * fy, -0.02 * fy, 0.0, ay, vx, ay / vx, 0.0, 0.0, vx / 0.305, vx / 0.305)
+        metres -= vx * est.dt
+    assert s.mu == mu and s.halfwidth == pytest.approx(hw + p.hold_widen_per_m * metres, abs=2e-4)  # (+0.01)
+    while metres <= p.hold_m + 1.0:
+        s = est.step(-0.02 * fy, -0.02 * fy, 0.0, ay, vx, ay / vx, 0.0, 0.0, vx / 0.305, vx / 0.305)
+        metres -= vx * est.dt
+    assert math.isnan(s.mu) and math.isnan(s.halfwidth)
+
+
 def test_the_published_interval_is_its_own_curve_and_the_gate_the_pooled_one():
     """With ``interval_at_trail`` the published half-width is read from it (given and held, widened as held), while
     the gate, the held friction and the utilisation still read the pooled error (``abs_err90_at_trail``); without it

@@ -520,7 +520,7 @@ class GripEstimator:
             s.trail_m = s.mu = s.halfwidth = math.nan
             if abs(fx) <= p.evidence_long_ratio * fz and abs(fy) >= p.min_force_ratio * fz:
                 ev = self._evidence(-mz / fy * self._trail_gain)[2]  # (combined slip: the evidence only, no friction)
-        self._held_m += vx * self.dt
+        self._held_m += abs(vx) * self.dt  # (the distance driven, reversing included)
         if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
             widen = p.hold_widen_per_m * self._held_m  # (the road met since may differ)
             if self._hw_held + widen <= p.halfwidth_max and self._hwp_held + widen <= p.interval_max:
