@@ -306,6 +306,32 @@ def test_reversing_drives_the_held_friction_s_metres_too():
     assert math.isnan(s.mu) and math.isnan(s.halfwidth)
 
 
+def test_no_friction_is_read_from_sats_outside_the_model_s_envelope():
+    """A SAT of inputs outside the model's validity envelope is an extrapolation: the trail read from it gives no
+    friction, neither given nor held (a friction held from before still is), while it still counts as the
+    limit's evidence for the utilisation and the warning; the first tick back inside reads the SAT unfiltered,
+    so no friction read there averages the extrapolated SATs in."""
+    p = load_params()
+    inside, outside = GripEstimator(p), GripEstimator(p)
+    fy = p.mass_kg * p.front_load_fraction * 0.4 * 9.81
+    for _ in range(60):
+        a = inside.step(0.0, 0.0, 0.0, 0.4 * 9.81, 20.0, 0.4 * 9.81 / 20.0, 0.0, 0.0, 20 / 0.305, 20 / 0.305)
+        b = outside.step(0.0, 0.0, 0.0, 0.4 * 9.81, 20.0, 0.4 * 9.81 / 20.0, 0.0, 0.0, 20 / 0.305, 20 / 0.305,
+                         outside=True)
+        assert math.isnan(b.mu) and math.isnan(b.halfwidth) and b.util == a.util and b.warning == a.warning
+    assert math.isfinite(a.mu) and a.util > 0.8 and a.warning  # (the trail collapsed: the limit's evidence)
+    # back inside with a trail far from the extrapolated one: its first reading is the SAT of that tick alone
+    c = outside.step(-0.0075 * fy / 2, -0.0075 * fy / 2, 0.0, 0.4 * 9.81, 20.0, 0.4 * 9.81 / 20.0, 0.0, 0.0,
+                     20 / 0.305, 20 / 0.305)
+    assert c.trail_m == pytest.approx(0.0075)
+    # a friction given inside is held through an excursion (nothing new is read there)
+    mu = a.mu
+    for _ in range(10):
+        a = inside.step(-0.02 * fy, -0.02 * fy, 0.0, 0.4 * 9.81, 20.0, 0.4 * 9.81 / 20.0, 0.0, 0.0, 20 / 0.305,
+                        20 / 0.305, outside=True)
+    assert a.mu == mu
+
+
 def test_the_published_interval_is_its_own_curve_and_the_gate_the_pooled_one():
     """With ``interval_at_trail`` the published half-width is read from it (given and held, widened as held), while
     the gate, the held friction and the utilisation still read the pooled error (``abs_err90_at_trail``); without it
@@ -748,7 +774,7 @@ def test_offline_estimate_is_the_daemons(model, run_frames):
     sat, grip, ticks = _drive(model, frames)
     _, vals, _ = _decode(sat, grip)
     fl, fr = gs.model_sats(model, rec.table)
-    est = estimate_run(rec.table, fl, fr)
+    est = estimate_run(rec.table, fl, fr, outside=gs.model_outside(model, rec.table))
     off = rec.dropped_ticks  # online tick k <-> offline table row k - off
     assert len(ticks) == off + len(fl)
     on = vals[off:]
@@ -757,6 +783,70 @@ def test_offline_estimate_is_the_daemons(model, run_frames):
     assert np.abs(on[ok, 0] - est["util"][ok]).max() <= 0.0025 + 1e-9  # (VS_GripUtil resolution 0.005)
     assert (on[:, 3] == est["warning"]).all()
     assert (np.isfinite(on[:, 1]) == np.isfinite(est["mu"])).all()
+
+
+class _Capture(can.BusABC):
+    """Keeps what the daemon sends (driven by hand: nothing to receive)."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="capture")
+        self.sent: list[can.Message] = []
+
+    def send(self, msg, timeout=None) -> None:
+        self.sent.append(can.Message(arbitration_id=msg.arbitration_id, data=bytes(msg.data), is_extended_id=False))
+
+    def _recv_internal(self, timeout):
+        return None, False
+
+
+def _curve_streams(t: np.ndarray, vx: np.ndarray, steer: np.ndarray) -> dict[str, np.ndarray]:
+    """A car turning kinematically (yaw rate vx * delta / L, ay = r vx) with plausible EPAS, wheels and body."""
+    L = cat.STEADY_TURN.steer_ratio * cat.STEADY_TURN.wheelbase_m
+    r = vx * steer / L
+    sig = {"vx_mps": vx, "yaw_rate_radps": r, "ay_mps2": r * vx, "steer_angle_rad": steer,
+           "ax_mps2": 0.1 * np.sin(t), "motor_torque_nm": 25.0 + 2.0 * np.sin(t),
+           "steer_torque_nm": 1.0 + 0.1 * np.sin(t), "susp_defl_fl_m": -0.002 * r * vx,
+           "susp_defl_fr_m": 0.002 * r * vx}
+    b = cat.EPAS_BOOST
+    tb = sig["steer_torque_nm"]
+    sig["assist_torque_nm"] = np.interp(vx, b.speeds_mps, b.gains) * tb * np.abs(tb) / (np.abs(tb) + b.knee_nm)
+    d = steer / cat.STEADY_TURN.steer_ratio
+    for w in ("fl", "fr"):
+        sig[f"wheel_speed_{w}_radps"] = vx / np.cos(d) / cat.ROLLING_RADIUS_M
+    half = r * cat.TRACK_REAR_M / 2.0
+    sig["wheel_speed_rl_radps"], sig["wheel_speed_rr_radps"] = (vx - half) / 0.305, (vx + half) / 0.305
+    k = cat.TRACK_REAR_M / cat.TRACK_FRONT_M
+    sig["susp_defl_rl_m"], sig["susp_defl_rr_m"] = k * sig["susp_defl_fl_m"], k * sig["susp_defl_fr_m"]
+    return sig
+
+
+def test_a_friction_read_from_extrapolated_sats_is_never_given_nor_held(model):
+    """6 s at 56 m/s in a gentle left curve (the shipped model trained up to some 50 m/s: outside its envelope,
+    DEGRADED), then 45 m/s in a gentler one (inside: VALID). The extrapolated SATs point the wrong way, as a trail
+    collapsed at 1.6 m/s^2: the daemon gave a friction of 0.2 from them, DEGRADED, and held it on into the VALID
+    stretch, where VS_Grip published it VALID. Now no friction is read outside: unknown throughout."""
+    t = np.arange(0.0, 9.0, 0.01)
+    sig = _curve_streams(t, np.where(t < 6.0, 56.0, 45.0), np.where(t < 6.0, 0.02, 0.012))
+    frames = list(iter_frames(t, sig))
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    vs = VirtualSensor(_Capture(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
+    outside = []
+    for m in merged:
+        n = vs.counters["ticks"]
+        vs.process(m)
+        if vs.counters["ticks"] > n:
+            outside.append(vs.outside_envelope)
+    assert vs.counters["tick_errors"] == 0 and vs.counters["implausible_checks"] == 0
+    sent = vs.bus.sent
+    sat = [MATRIX.db.decode_message(SAT_ID, f.data, decode_choices=False) for f in sent if f.arbitration_id == SAT_ID]
+    grip = [MATRIX.fresh().decode(GRIP_ID, f.data, 0.0).other for f in sent if f.arbitration_id == GRIP_ID]
+    st = [(s["SAT_FL_Status"], s["SAT_FR_Status"]) for s in sat]
+    out = [i for i, o in enumerate(outside) if o]
+    assert len(out) >= 100 and all(st[i] == (DEGRADED, DEGRADED) for i in out)
+    back = [i for i in range(out[-1] + 1, len(st))]
+    assert len(back) >= 50 and all(st[i] == (VALID, VALID) for i in back)
+    assert all(math.isnan(g["VS_GripMu"]) and math.isnan(g["VS_GripMuHalfWidth"]) for g in grip[5:])
+    assert all(math.isfinite(g["VS_GripUtil"]) for g in grip[5:])
 
 
 @pytest.fixture(scope="module")

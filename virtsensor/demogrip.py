@@ -91,7 +91,8 @@ def grip_figure(path: Any, runs: Sequence[Any], model: Any) -> dict[str, Any] | 
         return None
     best = max(cands, key=lambda r: float(np.max(gs.true_front_util(r.table))))
     fl, fr = gs.model_sats(model, best.table)
-    res = gs.grip_of_run(best.table, fl, fr, sat_reads_pressure=gs.model_reads_pressure(model))
+    res = gs.grip_of_run(best.table, fl, fr, sat_reads_pressure=gs.model_reads_pressure(model),
+                         outside=gs.model_outside(model, best.table))
     assert res is not None
     m, est = res
     t = np.asarray(best.table["time_s"], dtype=float)

@@ -417,6 +417,7 @@ class GripEstimator:
     def reset(self) -> None:
         """Forget the filters and the warning (after an invalid tick); keeps the last given friction."""
         self._mz = self._fy = self._fx = self._fz = math.nan
+        self._mz_outside = False  # (the SAT filter holds SATs from outside the model's envelope)
         self._r_prev = math.nan
         self._ay_lin_prev = math.nan
         self._u_prev = math.nan
@@ -487,11 +488,16 @@ class GripEstimator:
         return x if prev != prev else prev + self._a * (x - prev)  # (prev != prev: nan, the first tick)
 
     def step(self, sat_fl: float, sat_fr: float, ax: float, ay: float, vx: float, yaw_rate: float,
-             steer_angle: float, motor_torque: float, wheel_fl: float, wheel_fr: float) -> GripState:
+             steer_angle: float, motor_torque: float, wheel_fl: float, wheel_fr: float,
+             outside: bool = False) -> GripState:
         """One tick: estimated SATs (Nm, ISO-W), ``ax``/``ay`` (m/s^2), ``vx`` (m/s), yaw rate (rad/s),
-        steering-wheel angle (rad), motor torque (Nm), front wheel speeds (rad/s).
+        steering-wheel angle (rad), motor torque (Nm), front wheel speeds (rad/s); ``outside``: the SATs' model
+        read inputs outside its validity envelope this tick (an extrapolation).
 
-        A non-finite SAT or input gives a state of nans (no warning) and restarts the filters."""
+        A non-finite SAT or input gives a state of nans (no warning) and restarts the filters. From SATs
+        ``outside`` no friction is read (a friction held from before is still given): the trail still counts as
+        the limit's evidence for the warning, and the SAT filter restarts at the next tick inside, so that no
+        friction read there averages the extrapolated SATs in."""
         s = self.state
         mz = sat_fl + sat_fr
         if not math.isfinite(mz + ax + ay + vx + yaw_rate + steer_angle + motor_torque + wheel_fl + wheel_fr):
@@ -505,6 +511,8 @@ class GripEstimator:
         fx += p.brake_front_share * min(p.mass_kg * ax + p.drag_n_per_m2ps2 * vx * vx - fx, 0.0)
         fx_now = fx
         fy_prev = self._fy
+        if outside or self._mz_outside:  # (the first tick back inside restarts the SAT filter)
+            self._mz, self._mz_outside = (self._mz if outside else math.nan), outside
         self._mz = mz = self._lp(self._mz, mz)
         self._fy = fy = self._lp(self._fy, self._fy_ay * ay + self._fy_rdot * rdot)
         self._fx = fx = self._lp(self._fx, fx)
@@ -514,7 +522,7 @@ class GripEstimator:
         steady = fy_prev == fy_prev and abs(fy - fy_prev) <= p.max_force_rate * fz * self.dt
         lateral = abs(fx) <= p.max_long_ratio * fz  # (under drive or braking the trail reads combined slip)
         ev = 0.0  # the limit's own evidence, whatever the road: the trail's collapse, the wheels' slip
-        if lateral and abs(fy) >= p.min_force_ratio * fz:
+        if lateral and abs(fy) >= p.min_force_ratio * fz and not outside:
             ev = self._read_trail(n, -mz / fy * self._trail_gain, steady)
         else:
             s.trail_m = s.mu = s.halfwidth = math.nan
@@ -661,7 +669,8 @@ def front_pressure(table: Mapping[str, Any], n: int) -> np.ndarray:
 
 
 def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np.ndarray,
-                 params: GripParams | None = None, sat_reads_pressure: bool = False) -> dict[str, np.ndarray]:
+                 params: GripParams | None = None, sat_reads_pressure: bool = False,
+                 outside: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The grip estimate over one run's 20 Hz table (rows in time order), tick by tick with the daemon's code.
 
     Args:
@@ -670,6 +679,8 @@ def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np
         sat_fl, sat_fr: the estimated front SATs per row (Nm; nan where the model gave none).
         sat_reads_pressure: the SATs come from a model that reads the front TPMS pressures
             (:func:`reads_pressure`; :class:`GripEstimator`).
+        outside: per row, the SATs' model read inputs outside its validity envelope (as the daemon judges it,
+            :func:`virtsensor.learning.gripscore.model_outside`; None: never): no friction is read there.
 
     Returns:
         ``util``, ``mu``, ``halfwidth`` (nan where unknown), ``warning`` (bool), ``trail_m``, ``force_ratio``, and
@@ -684,9 +695,10 @@ def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np
     out = {k: np.full(n, np.nan) for k in ("util", "mu", "halfwidth", "trail_m", "force_ratio", "peak_ratio")}
     warn = np.zeros(n, dtype=bool)
     fl, fr = np.asarray(sat_fl, float).tolist(), np.asarray(sat_fr, float).tolist()
+    out_rows = [False] * n if outside is None else np.asarray(outside, dtype=bool).tolist()
     for i in range(n):
         est.set_front_pressure(press[i])
-        s = est.step(fl[i], fr[i], ax[i], ay[i], vx[i], r[i], sw[i], tm[i], wl[i], wr[i])
+        s = est.step(fl[i], fr[i], ax[i], ay[i], vx[i], r[i], sw[i], tm[i], wl[i], wr[i], out_rows[i])
         out["util"][i], out["mu"][i], out["halfwidth"][i] = s.util, s.mu, s.halfwidth
         out["trail_m"][i], out["force_ratio"][i], out["peak_ratio"][i] = s.trail_m, s.force_ratio, est.peak_ratio
         warn[i] = s.warning

@@ -6,7 +6,8 @@ are usable: :meth:`~virtsensor.grip.GripEstimator.set_front_pressure`) and encod
 alive counter (Profile 11, data ID from the catalogue). Every field's status is the worse of the two SAT statuses
 it derives from (INVALID before INIT before DEGRADED before VALID), so VS_Grip times out, degrades and recovers
 exactly as SAT_FRONT: while INVALID or INIT its values are SNA, the warning 0 and the estimate's filters restart.
-The friction is SNA whenever it is unknown (the tyres not excited enough), whatever its status.
+The friction is SNA whenever it is unknown (the tyres not excited enough, or the SATs outside the model's validity
+envelope, an extrapolation: a friction held from before is still given), whatever its status.
 
 A CAN matrix without ``VS_Grip`` (an older DBC) or a model whose inputs lack a signal the estimate needs gives
 a :class:`NoGrip` stand-in (:func:`grip_output`): the daemon then publishes SAT_FRONT and VS_Health only.
@@ -71,12 +72,14 @@ class GripOutput:
     #: this output publishes VS_Grip (the :class:`NoGrip` stand-in does not)
     enabled = True
 
-    def fill_tick(self, sat_values: Any, inputs: Sequence[float], bad: Sequence[bool] = ()) -> Any:
+    def fill_tick(self, sat_values: Any, inputs: Sequence[float], bad: Sequence[bool] = (),
+                  outside: bool = False) -> Any:
         """:meth:`fill` from the tick's SAT_FRONT values (signal -> value), decoded values and their verdicts
-        (``bad``: per decoded signal, stale, SNA, implausible or E2E-faulted this tick; empty: all usable);
-        returns the message."""
+        (``bad``: per decoded signal, stale, SNA, implausible or E2E-faulted this tick; empty: all usable) and
+        whether the SATs' inputs are outside the model's envelope; returns the message."""
         (e_fl, s_fl), (e_fr, s_fr) = self._sat
-        return self.fill(sat_values[e_fl], sat_values[e_fr], sat_values[s_fl], sat_values[s_fr], inputs, bad)
+        return self.fill(sat_values[e_fl], sat_values[e_fr], sat_values[s_fl], sat_values[s_fr], inputs, bad,
+                         outside)
 
     def restart(self) -> None:
         """Restart the estimate's filters (after a gap between ticks); the friction held is kept."""
@@ -91,9 +94,10 @@ class GripOutput:
         return int(self.msg.arbitration_id)
 
     def fill(self, sat_fl: float, sat_fr: float, st_fl: float, st_fr: float, inputs: Sequence[float],
-             bad: Sequence[bool] = ()) -> Any:
+             bad: Sequence[bool] = (), outside: bool = False) -> Any:
         """One estimate step and the encoded frame (next alive counter); returns the message. The front pressures
-        count only where both are decoded and neither is ``bad``."""
+        count only where both are decoded and neither is ``bad``. With the SATs ``outside`` the model's validity
+        envelope (an extrapolation) no friction is read from them (:meth:`~virtsensor.grip.GripEstimator.step`)."""
         v = self.values
         status = worse_status(st_fl, st_fr)
         util, mu, hw = self._names
@@ -109,7 +113,7 @@ class GripOutput:
                 self.estimator.set_front_pressure(0.5 * (inputs[a] + inputs[b]) if ok else math.nan)
             i = self._idx
             s = self.estimator.step(sat_fl, sat_fr, inputs[i[0]], inputs[i[1]], inputs[i[2]], inputs[i[3]],
-                                    inputs[i[4]], inputs[i[5]], inputs[i[6]], inputs[i[7]])
+                                    inputs[i[4]], inputs[i[5]], inputs[i[6]], inputs[i[7]], outside)
             v[util], v[mu], v[hw] = s.util, s.mu, s.halfwidth
             v["VS_GripWarning"] = 1 if s.warning else 0
         for name in GRIP_STATUS:
@@ -125,7 +129,8 @@ class NoGrip:
 
     enabled = False
 
-    def fill_tick(self, sat_values: Any, inputs: Sequence[float], bad: Sequence[bool] = ()) -> None:
+    def fill_tick(self, sat_values: Any, inputs: Sequence[float], bad: Sequence[bool] = (),
+                  outside: bool = False) -> None:
         return None
 
     def restart(self) -> None:

@@ -342,7 +342,7 @@ class VirtualSensor:
     def _publish(self, start_ns: int, bitmap: int) -> None:
         out = self._out
         m = out.fill_sat()
-        self._fill_grip(out.sat_values, self.inputs.values, self._state.bad)  # (VS_Grip, in the tick's compute)
+        self._fill_grip(out.sat_values, self.inputs.values, self._state.bad, self.outside_envelope)  # (VS_Grip)
         compute_us = (time.monotonic_ns() - start_ns) // 1000
         self._send_sat(m)
         out.grip.send(self._link.send)

@@ -42,6 +42,7 @@ from virtsensor.grip import GRIP_INPUTS, GripParams, estimate_run, reads_pressur
 
 __all__ = ["GRIP_TRUTH", "FALSE_WINDOW_S", "LIMIT_UTIL", "EXCITED_UTIL", "CALM_UTIL", "has_grip_truth",
            "true_front_util", "grip_metrics", "pool", "public", "grip_of_run", "model_reads_pressure", "model_sats",
+           "model_outside",
            "score_grip", "grip_markdown"]
 
 #: the truth columns a run needs to be scored for grip
@@ -166,13 +167,14 @@ def public(m: Mapping[str, Any]) -> dict[str, Any]:
 
 def grip_of_run(table: Mapping[str, Any], sat_fl: np.ndarray, sat_fr: np.ndarray,
                 params: GripParams | None = None, sat_reads_pressure: bool = False,
-                ) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
+                outside: np.ndarray | None = None) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
     """The grip estimate of one run and its figures, or None when the run lacks the grip truth.
     ``sat_reads_pressure``: the SATs are of a model that reads the front TPMS pressures (:func:`model_reads_pressure`;
-    :func:`virtsensor.grip.estimate_run`)."""
+    :func:`virtsensor.grip.estimate_run`); ``outside``: per row, the SATs are outside the model's validity envelope
+    (:func:`model_outside`; None: never)."""
     if not has_grip_truth(table):
         return None
-    est = estimate_run(table, sat_fl, sat_fr, params, sat_reads_pressure)
+    est = estimate_run(table, sat_fl, sat_fr, params, sat_reads_pressure, outside)
     t = np.asarray(table["time_s"], float)
     m = grip_metrics(t, true_front_util(table), np.asarray(table["road_mu"], float), est["mu"], est["warning"],
                      est["halfwidth"])
@@ -202,6 +204,27 @@ def model_sats(model: Any, table: Mapping[str, Any]) -> tuple[np.ndarray, np.nda
     return P[:, 0], P[:, 1]
 
 
+def model_outside(model: Any, table: Mapping[str, Any]) -> np.ndarray | None:
+    """Per row of a run's table, whether the daemon judges ``model``'s inputs outside its card's validity envelope:
+    the row's, or one of the rows before it that the features' history reads
+    (:class:`~virtsensor.daemon.validity.EnvelopeMemory`); rows without finite features are inside, as the daemon
+    judges none there. None when the card states no envelope."""
+    from virtsensor.features import FeatureSpec
+    from virtsensor.model.envelope import Envelope
+
+    doc = model.card.get("envelope")
+    if doc is None:
+        return None
+    spec = FeatureSpec.from_json(model.card["feature_spec"])
+    X = spec.transform(table)
+    ok = np.isfinite(X).all(axis=1)
+    rows = Envelope.from_json(doc).outside_rows(np.where(ok[:, None], X, 0.0), spec.names) & ok
+    out = rows.copy()
+    for k in range(1, max((f.history for f in spec.features), default=0) + 1):
+        out[k:] |= rows[:-k]
+    return out
+
+
 def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None) -> dict[str, Any] | None:
     """The grip estimate of ``model``'s SATs on each run that carries the grip truth, and all together.
 
@@ -222,7 +245,7 @@ def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None
             per[where] = None
             continue
         fl, fr = model_sats(model, run.table)
-        res = grip_of_run(run.table, fl, fr, params, reads)
+        res = grip_of_run(run.table, fl, fr, params, reads, model_outside(model, run.table))
         assert res is not None
         scored.append(res[0])
         per[where] = public(res[0])
