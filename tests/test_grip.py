@@ -309,8 +309,9 @@ def test_reversing_drives_the_held_friction_s_metres_too():
 def test_no_friction_is_read_from_sats_outside_the_model_s_envelope():
     """A SAT of inputs outside the model's validity envelope is an extrapolation: the trail read from it gives no
     friction, neither given nor held (a friction held from before still is), while it still counts as the
-    limit's evidence for the utilisation and the warning; the first tick back inside reads the SAT unfiltered,
-    so no friction read there averages the extrapolated SATs in."""
+    limit's evidence for the utilisation and the warning. Back inside, no friction is read while the SAT filter
+    still weighs the extrapolated SATs (``settle_ticks``, 3 time constants), and the filter runs on (no tick reads one
+    raw SAT)."""
     p = load_params()
     inside, outside = GripEstimator(p), GripEstimator(p)
     fy = p.mass_kg * p.front_load_fraction * 0.4 * 9.81
@@ -320,10 +321,17 @@ def test_no_friction_is_read_from_sats_outside_the_model_s_envelope():
                          outside=True)
         assert math.isnan(b.mu) and math.isnan(b.halfwidth) and b.util == a.util and b.warning == a.warning
     assert math.isfinite(a.mu) and a.util > 0.8 and a.warning  # (the trail collapsed: the limit's evidence)
-    # back inside with a trail far from the extrapolated one: its first reading is the SAT of that tick alone
-    c = outside.step(-0.0075 * fy / 2, -0.0075 * fy / 2, 0.0, 0.4 * 9.81, 20.0, 0.4 * 9.81 / 20.0, 0.0, 0.0,
-                     20 / 0.305, 20 / 0.305)
-    assert c.trail_m == pytest.approx(0.0075)
+    # back inside with a trail far from the extrapolated one: no friction until the filter has forgotten those
+    assert outside.settle_ticks == 6  # (filter 0.1 s at 20 Hz)
+    trails = []
+    for k in range(outside.settle_ticks + 30):
+        c = outside.step(-0.0075 * fy / 2, -0.0075 * fy / 2, 0.0, 0.4 * 9.81, 20.0, 0.4 * 9.81 / 20.0, 0.0, 0.0,
+                         20 / 0.305, 20 / 0.305)
+        trails.append(c.trail_m)
+        if k < outside.settle_ticks:
+            assert math.isnan(c.mu) and math.isnan(c.trail_m), k
+    assert trails[outside.settle_ticks] == pytest.approx(0.0075, abs=0.0075 * 0.06)  # (< 5 % of the old trail left)
+    assert trails[-1] == pytest.approx(0.0075, rel=1e-3)
     # a friction given inside is held through an excursion (nothing new is read there)
     mu = a.mu
     for _ in range(10):

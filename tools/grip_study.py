@@ -140,7 +140,9 @@ def simulate(work: Path, seed: int) -> list[Path]:
 
 def load(dirs: list[Path], model_file: Path | None = None) -> list[dict]:
     """Each run's table with the SATs of the shipped model (or ``model_file``), its campaign and whether the model
-    reads the TPMS pressures (``reads``: how the estimate reads a known pressure, :class:`grip.GripEstimator`)."""
+    reads the TPMS pressures (``reads``: how the estimate reads a known pressure, :class:`grip.GripEstimator`) and
+    the rows the daemon judges outside the model's envelope (``outside``, :func:`gs.model_outside`: no friction is
+    read there)."""
     from virtsensor.assets import model_path
     from virtsensor.learning.dataset import load_runs
     from virtsensor.model.onnx import OnnxModel
@@ -152,7 +154,7 @@ def load(dirs: list[Path], model_file: Path | None = None) -> list[dict]:
         for r in load_runs([d]):
             fl, fr = gs.model_sats(model, r.table)
             runs.append({"name": r.name, "set": d.name.split("_")[0], "table": r.table, "fl": fl, "fr": fr,
-                         "reads": reads})
+                         "reads": reads, "outside": gs.model_outside(model, r.table)})
     return runs
 
 
@@ -335,7 +337,7 @@ def _fit_curves(runs: list[dict], seed: int, p0: grip.GripParams) -> grip.GripPa
     """The trail curves and the interval calibration for the gates of ``p0``."""
     tr, n, u, mu = [], [], [], []
     for r in runs:
-        e = grip.estimate_run(r["table"], r["fl"], r["fr"], p0, r["reads"])
+        e = grip.estimate_run(r["table"], r["fl"], r["fr"], p0, r["reads"], r.get("outside"))
         tr.append(_steady_trail(e, p0))
         n.append(e["force_ratio"] / e["peak_ratio"])  # (the curves are the calibration pressure's; the estimate
         u.append(_lateral_util(r["table"]) / e["peak_ratio"])  # scales them by the tyre's peak at its pressure)
@@ -379,7 +381,7 @@ def _trail_samples(runs: list[dict], p: grip.GripParams) -> tuple[np.ndarray, ..
     ``mu_max`` (where the friction may be given; the steadiness as :func:`_fit_curves` reads it)."""
     tr, est, mu, grp = [], [], [], []
     for r in runs:
-        e = grip.estimate_run(r["table"], r["fl"], r["fr"], p, r["reads"])
+        e = grip.estimate_run(r["table"], r["fl"], r["fr"], p, r["reads"], r.get("outside"))
         ok = np.isfinite(_steady_trail(e, p))
         mu_hat = e["force_ratio"][ok] / (np.interp(e["trail_m"][ok], p.trail_m, p.use_at_trail) * e["peak_ratio"][ok])
         keep = mu_hat <= p.mu_max
@@ -558,7 +560,7 @@ def measure(runs: list[dict], p: grip.GripParams | None = None) -> dict:
     overall."""
     per = []
     for r in runs:
-        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p, r["reads"])
+        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p, r["reads"], r.get("outside"))
         if res is not None:
             per.append((r, res[0]))
     out = {"overall": gs.pool([m for _, m in per]),
@@ -629,7 +631,7 @@ def bound(runs: list[dict], p: grip.GripParams | None = None) -> dict:
     rows = []
     for r in runs:
         t, u = np.asarray(r["table"]["time_s"], float), gs.true_front_util(r["table"])
-        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p, r["reads"])
+        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], p, r["reads"], r.get("outside"))
         if res is None:
             continue
         row = {"kind": _kind(r["name"]), "mu": float(r["table"]["road_mu"][0]), "estimate": res[0],

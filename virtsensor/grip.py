@@ -395,6 +395,9 @@ class GripEstimator:
         self._slip_q = 0.5 * (p.rolling_radius_m * SIGNALS["wheel_speed_fl_radps"].resolution
                               + SIGNALS["vx_mps"].resolution)
         self._a = 1.0 - math.exp(-self.dt / p.filter_s) if p.filter_s > 0 else 1.0
+        #: ticks back inside the model's envelope before a friction is read again: the filtered SAT then weighs the
+        #: SATs from outside by at most exp(-3) (5 %)
+        self.settle_ticks = math.ceil(3.0 * p.filter_s / self.dt - 1e-9) if p.filter_s > 0 else 0
         self._trail, self._util = tuple(p.trail_m), tuple(p.util_at_trail)
         self._err, self._use = tuple(p.rel_err90_at_trail), tuple(p.use_at_trail)
         self._nominal = self._trail, self._util, self._use  # (the calibration pressure's knots and curves)
@@ -417,7 +420,7 @@ class GripEstimator:
     def reset(self) -> None:
         """Forget the filters and the warning (after an invalid tick); keeps the last given friction."""
         self._mz = self._fy = self._fx = self._fz = math.nan
-        self._mz_outside = False  # (the SAT filter holds SATs from outside the model's envelope)
+        self._settle = 0  # (ticks before a friction is read again: the SAT filter still holds extrapolated SATs)
         self._r_prev = math.nan
         self._ay_lin_prev = math.nan
         self._u_prev = math.nan
@@ -495,9 +498,10 @@ class GripEstimator:
         read inputs outside its validity envelope this tick (an extrapolation).
 
         A non-finite SAT or input gives a state of nans (no warning) and restarts the filters. From SATs
-        ``outside`` no friction is read (a friction held from before is still given): the trail still counts as
-        the limit's evidence for the warning, and the SAT filter restarts at the next tick inside, so that no
-        friction read there averages the extrapolated SATs in."""
+        ``outside`` no friction is read (a friction held from before is still given), nor for
+        :attr:`settle_ticks` ticks back inside, while the SAT filter still weighs them (more than 5 %); the trail
+        still counts as the limit's evidence for the warning throughout (the filter runs on: a restart would read
+        one tick's raw SAT)."""
         s = self.state
         mz = sat_fl + sat_fr
         if not math.isfinite(mz + ax + ay + vx + yaw_rate + steer_angle + motor_torque + wheel_fl + wheel_fr):
@@ -511,8 +515,10 @@ class GripEstimator:
         fx += p.brake_front_share * min(p.mass_kg * ax + p.drag_n_per_m2ps2 * vx * vx - fx, 0.0)
         fx_now = fx
         fy_prev = self._fy
-        if outside or self._mz_outside:  # (the first tick back inside restarts the SAT filter)
-            self._mz, self._mz_outside = (self._mz if outside else math.nan), outside
+        if outside:
+            blocked, self._settle = True, self.settle_ticks
+        else:
+            blocked, self._settle = self._settle > 0, max(self._settle - 1, 0)
         self._mz = mz = self._lp(self._mz, mz)
         self._fy = fy = self._lp(self._fy, self._fy_ay * ay + self._fy_rdot * rdot)
         self._fx = fx = self._lp(self._fx, fx)
@@ -522,7 +528,7 @@ class GripEstimator:
         steady = fy_prev == fy_prev and abs(fy - fy_prev) <= p.max_force_rate * fz * self.dt
         lateral = abs(fx) <= p.max_long_ratio * fz  # (under drive or braking the trail reads combined slip)
         ev = 0.0  # the limit's own evidence, whatever the road: the trail's collapse, the wheels' slip
-        if lateral and abs(fy) >= p.min_force_ratio * fz and not outside:
+        if lateral and abs(fy) >= p.min_force_ratio * fz and not blocked:
             ev = self._read_trail(n, -mz / fy * self._trail_gain, steady)
         else:
             s.trail_m = s.mu = s.halfwidth = math.nan
