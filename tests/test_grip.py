@@ -991,3 +991,43 @@ def test_a_tpms_model_reads_the_hard_tyre_on_its_own_curves(hard_tyre_run):
     given = np.isfinite(est["mu"])
     assert (np.isfinite(on[:, 1]) == given).all()
     assert np.abs(on[given, 1] - est["mu"][given]).max() <= 0.0025 + 1e-9  # (VS_GripMu resolution 0.005)
+
+
+def test_a_friction_read_from_degraded_sats_stays_degraded_while_held():
+    """A friction read on DEGRADED ticks (a non-critical input held or substituted, the SATs outside the envelope) is
+    published DEGRADED; held on into VALID ticks it must not turn VALID: the friction and its half-width keep the
+    worst status of the ticks its held median rests on (the latest ``hold_count`` that gave one), while the
+    utilisation and the warning follow the tick. Once VALID ticks have given as many, the held friction is VALID."""
+    from virtsensor.daemon.gripout import GripOutput
+
+    signals = list(cat.SIGNALS)
+    out = GripOutput(MATRIX, signals)
+    p = out.estimator.params
+
+    def tick(ay: float, trail: float, status: int) -> tuple[float, bool, int, int]:
+        x = [0.0] * len(signals)
+        for k, v in {"vx_mps": 20.0, "ay_mps2": ay, "yaw_rate_radps": ay / 20.0, "steer_angle_rad": 0.05,
+                     "motor_torque_nm": 20.0, "wheel_speed_fl_radps": 20 / 0.305,
+                     "wheel_speed_fr_radps": 20 / 0.305}.items():
+            x[signals.index(k)] = v
+        fy = p.mass_kg * p.front_load_fraction * ay
+        out.fill(-0.5 * trail * fy, -0.5 * trail * fy, status, status, x)
+        s = out.estimator.state
+        return s.mu, s.held, out.values["VS_GripMu_Status"], out.values["VS_GripUtil_Status"]
+
+    for _ in range(60):  # a collapsed trail at 0.4 g on DEGRADED ticks: a friction given, DEGRADED
+        mu, held, st_mu, st_util = tick(0.4 * 9.81, 0.0, DEGRADED)
+    assert math.isfinite(mu) and not held and st_mu == DEGRADED
+    n_held = 0
+    for _ in range(20):  # gentle driving on VALID ticks: once the friction is the held one, still DEGRADED
+        mu, held, st_mu, st_util = tick(0.25 * 9.81, 0.03, VALID)
+        assert st_util == VALID and (not held or (math.isfinite(mu) and st_mu == DEGRADED))
+        n_held += held
+    assert held and n_held >= 15
+    for _ in range(int(p.hold_count) + 5):  # VALID ticks give the friction again, then it is held VALID
+        tick(0.4 * 9.81, 0.0, VALID)
+    mu, held, st_mu, _ = tick(0.25 * 9.81, 0.03, VALID)
+    assert held and math.isfinite(mu) and st_mu == VALID
+    db = cantools.database.load_file(str(dbc_path()))
+    d = db.decode_message(GRIP_ID, bytes(out.msg.data), decode_choices=False)
+    assert d["VS_GripMu_Status"] == VALID and d["VS_GripUtil_Status"] == VALID

@@ -356,6 +356,7 @@ class GripState:
             with it). warning: the grip-limit warning. trail_m: the filtered axle trail where it is read for the
             friction (within ``max_long_ratio``; else nan, also where it serves the evidence only).
         force_ratio: ``|F| / Fz`` of the front axle (filtered).
+        held: the friction given is the held one (read on earlier ticks), not one read on this tick.
     """
 
     util: float = math.nan
@@ -364,6 +365,7 @@ class GripState:
     warning: bool = False
     trail_m: float = math.nan
     force_ratio: float = math.nan
+    held: bool = False
 
 
 class GripEstimator:
@@ -507,6 +509,7 @@ class GripEstimator:
         if not math.isfinite(mz + ax + ay + vx + yaw_rate + steer_angle + motor_torque + wheel_fl + wheel_fr):
             self.reset()
             s.util = s.mu = s.halfwidth = s.trail_m = s.force_ratio = math.nan
+            s.held = False
             return s
         p = self.params
         rdot = 0.0 if self._r_prev != self._r_prev else (yaw_rate - self._r_prev) / self.dt
@@ -535,10 +538,11 @@ class GripEstimator:
             if abs(fx) <= p.evidence_long_ratio * fz and abs(fy) >= p.min_force_ratio * fz:
                 ev = self._evidence(-mz / fy * self._trail_gain)[2]  # (combined slip: the evidence only, no friction)
         self._held_m += abs(vx) * self.dt  # (the distance driven, reversing included)
+        s.held = False
         if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
             widen = p.hold_widen_per_m * self._held_m  # (the road met since may differ)
             if self._hw_held + widen <= p.halfwidth_max and self._hwp_held + widen <= p.interval_max:
-                s.mu, s.halfwidth = self._mu_held, self._hwp_held + widen
+                s.mu, s.halfwidth, s.held = self._mu_held, self._hwp_held + widen, True
         ev = max(ev, self._slip(vx, yaw_rate, steer_angle, wheel_fl + wheel_fr, fx_now))
         self._mu_age += self.dt
         u_force = n / self.mu_ref

@@ -391,9 +391,11 @@ def _payload_vs_grip(rx: tuple[str, ...]) -> list[SignalLayout]:
                          {0: "NO_WARNING", 1: "WARNING"}))
     bit += 1
     for name in GRIP_STATUS:
+        held = ("; a friction held from earlier ticks is also no better than the statuses of the ticks it was read "
+                "on" if name in ("VS_GripMu_Status", "VS_GripMuHalfWidth_Status") else "")
         sigs.append(_integer(name, bit, 2, "", rx,
                              f"Validity of {name[:-7]}, as SAT_FL/FR_Status: 0 VALID, 1 DEGRADED, 2 INVALID, "
-                             f"3 INIT (the worse of the two SAT statuses it derives from).", STATUS_CHOICES))
+                             f"3 INIT (the worse of the two SAT statuses it derives from{held}).", STATUS_CHOICES))
         bit += 2
     return sigs
 

@@ -6,6 +6,9 @@ are usable: :meth:`~virtsensor.grip.GripEstimator.set_front_pressure`) and encod
 alive counter (Profile 11, data ID from the catalogue). Every field's status is the worse of the two SAT statuses
 it derives from (INVALID before INIT before DEGRADED before VALID), so VS_Grip times out, degrades and recovers
 exactly as SAT_FRONT: while INVALID or INIT its values are SNA, the warning 0 and the estimate's filters restart.
+A held friction (and its half-width), read on earlier ticks, is also no better than the worst status of the
+latest ``hold_count`` ticks that gave a friction (its median's): a friction read from DEGRADED SATs never turns
+VALID by being held.
 The friction is SNA whenever it is unknown (the tyres not excited enough, or the SATs outside the model's validity
 envelope, an extrapolation: a friction held from before is still given), whatever its status.
 
@@ -16,6 +19,7 @@ a :class:`NoGrip` stand-in (:func:`grip_output`): the daemon then publishes SAT_
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
@@ -60,6 +64,8 @@ class GripOutput:
         self._press = tuple(list(signals).index(s) for s in PRESSURE_INPUTS) if all(
             s in signals for s in PRESSURE_INPUTS) else ()
         self.estimator = GripEstimator(params, sat_reads_pressure=sat_reads_pressure)
+        #: the statuses of the latest ticks that gave a friction (those the held median rests on)
+        self._given: deque[int] = deque([VALID], maxlen=max(int(self.estimator.params.hold_count), 1))
         self._names = tuple(GRIP_SIGNALS)  # util, mu, half-width
         #: VS_Grip signal -> value (nan -> SNA), status codes
         self.values: dict[str, float] = {n: math.nan for n in self._names}
@@ -99,7 +105,7 @@ class GripOutput:
         count only where both are decoded and neither is ``bad``. With the SATs ``outside`` the model's validity
         envelope (an extrapolation) no friction is read from them (:meth:`~virtsensor.grip.GripEstimator.step`)."""
         v = self.values
-        status = worse_status(st_fl, st_fr)
+        status = mu_status = worse_status(st_fl, st_fr)
         util, mu, hw = self._names
         if status == INVALID or status == INIT:
             self.estimator.reset()
@@ -116,12 +122,24 @@ class GripOutput:
                                     inputs[i[4]], inputs[i[5]], inputs[i[6]], inputs[i[7]], outside)
             v[util], v[mu], v[hw] = s.util, s.mu, s.halfwidth
             v["VS_GripWarning"] = 1 if s.warning else 0
-        for name in GRIP_STATUS:
-            v[name] = status
+            mu_status = self._friction_status(status, s.held, s.mu == s.mu)
+        u_st, mu_st, hw_st, w_st = GRIP_STATUS
+        v[u_st] = v[w_st] = status
+        v[mu_st] = v[hw_st] = mu_status
         m = self.msg
         m.data[:] = self._encode(v, self._ctr)
         self._ctr = next_counter(self._ctr)
         return m
+
+    def _friction_status(self, status: int, held: bool, given: bool) -> int:
+        """The friction's status this tick: ``status``, or for a ``held`` friction the worse of it and the statuses
+        of the ticks that gave the latest frictions (one ``given`` this tick joins them)."""
+        if held:
+            for g in self._given:
+                status = worse_status(status, g)
+        elif given:
+            self._given.append(status)
+        return status
 
 
 class NoGrip:
