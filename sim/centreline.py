@@ -39,8 +39,15 @@ few points, a loop that is open (the gap from the last point back to the
 first is longer than ``OPEN_GAP_M`` and than ``OPEN_GAP_RATIO`` times any other
 step), shorter than
 ``MIN_LENGTH_M`` or longer than ``MAX_LENGTH_M`` (a file in the wrong unit: checked before
-any work is sized by the length), a smoothed centreline that crosses itself, and a corner
+any work is sized by the length), a smoothed centreline that crosses itself other than at a bridge (below), and a corner
 tighter than the car can steer round (:func:`check_steerable`).
+
+A centreline may cross itself where one stretch of road passes over another, as Suzuka's
+figure of eight does: the two passes cross at more than ``BRIDGE_MIN_ANGLE_DEG`` and
+the loop between them, either way round, is at least ``BRIDGE_MIN_LOOP_M`` long (the path
+follower looks for the car along the road just ahead of it, so it never takes the other
+pass for its own). A crossing at a glancing angle, or round a short loop (a knot a
+trace out of order or a hairpin drawn too tightly leaves), is refused.
 """
 
 from __future__ import annotations
@@ -59,6 +66,7 @@ from scipy.spatial import cKDTree
 from sim.track import MAX_LAP_M, MIN_LAP_M, Track, TrackError, check_lap_length
 
 __all__ = [
+    "BRIDGE_MIN_ANGLE_DEG", "BRIDGE_MIN_LOOP_M",
     "MAX_LENGTH_M", "MIN_LENGTH_M", "OPEN_GAP_M", "OPEN_GAP_RATIO", "derive", "read_points", "read_geojson_lonlat",
     "equirectangular", "enu_exact", "signed_area", "fit_periodic_pspline", "check_steerable", "track_from_points",
 ]
@@ -77,6 +85,10 @@ OPEN_GAP_M = 30.0
 OPEN_GAP_RATIO = 2.5
 #: spacing (m) of the centreline checked for self-intersection
 _CROSSING_STEP_M = 4.0
+#: a crossing is a bridge (one pass over the other) only at more than this angle between the passes (deg) ...
+BRIDGE_MIN_ANGLE_DEG = 30.0
+#: ... and with at least this much road (m) between the two passes, either way round the loop
+BRIDGE_MIN_LOOP_M = 200.0
 
 
 # ---------------------------------------------------------------------- reading
@@ -249,8 +261,8 @@ def fit_periodic_pspline(
     return interpolate.BSpline(knots, coef[np.arange(n_basis) % n_int], k, extrapolate="periodic")
 
 
-def _segments_cross(p: np.ndarray) -> tuple[int, int] | None:
-    """First pair (i, j) of non-adjacent edges of the closed polygon ``p`` (n, 2) that cross, or None."""
+def _segments_cross(p: np.ndarray) -> list[tuple[int, int]]:
+    """Every pair (i, j), i < j, of non-adjacent edges of the closed polygon ``p`` (n, 2) that cross."""
     a, b = p, np.roll(p, -1, axis=0)
     n = len(p)
     idx = np.arange(n)
@@ -258,6 +270,7 @@ def _segments_cross(p: np.ndarray) -> tuple[int, int] | None:
     def orient(o: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
         return (q[..., 0] - o[..., 0]) * (r[..., 1] - o[..., 1]) - (q[..., 1] - o[..., 1]) * (r[..., 0] - o[..., 0])
 
+    pairs: list[tuple[int, int]] = []
     for lo in range(0, n, 256):
         i = idx[lo:lo + 256]
         ai, bi = a[i][:, None, :], b[i][:, None, :]
@@ -265,11 +278,31 @@ def _segments_cross(p: np.ndarray) -> tuple[int, int] | None:
         d3, d4 = orient(a[None], b[None], ai), orient(a[None], b[None], bi)
         cross = (d1 * d2 < 0) & (d3 * d4 < 0)
         gap = np.abs(i[:, None] - idx[None, :])
-        cross &= np.minimum(gap, n - gap) > 1
-        hit = np.argwhere(cross)
-        if len(hit):
-            return int(i[hit[0, 0]]), int(hit[0, 1])
-    return None
+        cross &= (np.minimum(gap, n - gap) > 1) & (i[:, None] < idx[None, :])
+        pairs += [(int(i[r]), int(c)) for r, c in np.argwhere(cross)]
+    return pairs
+
+
+def _check_crossings(ring: np.ndarray, period: float, origin: str) -> None:
+    """Refuse a smoothed centreline ``ring`` (n, 2; evenly spaced over ``period`` m) that crosses itself
+    anywhere but at a bridge (module docstring: ``BRIDGE_MIN_ANGLE_DEG``, ``BRIDGE_MIN_LOOP_M``).
+
+    Raises:
+        TrackError: naming where the crossing is, at what angle and round how long a loop.
+    """
+    step = np.roll(ring, -1, axis=0) - ring
+    heading = np.arctan2(step[:, 1], step[:, 0])
+    for i, j in _segments_cross(ring):
+        turn = float(np.degrees(np.abs(np.angle(np.exp(1j * (heading[j] - heading[i]))))))
+        angle = min(turn, 180.0 - turn)  # between the two roads, whichever way each is driven
+        s_i, s_j = period * i / len(ring), period * j / len(ring)
+        loop = min(s_j - s_i, period - (s_j - s_i))
+        if angle >= BRIDGE_MIN_ANGLE_DEG and loop >= BRIDGE_MIN_LOOP_M:
+            continue  # one pass over the other, as at Suzuka
+        raise TrackError(f"{origin}: the smoothed centreline crosses itself (near {s_i:.0f} m and {s_j:.0f} m from "
+                         f"the first point, at {angle:.0f} deg, round a loop of {loop:.0f} m); a circuit may cross "
+                         f"itself only at a bridge, at more than {BRIDGE_MIN_ANGLE_DEG:.0f} deg with at least "
+                         f"{BRIDGE_MIN_LOOP_M:.0f} m of road between the passes")
 
 
 def check_steerable(track: Track, params: Mapping[str, Any], origin: str) -> None:
@@ -362,7 +395,7 @@ def derive(
 
     Raises:
         TrackError: too few points, an open loop, too short or too long, or a centreline that
-            crosses itself.
+            crosses itself other than at a bridge.
     """
     if direction not in (None, "clockwise", "counter-clockwise"):
         raise ValueError(f"direction must be None, 'clockwise' or 'counter-clockwise', got {direction!r}")
@@ -390,11 +423,7 @@ def derive(
     spline = fit_periodic_pspline(u_dense, dense, period, smoothing_length)
     cols = _resample(spline, period, pts[0], ds, facts)
     ring = spline(np.linspace(0.0, period, max(int(period / _CROSSING_STEP_M), 8), endpoint=False))
-    crossing = _segments_cross(ring)
-    if crossing is not None:
-        s_at = period * np.array(crossing) / len(ring)
-        raise TrackError(f"{origin}: the smoothed centreline crosses itself (near {s_at[0]:.0f} m and "
-                         f"{s_at[1]:.0f} m from the first point); a circuit must be a simple loop")
+    _check_crossings(ring, period, origin)
     # fit quality: distance from each input point to the smooth curve (sampled every 0.25 m)
     dev, _ = cKDTree(spline(np.linspace(0.0, period, int(period / 0.25), endpoint=False))).query(pts)
     facts.update(vertex_dev_max_m=float(dev.max()), vertex_dev_rms_m=float(np.sqrt(np.mean(dev**2))),

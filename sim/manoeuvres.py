@@ -341,7 +341,7 @@ def circuit(v: float, mu: float, rng: np.random.Generator, params: Mapping[str, 
 
     Raises:
         ManoeuvreError: no track, a bad lap count, or a centreline that cannot be driven
-            (unreadable, open, crossing itself, too short, or tighter than the car can steer).
+            (unreadable, open, crossing itself other than at a bridge, too short, or tighter than the car can steer).
     """
     from sim import track as trk
     from sim.centreline import check_steerable

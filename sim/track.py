@@ -223,7 +223,7 @@ def load_track(spec: str | Path, **derive_options: float) -> Track:
 
     Raises:
         TrackError: unknown name, missing or malformed file, or a centreline that is
-            open, crosses itself, or shorter or longer than a circuit (:func:`check_lap_length`).
+            open, crosses itself other than at a bridge, or shorter or longer than a circuit (:func:`check_lap_length`).
     """
     name = str(spec)
     from sim.randomtrack import parse_name, random_track

@@ -172,10 +172,48 @@ def test_refuses_an_open_centreline(tmp_path: Path, capsys) -> None:
     _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "open")
 
 
-def test_refuses_a_self_intersecting_centreline(tmp_path: Path, capsys) -> None:
+def _eight(length: float, width: float) -> np.ndarray:
+    """A figure of eight, its crossing at the origin (first point), 200 points."""
     t = np.linspace(0.0, 2 * np.pi, 200, endpoint=False)
-    track = write_xy(tmp_path / "eight.csv", np.column_stack([100 * np.sin(t), 50 * np.sin(2 * t)]))
+    return np.column_stack([length * np.sin(t), width * np.sin(2 * t)])
+
+
+@pytest.mark.parametrize(("shape", "fragment"), [
+    # the two passes 23 deg apart: no bridge, a trace out of order or two roads drawn on top of each other
+    ("glancing", "at 23 deg, round a loop of 625 m"),
+    # small loops round a circle: the knots a hairpin drawn too tightly leaves, 84 m round
+    ("curls", "round a loop of 84 m"),
+])
+def test_refuses_a_self_intersecting_centreline(tmp_path: Path, capsys, shape: str, fragment: str) -> None:
+    t = np.linspace(0.0, 2 * np.pi, 200, endpoint=False)
+    pts = _eight(300.0, 30.0) if shape == "glancing" else \
+        np.column_stack([150 * np.cos(t) + 40 * np.cos(6 * t), 150 * np.sin(t) + 40 * np.sin(6 * t)])
+    track = write_xy(tmp_path / f"{shape}.csv", pts)
     _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, "crosses itself")
+    _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, fragment)
+
+
+def test_a_figure_of_eight_crossing_at_a_bridge_is_driven(tmp_path: Path) -> None:
+    """Suzuka (bacinger/f1-circuits jp-1962) crosses itself at 55 deg on a bridge, and was refused as "not a
+    simple loop", although the driver finds the car along the road just ahead of it and drives it round.
+    The same figure of eight the old refusal test used is now a lap, driven on its own pass through the
+    crossing: the car's distance along the path never jumps (it would, by 300 m, onto the other pass)."""
+    track = write_xy(tmp_path / "eight.csv", _eight(100.0, 50.0))
+    tr = load_track(track)
+    assert tr.turn_per_lap == pytest.approx(0.0, abs=1e-6)  # the two lobes turn opposite ways
+    run = simulate("circuit", 60.0, 1.0, seed=3, track=str(track), laps=1)
+    assert run.outcome["status"] == "completed"
+    assert run.outcome["planned_m"] < run.outcome["driven_m"] < run.outcome["planned_m"] + 60 / 3.6
+    truth, path = run.truth, run.plan.path
+    # the car's nearest point on the path, searched just ahead of its last one (as the driver does)
+    station, k = np.zeros(len(truth["x_m"]), dtype=int), 0
+    for i, (x, y) in enumerate(zip(truth["x_m"], truth["y_m"], strict=True)):
+        lo = max(k - 5, 0)
+        k = lo + int(np.argmin(np.hypot(path[lo:k + 40, 0] - x, path[lo:k + 40, 1] - y)))
+        station[i] = k
+    off = np.hypot(truth["x_m"] - path[station, 0], truth["y_m"] - path[station, 1])
+    assert off.max() < 2.0 and np.diff(station).min() >= -1
+    assert station[-1] * run.plan.path_ds == pytest.approx(run.outcome["driven_m"], abs=3.0)
 
 
 def test_refuses_a_too_short_centreline(tmp_path: Path, capsys) -> None:
