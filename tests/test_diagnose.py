@@ -294,6 +294,51 @@ def test_held_out_evidence_needs_an_effect_every_run_shares():
     assert data.n_folds == 2 and np.bincount(data.fold["ay_mps2"]).tolist() == [data.n["ay_mps2"] // 2] * 2
 
 
+def test_a_first_cause_must_hold_on_runs_held_out():
+    """The first cause's evidence must hold on runs held out, as a second cause's. Four runs of a car that reads 0:
+    an offset of ay on every run is named; the same offset on one run only (decisive in sample, a BIC gain far
+    above 10, and no signal left beyond the excess limit: before, it was named) is a stand-in for something of that
+    run, and the day is unexplained, with the held-out evidence as the reason (review seed 72003: halved dampers named a
+    motor-torque delay of 0.28 s, all its evidence from one run of five)."""
+    from virtsensor.diagnose import identify as idn
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    n, names = 400, ("ay_mps2", "yaw_rate_radps")
+    cand = next(c for c in idn.candidates() if c.key == "sensor_offset[ay_mps2]")
+
+    def day(offsets, identified=frozenset()):
+        rng = np.random.default_rng(0)
+        runs = [MeasuredRun(f"r{i}", Path(f"r{i}.csv"), {"time_s": np.arange(n) * 0.05, "ay_mps2": o + 0.2 * rng.normal(
+            size=n), "yaw_rate_radps": 0.01 * rng.normal(size=n)}, [Segment(0, n)]) for i, o in enumerate(offsets)]
+        data = idn.Data(runs, names)
+        bg = [[{"pred": {k: np.zeros(n) for k in names}}] for _ in runs]
+        rss0 = data.rss(bg)
+        fit = idn._exact_fit(data, bg, cand, rss0)
+        idn._score(fit, data.m2ll(rss0), rss0, 1.0, sum(data.n.values()))
+        stage = idn.Stage([fit], bg, rss0, data.m2ll(rss0), {}, 1.0)
+        return data, fit, idn._first_cause(data, stage, car_parameters(), *([identified] if identified else []))
+
+    data, fit, first = day([0.0, 0.0, 0.0, 0.3])
+    sims = idn._sims_for(fit, [[{"pred": {k: np.zeros(n) for k in names}}] for _ in range(4)], {}, data)
+    excess = idn.residual_excess(data, data.rss(sims), idn.expected_rms(data, sims, car_parameters()))
+    assert fit.significant and fit.bic_gain > 50 and max(excess.values()) < idn.EXCESS_LIMIT, (fit.bic_gain, excess)
+    assert first is fit and not fit.consistent, "a one-run stand-in named as the day's cause"
+    assert fit.held_out["evidence"] < idn.HELD_OUT_DECISIVE, fit.held_out
+    verdict = idn.Identification([fit], fit, {k: 1.0 for k in names}, dict(data.n), 1.0, [], [], 0, names,
+                                 causes=[fit], excess=excess, rss_best=data.rss(sims))
+    why = idn._unexplained(data, verdict)
+    assert why is not None and why["forced_onto"] == cand.key and why["held_out"]["contradicted_by"]
+    data, fit, first = day([0.3] * 4)
+    assert first is fit and fit.consistent and fit.held_out["evidence"] > 100
+    # decisive in sum, one run made decisively worse: rejected, unless that run's conditions are identified (a first
+    # cause is fitted before they are identified again over it: a misread friction may hold against it)
+    data, fit, first = day([0.3, 0.3, 0.3, 0.0])
+    assert fit.held_out["contradicted_by"] == [3] and fit.held_out["evidence"] > 100, fit.held_out
+    assert first is fit and not fit.consistent
+    data, fit, first = day([0.3, 0.3, 0.3, 0.0], identified=frozenset({"r3"}))
+    assert first is fit and fit.consistent and fit.held_out["excused"] == [3]
+
+
 @pytest.mark.parametrize(("rho", "n"), [(0.0, 300), (0.8, 600)])
 def test_the_interval_is_the_standard_error_of_the_effective_sample(monkeypatch, rho, n):
     """An offset of 0.3 m/s^2 on ay_mps2 and AR(1) noise of standard deviation sigma on every signal, on a

@@ -126,6 +126,12 @@ def _cause_lines(res: Mapping[str, Any]) -> list[str]:
                        "others' expense: " + "; ".join(
                            f"the {g} signals alone put it at {_f(i['estimate'])} (+-{_f(i['half_width'], 2)})"
                            for g, i in u["disagreeing_groups"].items()))
+        if u.get("held_out"):
+            h = u["held_out"]
+            why.append(f"the best one, `{u['forced_onto']}` at {_f(u['estimate'])}, does not hold on runs it was "
+                       f"not fitted on (evidence {_f(h['evidence'])} there; "
+                       + (", ".join(h["fold_names"][i] for i in h["contradicted_by"]) + " made worse"
+                          if h["contradicted_by"] else "not decisive") + ")")
         if u.get("excess"):
             after = f"with `{u['forced_onto']}` named" if u["forced_onto"] else "with the nominal car"
             why.append(f"{after}, signals stay far above the re-simulation's own error on a control day: "
