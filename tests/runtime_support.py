@@ -113,3 +113,17 @@ def daemon_events() -> Iterator[LogEvents]:
     finally:
         logger.removeHandler(handler)
         logger.setLevel(level)
+
+
+class CaptureBus(can.BusABC):
+    """A bus that keeps what the daemon sends (a copy of each frame) and receives nothing: a daemon driven by hand."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="capture")
+        self.sent: list[can.Message] = []
+
+    def send(self, msg, timeout=None) -> None:
+        self.sent.append(can.Message(arbitration_id=msg.arbitration_id, data=bytes(msg.data), is_extended_id=False))
+
+    def _recv_internal(self, timeout):
+        return None, False

@@ -3,10 +3,9 @@ VS_Health, one log event per excursion), split by ``score``, rows in ``evaluate`
 
 from __future__ import annotations
 
-import can
 import numpy as np
 import pytest
-from runtime_support import SYNC_ID, daemon_events, synthetic_streams, train_model, with_sync
+from runtime_support import SYNC_ID, CaptureBus, daemon_events, synthetic_streams, train_model, with_sync
 
 from virtsensor import signals as cat
 from virtsensor.canbus.codec import CanMatrix
@@ -137,18 +136,6 @@ def test_outside_degrades_only_valid():
 
 
 # ------------------------------------------------------------------------------------------------ the daemon
-class _Capture(can.BusABC):
-    def __init__(self) -> None:
-        super().__init__(channel="capture")
-        self.sent: list[can.Message] = []
-
-    def send(self, msg, timeout=None) -> None:
-        self.sent.append(can.Message(arbitration_id=msg.arbitration_id, data=bytes(msg.data), is_extended_id=False))
-
-    def _recv_internal(self, timeout):
-        return None, False
-
-
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):
@@ -175,7 +162,7 @@ def _drive(model, excursion=_fast):
     excursion(t, sig)
     frames = list(iter_frames(t, sig))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
-    vs = VirtualSensor(_Capture(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
+    vs = VirtualSensor(CaptureBus(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
     ticks = []
     with daemon_events() as handler:
         for m in merged:

@@ -13,7 +13,7 @@ import can
 import cantools
 import numpy as np
 import pytest
-from runtime_support import SYNC_ID, with_sync
+from runtime_support import SYNC_ID, CaptureBus, with_sync
 
 from virtsensor import signals as cat
 from virtsensor.assets import dbc_path, model_path
@@ -793,20 +793,6 @@ def test_offline_estimate_is_the_daemons(model, run_frames):
     assert (np.isfinite(on[:, 1]) == np.isfinite(est["mu"])).all()
 
 
-class _Capture(can.BusABC):
-    """Keeps what the daemon sends (driven by hand: nothing to receive)."""
-
-    def __init__(self) -> None:
-        super().__init__(channel="capture")
-        self.sent: list[can.Message] = []
-
-    def send(self, msg, timeout=None) -> None:
-        self.sent.append(can.Message(arbitration_id=msg.arbitration_id, data=bytes(msg.data), is_extended_id=False))
-
-    def _recv_internal(self, timeout):
-        return None, False
-
-
 def _curve_streams(t: np.ndarray, vx: np.ndarray, steer: np.ndarray) -> dict[str, np.ndarray]:
     """A car turning kinematically (yaw rate vx * delta / L, ay = r vx) with plausible EPAS, wheels and body."""
     L = cat.STEADY_TURN.steer_ratio * cat.STEADY_TURN.wheelbase_m
@@ -837,7 +823,7 @@ def test_a_friction_read_from_extrapolated_sats_is_never_given_nor_held(model):
     sig = _curve_streams(t, np.where(t < 6.0, 56.0, 45.0), np.where(t < 6.0, 0.02, 0.012))
     frames = list(iter_frames(t, sig))
     merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
-    vs = VirtualSensor(_Capture(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
+    vs = VirtualSensor(CaptureBus(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
     outside = []
     for m in merged:
         n = vs.counters["ticks"]
