@@ -677,7 +677,8 @@ def _holds_out(data: Data, f: Fit, first: Stage, identified: frozenset[str] = fr
 
 
 def _passes(held_out: Mapping[str, Any]) -> bool:
-    """Whether a first cause's held-out evidence (:func:`_holds_out`; empty: none computed) does not reject it."""
+    """Whether a cause's held-out evidence (:func:`held_out_evidence`; empty: none computed) does not reject it:
+    decisive in sum and decisively worse on no run but those ``excused`` (:func:`_holds_out`)."""
     return not held_out or (held_out["evidence"] > HELD_OUT_DECISIVE
                             and set(held_out["contradicted_by"]) <= set(held_out.get("excused", ())))
 
@@ -849,7 +850,7 @@ def _second_stage(data: Data, sim: Sim, first: Stage, chosen: Fit, cands: Sequen
         f.significant = f.significant and abs(f.estimate - f.candidate.nominal) >= SECOND_SIZE * _smallest(f.candidate)
         if f.significant:
             f.held_out = held_out_evidence(data, f, st.background, st.sims_of, feff)
-            f.significant = f.held_out["evidence"] > HELD_OUT_DECISIVE and not f.held_out["contradicted_by"]
+            f.significant = _passes(f.held_out)  # (nothing is excused for a second cause)
     pick = next((f for f in st.fits if f.significant), None)
     return st.fits, _sims_for(pick, st.background, st.sims_of, data) if pick else st.background
 
