@@ -24,7 +24,8 @@ ratio per unit of road friction, the 90th percentile of the friction's relative 
 estimate, of its absolute error (the gate's pooled interval), for each longitudinal-force gate and largest
 half-width, keeping
 the pair that gives the friction most often with 95 % within +-0.1 pooled and 90 % on every road (mu); then, by the
-same rule, the hold of the friction (median count, distance, least use); then the published interval (as
+same rule, the hold of the friction (median count, distance, least use) and the held median's own error (its gate,
+as ``--hold-error-only`` below: :func:`fit_hold_error`); then the published interval (as
 ``--interval-only`` below); then the warning (threshold; the driver's
 demand: weight, look-ahead along the steering's rate, the friction it is set against; the held friction's share as
 evidence or not), chosen on that data as the longest median lead with at most FALSE_BUDGET false warnings per 10
@@ -36,7 +37,8 @@ kept); ``fit
 friction's error on the worst road of the fit data, so that it holds on every road and not only pooled over a mix of
 mostly easy samples; the gates keep the pooled one; and the widest interval with which the friction is given);
 ``fit --evidence-gate-only`` how far beyond the friction's longitudinal-force gate the trail's utilisation curve
-still counts as the limit's evidence (:func:`fit_evidence_gate`, the last step of every warning fit).
+still counts as the limit's evidence (:func:`fit_evidence_gate`, the last step of every warning fit); ``fit
+--hold-error-only`` the held friction's own error per band of the estimate (``hold_err90``, the gate of the hold).
 The car's own numbers come from the simulator's parameter file (``sim/data/car_c_segment.toml``: mass, geometry,
 drive, brakes, air drag, steering ratio) and the catalogue's rolling radius; the linear car's understeer gradient is
 measured on the fit data.
