@@ -1020,3 +1020,40 @@ def test_a_friction_read_from_degraded_sats_stays_degraded_while_held():
     db = cantools.database.load_file(str(dbc_path()))
     d = db.decode_message(GRIP_ID, bytes(out.msg.data), decode_choices=False)
     assert d["VS_GripMu_Status"] == VALID and d["VS_GripUtil_Status"] == VALID
+
+
+def test_the_hold_reads_the_held_median_s_own_error():
+    """The held friction is the median of ``hold_count`` readings, and the hold's gate reads that median's calibrated
+    error (``hold_err90`` of its band, widened as held), not the latest single reading's pooled error: gated by a
+    reading's error near ``halfwidth_max``, the hold ended within metres, so on dry circuits the friction went unknown
+    under every braking and drive although the median held the road within +-0.1 (README, "How long to hold the
+    road").
+    A median whose own error leaves no room is withheld; without ``hold_err90`` (older files) the gate reads the
+    latest reading's error, as before."""
+    p = load_params()
+    assert len(p.hold_err90) == len(p.mu_bands)  # (the shipped calibration has it)
+    probe = GripEstimator(p)
+    _steady(probe, 60, 0.4 * 9.81, 0.0)
+    hw = probe._hw_held  # (the latest reading's pooled error)
+    assert math.isfinite(probe.state.mu) and 0.0 < hw <= p.halfwidth_max
+    tight = replace(p, halfwidth_max=hw + 0.005)  # (room for 50 m of widening after the latest reading)
+
+    def held_after(q: GripParams, metres: float) -> float:
+        est = GripEstimator(q)
+        _steady(est, 60, 0.4 * 9.81, 0.0)
+        ax = 150.0 * q.gear_ratio / q.rolling_radius_m / q.mass_kg
+        for _ in range(round(metres / (20.0 * 0.05))):  # hard drive at 20 m/s: the trail is not read
+            s = est.step(-30.0, -30.0, ax, 1.0, 20.0, 0.05, 0.0, 150.0, 20.0 / 0.305, 20.0 / 0.305)
+        assert math.isnan(s.trail_m)
+        return s.mu if s.held or math.isnan(s.mu) else -1.0
+
+    bands = len(p.mu_bands)
+    assert math.isfinite(held_after(replace(tight, hold_err90=()), 30.0))  # (the old gate: 30 m fits)
+    assert math.isnan(held_after(replace(tight, hold_err90=()), 100.0))  # (100 m does not: refused)
+    assert held_after(replace(tight, hold_err90=(0.01,) * bands), 100.0) == pytest.approx(probe.state.mu, rel=0.1)
+    assert math.isnan(held_after(replace(tight, hold_err90=(tight.halfwidth_max,) * bands), 30.0))
+    doc = replace(p, hold_err90=()).to_json()
+    assert GripParams.from_json(doc).hold_err90 == () and GripParams.from_json(p.to_json()) == p
+    for bad in ((0.01,) * (bands - 1), (math.nan,) * bands, (-0.01,) * bands, (True,) * bands):
+        with pytest.raises(ValueError, match="hold_err90"):
+            replace(p, hold_err90=bad)

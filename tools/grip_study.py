@@ -6,6 +6,7 @@
     python tools/grip_study.py fit --evidence-only  # the trail's utilisation curve, the warning and its gate
     python tools/grip_study.py fit --interval-only  # the published friction interval only (the rest kept)
     python tools/grip_study.py fit --evidence-gate-only  # how far under drive/braking the trail warns (the rest kept)
+    python tools/grip_study.py fit --hold-only      # the hold and the held median's own error (the rest kept)
     python tools/grip_study.py bound --seed 1902    # how much lead any warning could have: docs/grip_bound_1902.md
     python tools/grip_study.py combined --seed 1901 # how the trail curve reads the utilisation under drive/braking
 
@@ -23,7 +24,8 @@ ratio per unit of road friction, the 90th percentile of the friction's relative 
 estimate, of its absolute error (the gate's pooled interval), for each longitudinal-force gate and largest
 half-width, keeping
 the pair that gives the friction most often with 95 % within +-0.1 pooled and 90 % on every road (mu); then, by the
-same rule, the hold of the friction (median count, distance, least use); then the published interval (as
+same rule, the hold of the friction (median count, distance, least use) and the held median's own error (its gate;
+as ``--hold-only`` below, :func:`fit_hold`); then the published interval (as
 ``--interval-only`` below); then the warning (threshold; the driver's
 demand: weight, look-ahead along the steering's rate, the friction it is set against; the held friction's share as
 evidence or not), chosen on that data as the longest median lead with at most FALSE_BUDGET false warnings per 10
@@ -35,7 +37,9 @@ kept); ``fit
 friction's error on the worst road of the fit data, so that it holds on every road and not only pooled over a mix of
 mostly easy samples; the gates keep the pooled one; and the widest interval with which the friction is given);
 ``fit --evidence-gate-only`` how far beyond the friction's longitudinal-force gate the trail's utilisation curve
-still counts as the limit's evidence (:func:`fit_evidence_gate`, the last step of every warning fit).
+still counts as the limit's evidence (:func:`fit_evidence_gate`, the last step of every warning fit); ``fit
+--hold-only`` the hold (:func:`fit_hold`: count, distance, least use, and the held median's own error per band of
+the estimate, ``hold_err90``, the gate of the hold).
 The car's own numbers come from the simulator's parameter file (``sim/data/car_c_segment.toml``: mass, geometry,
 drive, brakes, air drag, steering ratio) and the catalogue's rolling radius; the linear car's understeer gradient is
 measured on the fit data.
@@ -110,9 +114,13 @@ HALFWIDTH_MAX = (0.1, 0.12, 0.15)
 #: the road, the axle uses at least n / MU_ROAD_MAX of its grip (the warning's floor where the trail cannot tell)
 MU_ROAD_MAX = 1.0
 #: the friction held (the median of the latest HOLD_COUNT given) while the tyres are excited: the fit chooses the
-#: count, the distance since the latest given (m) and the least use of the held road (n / mu) from these
+#: count, the distance since the latest given (m) and the least use of the held road (n / mu) from these. The
+#: distance is capped by design, not by the fit: the calibration's roads are uniform, so a longer hold always gives
+#: the friction more often there, while on a road that changes it publishes the old road's (a dry lap's 0.935 for
+#: 6.25 s on the wet lap of Magny-Cours at 200 km/h with a 500 m hold, none with 200 m; see the README). 200 m is
+#: the longest a dry road's friction was held before the hold read the held median's own error (its 90th percentile)
 HOLD_COUNT = (15, 25)
-HOLD_M = (100.0, 200.0, 500.0)
+HOLD_M = (100.0, 200.0)
 HOLD_MIN_USE = (0.4, 0.5)
 #: the held friction's half-width grows this much per metre travelled (fixed, not fitted: the calibration roads
 #: are uniform, so they cannot tell how fast a road changes; 0.1 per km)
@@ -295,7 +303,7 @@ def fit(runs: list[dict], seed: int, curves_only: bool = False) -> grip.GripPara
                 best = (share, p)
     if best is None:
         raise SystemExit("no gate gives the friction within +-0.1 on 95 % of the samples")
-    return best[1] if curves_only else _fit_warning(runs, fit_interval(runs, _fit_hold(runs, best[1])))
+    return best[1] if curves_only else _fit_warning(runs, fit_interval(runs, fit_hold(runs, best[1])))
 
 
 def fit_evidence(runs: list[dict], seed: int, p: grip.GripParams) -> grip.GripParams:
@@ -313,6 +321,13 @@ def _given_within(res: dict) -> tuple[float, float]:
     return o["mu_given_share_above_0_6"] or 0.0, min(o["mu_within_0_1_share"] or 0.0, worst + 0.05)
 
 
+def fit_hold(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
+    """The hold (:func:`_fit_hold`) gated by the held median's own error (:func:`fit_hold_error`): that error is
+    measured with ``p``'s count first, the hold chosen under it, and measured again for the count chosen."""
+    q = _fit_hold(runs, fit_hold_error(runs, p))
+    return fit_hold_error(runs, q) if q.hold_count != p.hold_count else q
+
+
 def _fit_hold(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
     """The hold of the given friction that gives it most often above 0.6 utilisation with >= 95 % within +-0.1."""
     best = (-1.0, p)
@@ -324,6 +339,32 @@ def _fit_hold(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
         if within >= 0.95 and share > best[0]:
             best = (share, q)
     return best[1]
+
+
+def fit_hold_error(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
+    """``p`` with ``hold_err90`` calibrated on ``runs``: per band of ``mu_bands`` (of the held value), the 90th
+    percentile of the held friction's absolute error over every sample where the hold gives it (its distance and
+    least use allow; the gate then reads this error, not the latest single reading's). A band the hold never gives
+    keeps the largest single-reading error of its ``abs_err90_at_trail`` curve."""
+    q = replace(p, hold_err90=(0.0,) * len(p.mu_bands))
+    errs: list[list[np.ndarray]] = [[] for _ in p.mu_bands]
+    for r in runs:
+        res = gs.grip_of_run(r["table"], r["fl"], r["fr"], q, r["reads"], r.get("outside"))
+        if res is None:
+            continue
+        est, truth = res[1], np.asarray(r["table"]["road_mu"], float)
+        held = est["held"] & np.isfinite(truth)
+        band = np.minimum(np.searchsorted(p.mu_bands, est["mu"][held], side="left"), len(p.mu_bands) - 1)
+        err = np.abs(est["mu"][held] - truth[held])
+        for b in range(len(p.mu_bands)):
+            errs[b].append(err[band == b])
+    out = []
+    for b, parts in enumerate(errs):
+        e = np.concatenate(parts) if parts else np.empty(0)
+        out.append(round(float(np.percentile(e, 90)), 4) if len(e) else max(p.abs_err90_at_trail[b]))
+        print(f"  held friction in band <= {p.mu_bands[b]:g}: {len(e)} samples, 90 % of its errors within "
+              f"{out[-1]:.4f}", file=sys.stderr)
+    return replace(p, hold_err90=tuple(out))
 
 
 def _steady_trail(e: dict[str, np.ndarray], p: grip.GripParams) -> np.ndarray:
@@ -786,7 +827,7 @@ def _md(res: dict, seed: int, model: Path | None = None) -> str:
 
 
 #: the parts of a calibration a partial fit re-fits, in the order its provenance names them
-_PARTS = ("utilisation curve", "warning", "evidence gate", "interval")
+_PARTS = ("utilisation curve", "warning", "evidence gate", "interval", "hold")
 
 
 def _source(before: str, fitted: tuple[str, ...], flag: str, seed: int) -> str:
@@ -851,15 +892,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--evidence-gate-only", action="store_true",
                     help="fit: keep everything else, choose how far under drive or braking the trail's utilisation "
                          "curve still counts as the limit's evidence")
+    ap.add_argument("--hold-only", action="store_true",
+                    help="fit: keep everything else, choose the hold (count, distance, least use) and calibrate the "
+                         "held median's own error (the gate of the hold)")
     ap.add_argument("--evidence-only", action="store_true",
                     help="fit: keep the shipped friction curves and hold, re-calibrate the trail's utilisation curve "
                          "and the warning (and its evidence gate)")
     a = ap.parse_args(argv)
-    partial = [o for o in ("warning_only", "evidence_only", "interval_only", "evidence_gate_only") if getattr(a, o)]
+    partial = [o for o in ("warning_only", "evidence_only", "interval_only", "evidence_gate_only", "hold_only")
+               if getattr(a, o)]
     if partial and a.what != "fit":
-        ap.error("--warning-only, --evidence-only, --interval-only and --evidence-gate-only go with fit")
+        ap.error("--warning-only, --evidence-only, --interval-only, --evidence-gate-only and --hold-only go with fit")
     if len(partial) > 1:
-        ap.error("--warning-only, --evidence-only, --interval-only, --evidence-gate-only: choose one")
+        ap.error("--warning-only, --evidence-only, --interval-only, --evidence-gate-only, --hold-only: choose one")
     if a.false_on != "all" and not a.warning_only:
         ap.error("--false-on goes with fit --warning-only")
     if a.model is not None and a.what not in ("accept", "bound"):
@@ -876,6 +921,9 @@ def main(argv: list[str] | None = None) -> int:
         if a.interval_only:
             p0 = grip.load_params()
             p = replace(fit_interval(runs, p0), source=_source(p0.source, ("interval",), "--interval-only", seed))
+        elif a.hold_only:
+            p0 = grip.load_params()
+            p = replace(fit_hold(runs, p0), source=_source(p0.source, ("hold",), "--hold-only", seed))
         elif a.evidence_gate_only:
             p0 = grip.load_params()
             p = replace(fit_evidence_gate(runs, p0),

@@ -37,7 +37,9 @@ Per 20 Hz tick (:meth:`GripEstimator.step`), all in ISO 8855 body axes and SI un
   (robust to a stray one) is given on for ``hold_m`` metres after the latest, with its half-widths grown by
   ``hold_widen_per_m`` per metre (the road met since may differ), but only while the tyres are excited, the
   axle force ratio at least ``hold_min_use`` times the held friction (straight driving and gentle corners stay
-  unknown); a change of road within that distance is its failure mode (see the README);
+  unknown), and while the held median's own calibrated error (:attr:`GripParams.hold_err90`) and its published
+  half-width, both widened, stay within the gates; a change of road within that distance is its failure mode (see
+  the README);
 * the limit's own evidence, whatever the road: the trail-to-lateral-utilisation curve (the brush model's
   monotone curve measured on the car's own tyres, :attr:`GripParams.util_at_trail`, see
   ``tools/grip_study.py``) where the trail is read (for this evidence also under a longitudinal force up to
@@ -157,6 +159,10 @@ class GripParams:
         hold_count, hold_m, hold_widen_per_m, hold_min_use: the held friction (see the module docstring): the
             median of this many latest given estimates, given on for this many metres after the latest (0: not
             held), its half-width grown this much per metre, while ``n >= hold_min_use * mu``.
+        hold_err90: per band of ``mu_bands``, the 90th percentile of the held friction's absolute error on the
+            calibration's data (the median of ``hold_count`` readings errs less than one reading): the gate
+            ``halfwidth_max`` reads it, widened as held, for a held friction. Empty (the older files' meaning): the
+            gate reads the latest given reading's pooled error instead.
         mu_road_max: the highest road friction the car is rated for; ``n / mu_road_max`` is a floor of the
             warning's evidence (0: none), and the friction the driver's demand is set against where none is held.
         demand_lead_s: the steering's lateral demand looks this far ahead along its rate (s; 0: the steady state
@@ -239,6 +245,7 @@ class GripParams:
     pressure_grid_pa: tuple[float, ...] = ()
     trail_at_pressure: tuple[tuple[float, ...], ...] = ()
     peak_at_pressure: tuple[float, ...] = ()
+    hold_err90: tuple[float, ...] = ()
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -253,6 +260,9 @@ class GripParams:
             raise ValueError("grip params: interval_at_trail needs a curve per mu band, a value per trail knot")
         if any(not 0.0 <= x < math.inf for c in self.interval_at_trail for x in c):
             raise ValueError("grip params: interval_at_trail values must be finite and >= 0")
+        if self.hold_err90 and (len(self.hold_err90) != len(self.mu_bands) or any(
+                isinstance(x, bool) or not 0.0 <= x < math.inf for x in self.hold_err90)):
+            raise ValueError("grip params: hold_err90 needs a finite value >= 0 per mu band")
         if not self.interval_max > 0.0:  # (also refuses nan)
             raise ValueError("grip params: interval_max must be > 0 (inf: no limit)")
         if not (0.0 <= self.trail_pressure_coeff < 2.0 and 0.0 <= self.pressure_nominal_pa < math.inf) or (
@@ -316,7 +326,7 @@ class GripParams:
 #: fields a parameter file may leave out (their defaults: the older files' meaning)
 _OPTIONAL = ("source", "demand_lead_s", "demand_mu_held", "load_transfer", "evidence_mu_held", "interval_at_trail",
              "interval_max", "evidence_long_ratio", "pressure_nominal_pa", "trail_pressure_coeff", "pressure_grid_pa",
-             "trail_at_pressure", "peak_at_pressure")
+             "trail_at_pressure", "peak_at_pressure", "hold_err90")
 
 
 def _tuples(v: Any) -> Any:
@@ -437,6 +447,7 @@ class GripEstimator:
             #: the latest given friction, its half-width and the distance travelled since (m)
             self._mu_held, self._hw_held, self._held_m = math.inf, math.inf, math.inf
             self._hwp_held = math.inf  # (the published half-width of the latest given)
+            self._err_held = math.inf  # (the held median's calibrated error, hold_err90 of its band)
             self._recent: deque[float] = deque(maxlen=max(int(self.params.hold_count), 1))
             self._fresh = MEDIAN_EVERY  # (given estimates since the held median was last taken)
 
@@ -541,7 +552,8 @@ class GripEstimator:
         s.held = False
         if s.mu != s.mu and self._held_m <= p.hold_m and n >= p.hold_min_use * self._mu_held:
             widen = p.hold_widen_per_m * self._held_m  # (the road met since may differ)
-            if self._hw_held + widen <= p.halfwidth_max and self._hwp_held + widen <= p.interval_max:
+            err = self._err_held if p.hold_err90 else self._hw_held
+            if err + widen <= p.halfwidth_max and self._hwp_held + widen <= p.interval_max:
                 s.mu, s.halfwidth, s.held = self._mu_held, self._hwp_held + widen, True
         ev = max(ev, self._slip(vx, yaw_rate, steer_angle, wheel_fl + wheel_fr, fx_now))
         self._mu_age += self.dt
@@ -642,6 +654,9 @@ class GripEstimator:
             if len(r) == r.maxlen and self._fresh >= MEDIAN_EVERY:  # hold the median of the latest given (robust
                 self._mu_held, self._fresh = sorted(r)[len(r) // 2], 0  # to a stray one; sorted every few ticks)
                 self.mu_ref = self._mu_held + hw
+                if p.hold_err90:
+                    self._err_held = p.hold_err90[min(bisect.bisect_left(self._bands, self._mu_held),
+                                                      len(self._bands) - 1)]
         else:
             s.mu = s.halfwidth = math.nan
         return ev
@@ -693,7 +708,8 @@ def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np
             :func:`virtsensor.learning.gripscore.model_outside`; None: never): no friction is read there.
 
     Returns:
-        ``util``, ``mu``, ``halfwidth`` (nan where unknown), ``warning`` (bool), ``trail_m``, ``force_ratio``, and
+        ``util``, ``mu``, ``halfwidth`` (nan where unknown), ``warning`` and ``held`` (bool: the friction given is
+        the held one, :attr:`GripState.held`), ``trail_m``, ``force_ratio``, and
         ``peak_ratio``: the tyre's peak lateral force at the tick's pressure relative to the calibration's (1 where
         the pressure is unknown, the SATs' model does not read it or the calibration has no curves at other
         pressures; what the curves were scaled by, :meth:`GripEstimator.set_front_pressure`).
@@ -703,7 +719,7 @@ def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np
     n = len(sat_fl)
     press = front_pressure(table, n).tolist()
     out = {k: np.full(n, np.nan) for k in ("util", "mu", "halfwidth", "trail_m", "force_ratio", "peak_ratio")}
-    warn = np.zeros(n, dtype=bool)
+    warn, held = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
     fl, fr = np.asarray(sat_fl, float).tolist(), np.asarray(sat_fr, float).tolist()
     out_rows = [False] * n if outside is None else np.asarray(outside, dtype=bool).tolist()
     for i in range(n):
@@ -711,6 +727,6 @@ def estimate_run(table: Mapping[str, np.ndarray], sat_fl: np.ndarray, sat_fr: np
         s = est.step(fl[i], fr[i], ax[i], ay[i], vx[i], r[i], sw[i], tm[i], wl[i], wr[i], out_rows[i])
         out["util"][i], out["mu"][i], out["halfwidth"][i] = s.util, s.mu, s.halfwidth
         out["trail_m"][i], out["force_ratio"][i], out["peak_ratio"][i] = s.trail_m, s.force_ratio, est.peak_ratio
-        warn[i] = s.warning
-    out["warning"] = warn
+        warn[i], held[i] = s.warning, s.held
+    out["warning"], out["held"] = warn, held
     return out
