@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim.params import CONTROL_PERIOD_S
-from sim.vehicle import IOM, IPSI, IR, IS, ISW, IVX, IX, IY, Inputs, Vehicle
+from sim.vehicle import IKA, IOM, IPSI, IR, IS, ISW, IVX, IX, IY, Inputs, Vehicle
 
 # steering modes
 STEER_TABLE, STEER_PATH, STEER_HOLD, STEER_FREE = 0, 1, 2, 3
@@ -59,7 +59,8 @@ class Plan:
             where the profile brakes, not a speed error later) and never asks for more
             drive or brake force than these shares of the grip left beside the
             cornering (a driver feathering throttle and brake; the car has no
-            traction control or ABS). None: speed feedback only, uncapped.
+            traction control or ABS), letting the brakes off while a wheel starts to
+            lock (:meth:`Driver._lock_relief`). None: speed feedback only, uncapped.
         track_half_width_m: while following the path, the car has left the track once
             its centre is farther than this from the path (m); the run ends there
             (:meth:`Driver.off_track`). None: no limit.
@@ -126,6 +127,13 @@ class Driver:
 
     WINDOW = 40  # path points searched ahead of the last nearest point
     REACQUIRE_M = 8.0  # lateral distance beyond which the nearest point is searched along the whole path
+    #: braking slip (-) of the more slipping wheel of an axle at which the track driver starts letting
+    #: brakes off, and at which they are fully off (:meth:`_lock_relief`): the rear brakes by the rear
+    #: wheels, the pedal by the front wheels. Braking straight at the plan's 0.5 g (0.8 g), a rear tyre
+    #: slips 0.9 % (1.7 %); at 3.5 % and 4.5 deg of slip angle it has lost about a tenth of its side force. A
+    #: tyre's braking force peaks at 10-12 % slip (12-24 % with slip angle): 15 % is a wheel locking.
+    REAR_SLIP_RELIEF = (0.035, 0.05)
+    FRONT_SLIP_RELIEF = (0.15, 0.25)
 
     def __init__(self, vehicle: Vehicle, plans: Sequence[Plan], params: Sequence[dict]):
         if len(plans) != vehicle.B:
@@ -217,6 +225,7 @@ class Driver:
         self.cmd_rate = np.zeros(B)
         self.motor = np.zeros(B)
         self.brake = np.zeros(B)
+        self.rear_relief = np.ones(B)  # share of the balance's rear brake torque applied (1: none let off)
         self.lat_err = np.zeros(B)
         self.station_m = np.zeros(B)  #: (B,) each car's foot on its path (m from its start), last update
         self._rows = np.arange(B)
@@ -347,6 +356,51 @@ class Driver:
         bottom = -np.where(np.isfinite(self.grip_brake), self.grip_brake, 0.0) * v.m * mu_g * room
         return np.clip(force, bottom, top)
 
+    def _lock_relief(self, x: np.ndarray, acting: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(pedal, rear) shares (0..1, each (B,)) of its brake demand, and of the balance's rear
+        brake torque, that a driver following ``path_speed`` keeps while a wheel starts to lock.
+
+        The brakes have a fixed front/rear balance and the car no ABS or EBD. Braking out of a
+        corner unloads the inner rear wheel (to 820 N of its 2,850 N static load at Montreal); the
+        balance's rear share saturates it, its side force goes, the car oversteers and, under the
+        driver's correction, spins. Braking into a tight corner locks the inner front wheel and
+        the car runs straight on. So the driver (or an EBD/ABS modulating its pressure) lets off:
+
+        * the rear brakes, as the more slipping rear wheel's braking slip rises from
+          ``REAR_SLIP_RELIEF[0]`` (share 1) to ``REAR_SLIP_RELIEF[1]`` (share 0), linearly; the
+          front brakes stay on, and with them most of the deceleration;
+        * the whole pedal, as the more slipping front wheel's slip rises over ``FRONT_SLIP_RELIEF``.
+
+        The braking slip is ``-kappa`` of the tyre model, ``kappa = (omega r - v) / |v|`` (the
+        longitudinal slip state, which an ABS estimates from the wheel speeds). Acts only where
+        ``acting`` (runs braking under :meth:`_graded_force`); elsewhere, and wherever the slip is
+        under the first threshold, both shares are exactly 1.0: those runs are unchanged.
+        """
+        ones = np.ones(self.v.B)
+        if not acting.any():
+            return ones, ones
+        slip = -x[:, IKA]
+
+        def share(axle: slice, relief: tuple[float, float]) -> np.ndarray:
+            on, off = relief
+            return np.where(acting, np.clip((off - slip[:, axle].max(axis=1)) / (off - on), 0.0, 1.0), ones)
+
+        return share(slice(0, 2), self.FRONT_SLIP_RELIEF), share(slice(2, 4), self.REAR_SLIP_RELIEF)
+
+    def _brake_torques(self, x: np.ndarray, brake_dem: np.ndarray, graded: np.ndarray) -> np.ndarray:
+        """(B, 4) brake torques (Nm) for a front brake demand ``brake_dem`` (Nm per wheel), the rear
+        at the balance's share, through the hydraulics' lag; runs ``graded`` braking let off as a
+        wheel starts to lock (:meth:`_lock_relief`; the rear's let-off through the same lag)."""
+        v = self.v
+        a_brake = CONTROL_DT / np.maximum(v.brake_tau, CONTROL_DT)
+        pedal, rear = self._lock_relief(x, graded & (brake_dem > 0.0))
+        self.rear_relief += (rear - self.rear_relief) * a_brake
+        self.brake += (brake_dem * pedal - self.brake) * a_brake
+        brake = np.empty((v.B, 4))
+        brake[:, :2] = self.brake[:, None]
+        brake[:, 2:] = (self.brake * (1.0 - v.brake_share) / v.brake_share * self.rear_relief)[:, None]
+        return brake
+
     # ---- the control step -------------------------------------------------------------
     def update(self, k: int, x: np.ndarray) -> Inputs:
         """Actuator inputs for control step ``k`` (time ``k * CONTROL_DT``) at state ``x``."""
@@ -407,14 +461,10 @@ class Driver:
         motor_dem = np.clip(motor_dem, -tmax, tmax)
         brake_dem = np.clip(brake_dem, 0.0, v.brake_front_max)
         self.motor += (motor_dem - self.motor) * (CONTROL_DT / np.maximum(v.motor_tau, CONTROL_DT))
-        self.brake += (brake_dem - self.brake) * (CONTROL_DT / np.maximum(v.brake_tau, CONTROL_DT))
+        brake = self._brake_torques(x, brake_dem, graded)
 
-        B = v.B
-        drive = np.zeros((B, 4))
+        drive = np.zeros((v.B, 4))
         drive[:, :2] = (0.5 * v.gear * v.eta * self.motor)[:, None]
-        brake = np.empty((B, 4))
-        brake[:, :2] = self.brake[:, None]
-        brake[:, 2:] = (self.brake * (1.0 - v.brake_share) / v.brake_share)[:, None]
         return Inputs(
             steer_cmd=self.cmd_sw.copy(),
             steer_cmd_rate=self.cmd_rate.copy(),
