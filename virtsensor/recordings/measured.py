@@ -139,7 +139,9 @@ def _check_units(path: Path, table: Mapping[str, np.ndarray]) -> None:
         k_lo = 1.0 / (18.0 * 3.0)
         big = ok & (np.abs(sw) > 0.3 * np.nanmax(np.abs(sw[ok])))
         if big.sum() > 10:
-            gain = np.sum(yaw[big] * sw[big] * vx[big]) / np.sum((sw[big] * vx[big]) ** 2)
+            # amplitudes, as in _kinematic_checks: a least-squares gain falls with a lag between the two (a yaw
+            # rate delayed 0.15 s in a 2 Hz sine gives a negative one), and a sensor delay is what diagnose seeks
+            gain = np.sqrt(np.sum(yaw[big] ** 2) / np.sum((sw[big] * vx[big]) ** 2))
             if gain < 0.1 * k_lo:
                 raise UserError(f"{path}: steer_angle_rad is far too large for the yaw rate it gives "
                                 f"(steering ratio {1.0 / (gain * 2.7):.0f}:1); degrees instead of radians?")
