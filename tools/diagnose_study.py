@@ -125,6 +125,9 @@ def score_case(spec: dict[str, Any], seed: int, case, res: dict[str, Any], t_gen
                       "estimate": hit["estimate"] if hit else None, "ci95": hit["ci95"] if hit else None,
                       "covered": bool(hit and hit["ci95"][0] <= h.value <= hit["ci95"][1]) if hit else None})
     kind = spec["kind"]
+    # what the answer names that was not hidden (a second cause beside the right first one, any cause on a control
+    # or out-of-catalogue day): what an engineer would change on the car for nothing
+    not_there = [c for c in named if c not in {(h.cause, h.signal) for h in hidden}]
     if kind in ("single", "mixed"):
         right = bool(found and found[0]["named"] and named and named[0] == (hidden[0].cause, hidden[0].signal))
     elif kind == "two":
@@ -146,7 +149,8 @@ def score_case(spec: dict[str, Any], seed: int, case, res: dict[str, Any], t_gen
     gain = res.get("gain") or {}
     return {"case": spec["case"], "kind": kind, "seed": seed, "hidden": [h.as_dict() for h in hidden],
             "foreign": case.foreign.as_dict() if case.foreign else None, "mixed": case.conditions is not None,
-            "answer": res.get("cause"), "named": named, "right": right, "found": found, "mu": mu_cov,
+            "answer": res.get("cause"), "named": named, "not_there": not_there, "right": right, "found": found,
+            "mu": mu_cov,
             "unexplained": res.get("unexplained"), "residuals": res.get("residuals"),
             "mae_before_nm": res.get("mae_before_nm"), "mae_after_nm": res.get("mae_after_nm"),
             "mae_calibrated_nm": (res.get("holdout_after") or {}).get("mae_nm"),
@@ -228,6 +232,7 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "two_right": (sum(r["right"] for r in by["two"]), len(by["two"])),
         "foreign_right": (sum(r["right"] for r in by["foreign"]), len(by["foreign"])),
         "control_right": (sum(r["right"] for r in by["control"]), len(by["control"])),
+        "named_not_there": (sum(bool(r.get("not_there")) for r in rows), len(rows)),
         "covered": (sum(bool(f["covered"]) for f in named), len(named)),
         "mu_covered": (sum(m["covered"] for m in mus), len(mus)),
         "median_gain": float(np.median(gains)) if gains else float("nan"),
@@ -249,6 +254,8 @@ def summary(rows: list[dict[str, Any]]) -> str:
         f"- two-effect days, both causes named: {_pct(*f['two_right'])}",
         f"- out-of-catalogue effects answered `unexplained`: {_pct(*f['foreign_right'])}",
         f"- controls answering `none`: {_pct(*f['control_right'])}",
+        f"- days whose answer names a cause that was not hidden (a second cause beside a right first one counts; "
+        f"scored right or not above): {_pct(*f['named_not_there'])}",
         f"- 95 % intervals of the named hidden effects covering the truth: {_pct(*f['covered'])}",
         f"- per-run friction (runs that excite it) covered by its 95 % interval: {_pct(*f['mu_covered'])}",
         f"- held-out SAT MAE improvement (estimator kept), median over {len(f['gains'])} cases with a catalogue "
@@ -275,7 +282,11 @@ def summary(rows: list[dict[str, Any]]) -> str:
                         if x["named"]) or "-"
         cov = "; ".join(str(x["covered"]) for x in r["found"] if x["named"]) or "-"
         mb, ma = r.get("mae_before_nm"), r.get("mae_after_nm")
-        lines.append(f"| {r['case']} | {r['kind']} | {hid} | {ans}{'' if r['right'] else ' **(wrong)**'} | {est} | "
+        flag = "" if r["right"] else " **(wrong)**"
+        if r.get("not_there"):
+            extra = ", ".join(f"{c}{'[' + s + ']' if s else ''}" for c, s in r["not_there"])
+            flag += f" (names {extra}, not there)"
+        lines.append(f"| {r['case']} | {r['kind']} | {hid} | {ans}{flag} | {est} | "
                      f"{cov} | {mb if mb is None else f'{mb:.2f}'} | {ma if ma is None else f'{ma:.2f}'} | "
                      f"{r.get('estimator_kept') or '-'} | {r['seconds_diagnose']:.0f} |")
     return "\n".join(lines) + "\n"
