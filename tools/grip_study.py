@@ -323,9 +323,9 @@ def _given_within(res: dict) -> tuple[float, float]:
 
 def fit_hold(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
     """The hold (:func:`_fit_hold`) gated by the held median's own error (:func:`fit_hold_error`): that error is
-    measured with ``p``'s count first, the hold chosen under it, and measured again for the count chosen."""
-    q = _fit_hold(runs, fit_hold_error(runs, p))
-    return fit_hold_error(runs, q) if q.hold_count != p.hold_count else q
+    measured with ``p``'s hold first, the hold chosen under it, and the error measured again for the hold chosen
+    (it depends on the count and the distance: a fit that starts from its own result gives it again)."""
+    return fit_hold_error(runs, _fit_hold(runs, fit_hold_error(runs, p)))
 
 
 def _fit_hold(runs: list[dict], p: grip.GripParams) -> grip.GripParams:
