@@ -65,7 +65,7 @@ class GripOutput:
             s in signals for s in PRESSURE_INPUTS) else ()
         self.estimator = GripEstimator(params, sat_reads_pressure=sat_reads_pressure)
         #: the statuses of the latest ticks that gave a friction (those the held median rests on)
-        self._given: deque[int] = deque([VALID], maxlen=max(int(self.estimator.params.hold_count), 1))
+        self._given: deque[int] = deque(maxlen=max(int(self.estimator.params.hold_count), 1))
         self._names = tuple(GRIP_SIGNALS)  # util, mu, half-width
         #: VS_Grip signal -> value (nan -> SNA), status codes
         self.values: dict[str, float] = {n: math.nan for n in self._names}

@@ -91,6 +91,12 @@ class MeasuredRun:
         return {k: v[seg.start:seg.stop] for k, v in self.table.items()}
 
 
+def _rms_ratio(y: np.ndarray, x: np.ndarray) -> float | None:
+    """RMS of ``y`` over RMS of ``x`` (same rows; None where ``x`` is all zero): an amplitude ratio, blind to a lag."""
+    xx = float(np.sum(x ** 2))
+    return float(np.sqrt(np.sum(y ** 2) / xx)) if xx > 0 else None
+
+
 def _kinematic_checks(table: Mapping[str, np.ndarray]) -> list[tuple[str, float]]:
     """Amplitude ratios (RMS over RMS) of a signal to what kinematics predicts from others (about 1 when the
     units are right): speed against the front wheel speeds times a passenger-car rolling radius (0.30 m,
@@ -101,8 +107,7 @@ def _kinematic_checks(table: Mapping[str, np.ndarray]) -> list[tuple[str, float]
         ok = np.isfinite(y) & np.isfinite(x)
         if ok.sum() < 20 or np.max(np.abs(x[ok])) < min_ref:
             return None  # not excited enough to tell
-        xx = float(np.sum(x[ok] ** 2))
-        return float(np.sqrt(np.sum(y[ok] ** 2) / xx)) if xx > 0 else None
+        return _rms_ratio(y[ok], x[ok])
 
     out = []
     wheels = 0.5 * (table["wheel_speed_fl_radps"] + table["wheel_speed_fr_radps"])
@@ -141,8 +146,8 @@ def _check_units(path: Path, table: Mapping[str, np.ndarray]) -> None:
         if big.sum() > 10:
             # amplitudes, as in _kinematic_checks: a least-squares gain falls with a lag between the two (a yaw
             # rate delayed 0.15 s in a 2 Hz sine gives a negative one), and a sensor delay is what diagnose seeks
-            gain = np.sqrt(np.sum(yaw[big] ** 2) / np.sum((sw[big] * vx[big]) ** 2))
-            if gain < 0.1 * k_lo:
+            gain = _rms_ratio(yaw[big], sw[big] * vx[big])
+            if gain is not None and gain < 0.1 * k_lo:
                 raise UserError(f"{path}: steer_angle_rad is far too large for the yaw rate it gives "
                                 f"(steering ratio {1.0 / (gain * 2.7):.0f}:1); degrees instead of radians?")
 
