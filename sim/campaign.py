@@ -364,6 +364,15 @@ def _backend_config(backend: str | None, parent_pid: int, n_jobs: int = -1) -> I
 
 
 @contextmanager
+def bound_workers(backend: str | None = None, n_jobs: int = -1) -> Iterator[None]:
+    """joblib configured as a campaign's (:func:`_backend_config`) for work other than a campaign's (the
+    diagnosis' re-simulations): local workers (loky) bound to this process from their start, so that they end
+    with it (SIGKILL at its death on Linux, else within :data:`WATCHDOG_S`), even while running a task."""
+    with _backend_config(backend, os.getpid(), n_jobs):
+        yield
+
+
+@contextmanager
 def _dask_client(n_jobs: int) -> Iterator[None]:
     """The current Dask client, a client of ``DASK_SCHEDULER_ADDRESS``, or a local cluster of ``n_jobs``
     single-threaded worker processes (all cores for -1) that ends with the campaign."""

@@ -11,57 +11,19 @@ import time
 from pathlib import Path
 
 import pytest
+from proc_support import alive as _alive
+from proc_support import cpu_s as _cpu_s
+from proc_support import descendants as _descendants
 
 from virtsensor.cli import main
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc to find the workers")
 
 
-def _parents() -> dict[int, int]:
-    out = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                stat = (d / "stat").read_text()
-            except OSError:
-                continue
-            out[int(d.name)] = int(stat.rsplit(")", 1)[1].split()[1])
-    return out
-
-
-def _descendants(pid: int) -> set[int]:
-    parents = _parents()
-    found, frontier = set(), {pid}
-    while frontier:
-        frontier = {p for p, pp in parents.items() if pp in frontier} - found
-        found |= frontier
-    return found
-
-
-def _alive(pids: set[int]) -> set[int]:
-    alive = set()
-    for p in pids:
-        try:
-            state = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0]
-        except OSError:
-            continue
-        if state != "Z":
-            alive.add(p)
-    return alive
-
-
 def _snapshot(d: Path) -> dict[str, tuple[int, int]]:
     if not d.exists():
         return {}
     return {f.name: (f.stat().st_size, f.stat().st_mtime_ns) for f in d.iterdir()}
-
-
-def _cpu_s(pid: int) -> float:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _start_and_wait_for_work(out: Path) -> tuple[subprocess.Popen, set[int]]:

@@ -33,7 +33,8 @@ def run_parallel(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], *, n_
                  backend: str = "loky") -> list[Any]:
     """``[fn(*args) for args in calls]``, in order, on ``n_jobs`` workers of ``backend``.
 
-    One call or one worker (loky) runs in this process."""
+    One call or one worker (loky) runs in this process. Local workers end with this process, as a campaign's
+    (:func:`sim.campaign.bound_workers`): killed or interrupted, it leaves none running."""
     if backend == "loky" and (n_jobs == 1 or len(calls) <= 1):
         return [fn(*a) for a in calls]
     from joblib import Parallel, delayed, parallel_backend
@@ -48,4 +49,7 @@ def run_parallel(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], *, n_
             ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
         with parallel_backend("ray"):
             return list(Parallel(n_jobs=n_jobs)(delayed(fn)(*a) for a in calls))
-    return list(Parallel(n_jobs=n_jobs, backend=backend)(delayed(fn)(*a) for a in calls))
+    from sim.campaign import bound_workers
+
+    with bound_workers(backend, n_jobs):  # (the workers end with this process, even in the middle of a call)
+        return list(Parallel(n_jobs=n_jobs)(delayed(fn)(*a) for a in calls))
