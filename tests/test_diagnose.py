@@ -1027,3 +1027,50 @@ def test_a_run_left_out_is_no_fold_of_the_held_out_evidence():
     assert data.n_folds == 2 * (MIN_FOLDS - 1)  # (fewer runs than MIN_FOLDS: halves of each)
     assert data.fold_names[:2] == ["run0#1", "run0#2"] and len(data.fold_names) == data.n_folds
     assert np.all(np.bincount(data.fold["ay_mps2"], minlength=data.n_folds) > 0)
+
+
+def test_the_named_cause_is_estimated_where_it_fits_best():
+    """A named cause's search goes on until it converges, and its estimate is where the day fits best. -2 log L sums
+    the signals' log residuals, so it falls steeply into the truth: the parabola through the few points every
+    candidate gets misplaces the minimum, and a second cause was named to make up the difference (study seed 61000,
+    case 18: a payload of 149 kg searched at 0, 235 and 417 kg, put at 184 kg and simulated at 235 kg, with a
+    suspension-deflection gain named beside it). Here the day of a 149 kg payload, its signals linear in the
+    payload: after the first rounds the estimate is off by more than half the payload's stated accuracy and the car
+    simulated for it by more than all of it; the converged search puts them within a fifth and a half of it, and
+    the stage's fits hold the converged one."""
+    from virtsensor.diagnose import identify as idn
+    from virtsensor.recordings.measured import MeasuredRun, Segment
+
+    n, names, truth = 400, ("ay_mps2", "yaw_rate_radps"), 149.0
+    t = np.arange(n) * 0.05
+    shape = np.sin(0.7 * t) + 0.3 * np.sin(2.3 * t)
+
+    def response(m: float) -> dict[str, np.ndarray]:
+        return {"ay_mps2": 3.0 * shape * (1.0 + m / 1000.0), "yaw_rate_radps": 0.3 * shape * (1.0 - m / 2000.0)}
+
+    rng = np.random.default_rng(3)
+    runs = [MeasuredRun(f"r{i}", Path(f"r{i}.csv"), {"time_s": t, **{k: v + 0.002 * rng.normal(size=n) * (
+        10.0 if k == "ay_mps2" else 1.0) for k, v in response(truth).items()}}, [Segment(0, n)]) for i in range(3)]
+
+    class Sim:
+        background: tuple = ()
+        count = 0
+
+        def run(self, hyps, keep=None):
+            self.count += len(hyps)
+            return [[[{"pred": response(h.value if h.cause == "vehicle_mass" else 0.0)}] for _ in runs] for h in hyps]
+
+    cand = next(c for c in idn.candidates() if c.key == "vehicle_mass")
+    data, sim = idn.Data(runs, names), Sim()
+    stage = idn._stage(data, sim, [cand], None, lambda msg: None)
+    fit = stage.fits[0]
+    tol = EFFECTS["vehicle_mass"].tolerance[0]
+    assert abs(fit.sim_value - truth) > tol and abs(fit.estimate - truth) > 0.5 * tol, (
+        "the first rounds already converged: the test shows nothing", fit.points)
+    before = sim.count
+    got = idn._converge(data, sim, stage, fit, lambda msg: None)
+    assert abs(got.estimate - truth) < 0.2 * tol, (got.estimate, got.points)
+    assert abs(got.sim_value - truth) < 0.5 * tol, got.sim_value  # (the car the second stage starts from)
+    assert 0 < sim.count - before <= idn.CONVERGE_ROUNDS + 1
+    assert stage.fits == [got] and got.significant and got.ci95[0] < truth < got.ci95[1]
+    assert idn._converge(data, sim, stage, got, lambda msg: None) is got  # converged: nothing more to simulate
