@@ -690,9 +690,13 @@ def _converge(data: Data, sim: Sim, stage: Stage, fit: Fit, log) -> Fit:
     if not c.needs_sim:
         return fit
     s = _Search(c)
-    for v, m in fit.points:
-        o = stage.sims_of.get((c.key, v))
-        s.add(v, m, data.rss(o) if o is not None else (stage.rss0 if v == c.nominal else None))
+    have = [v for k, v in stage.sims_of if k == c.key]
+    for v, m in fit.points:  # (each at the value it was simulated at: a log search's points went through exp(log))
+        k = min(have, key=lambda h: abs(h - v), default=None)
+        if k is not None and abs(k - v) <= 1e-9 * max(1.0, abs(v)):
+            s.add(k, m, data.rss(stage.sims_of[(c.key, k)]))
+        else:
+            s.add(v, m, stage.rss0 if v == c.nominal else None)
     if _converge_search(data, sim, s, stage.sims_of, log) == 0:
         return fit
     new = _search_fit(data, s, stage.sims_of, stage.background)
