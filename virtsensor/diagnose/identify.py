@@ -508,6 +508,7 @@ class Stage:
     f0: float
     sims_of: dict[tuple[str, float], Any]
     feff: float = 1.0
+    searches: dict[str, _Search] = field(default_factory=dict)  # the re-simulated candidates' searches
 
 
 def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[str, ...], *, mu: float = 1.0,
@@ -674,10 +675,10 @@ POLISH = 0.025
 
 
 def _converge(data: Data, sim: Sim, stage: Stage, fit: Fit, log) -> Fit:
-    """A re-simulated candidate's search of ``stage`` continued until it converges (the vertex within a tenth of a
-    step of a point evaluated, in a bracket of at most four tenths: :meth:`_Search.propose`), at most
+    """A re-simulated candidate's search (``stage.searches``) continued until it converges (the vertex within a
+    tenth of a step of a point evaluated, in a bracket of at most four tenths: :meth:`_Search.propose`), at most
     :data:`CONVERGE_ROUNDS` more simulations; the new fit, scored, replaces ``fit`` in ``stage.fits`` (best first).
-    ``fit`` itself when it needs no simulation or its search had converged.
+    ``fit`` itself when it needs no simulation, has no search in ``stage`` or its search had converged.
 
     The screening and the few refinement rounds all candidates get rank them; the cause named is then estimated
     where its misfit is least, and its simulation is the car the second stage starts from. -2 log L sums the
@@ -687,16 +688,9 @@ def _converge(data: Data, sim: Sim, stage: Stage, fit: Fit, log) -> Fit:
     difference; on case 18 (a payload of 149 kg) the second stage started from 235 kg, the best value evaluated,
     and named a suspension-deflection gain."""
     c = fit.candidate
-    if not c.needs_sim:
+    s = stage.searches.get(c.key)
+    if not c.needs_sim or s is None:
         return fit
-    s = _Search(c)
-    have = [v for k, v in stage.sims_of if k == c.key]
-    for v, m in fit.points:  # (each at the value it was simulated at: a log search's points went through exp(log))
-        k = min(have, key=lambda h: abs(h - v), default=None)
-        if k is not None and abs(k - v) <= 1e-9 * max(1.0, abs(v)):
-            s.add(k, m, data.rss(stage.sims_of[(c.key, k)]))
-        else:
-            s.add(v, m, stage.rss0 if v == c.nominal else None)
     if _converge_search(data, sim, s, stage.sims_of, log) == 0:
         return fit
     new = _search_fit(data, s, stage.sims_of, stage.background)
@@ -815,6 +809,7 @@ def _joint_pass(data: Data, sim: Sim, conds: Sequence[Any], first: Stage, chosen
             search.add(v, data.m2ll(rss), rss)
             first.sims_of[(c.key, v)] = o
         _converge_search(data, sim, search, first.sims_of, log)
+        first.searches[c.key] = search
         fit = _search_fit(data, search, first.sims_of, first.background)
     else:
         fit = _exact_fit(data, first.background, c, first.rss0)
@@ -850,7 +845,7 @@ def _stage(data: Data, sim: Sim, cands: Sequence[Candidate], background: Any, lo
     ranked = sorted(searches.values(), key=lambda s: s.best()[1])[:REFINE_TOP if feff is None else SECOND_TOP]
     _refine(data, ranked, sims_of, sim, log, REFINE_ROUNDS if feff is None else SECOND_ROUNDS)
     fits.extend(_search_fit(data, s, sims_of, background) for s in searches.values())
-    stage = Stage(fits, background, rss0, f0, sims_of)
+    stage = Stage(fits, background, rss0, f0, sims_of, searches=searches)
     if feff is None:
         feff = _feff(data, stage) if fits else 1.0
     stage.feff = feff
