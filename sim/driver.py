@@ -163,6 +163,7 @@ class Driver:
         self.preview_time = dp("preview_time_s")
         self.preview_min = dp("preview_min_m")
         self.k_lat_i = dp("lateral_integral_gain")
+        self.v_lat_i = dp("lateral_integral_speed_mps")
         self.k_v = dp("speed_gain_npmps")
         self.k_vi = dp("speed_integral_gain")
         self.sw_lock = np.array([t["steering"]["ratio"] * t["steering"]["max_road_wheel_angle_rad"] for t in params])
@@ -286,7 +287,11 @@ class Driver:
         dist2 = np.maximum(dxg * dxg + dyg * dyg, 1.0)
         curvature = 2.0 * y_local / dist2
         self.lat_int += err * CONTROL_DT
-        delta = np.arctan(v.L * curvature) - self.k_lat_i * self.lat_int
+        # pure pursuit's loop gain does not change with speed (its preview grows with it: 2 v^2 / ld^2), the
+        # integral's grows with v^2 (lateral acceleration per road-wheel angle): above the speed it was validated at,
+        # it keeps the weight it has there (at the full gain a dry Baku lap at 200 km/h weaved off its straight)
+        k_i = self.k_lat_i * np.minimum(1.0, (self.v_lat_i / speed) ** 2)
+        delta = np.arctan(v.L * curvature) - k_i * self.lat_int
         # a driver does not wind the wheels far past the tyres' grip: at most the
         # kinematic angle of the sharpest curvature over the search window ahead
         s_car = start + frac

@@ -254,6 +254,7 @@ BOUNDS: dict[str, Bound] = {
     "driver.preview_time_s": Bound(0.05, 5.0, "s"),
     "driver.preview_min_m": Bound(0.0, 50.0, "m"),
     "driver.lateral_integral_gain": Bound(0.0, 1.0, "rad/(m s)"),
+    "driver.lateral_integral_speed_mps": Bound(1.0, 150.0, "m/s"),
     "driver.speed_gain_npmps": Bound(0.0, 1e5, "N s/m"),
     "driver.speed_integral_gain": Bound(0.0, 1e5, "N/m"),
     "simulation.step_s": Bound(0.0, 0.01, "s", lo_open=True),

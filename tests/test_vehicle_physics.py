@@ -337,3 +337,22 @@ def test_path_following_puts_no_chatter_on_the_column(car):
     run = simulate_many([Request("double-lane-change", 40.0, 0.2, seed=2639215061)], car)[0].truth
     assert _hf_rms(run["assist_torque_true_nm"]) < 0.5
     assert np.abs(run["assist_torque_true_nm"]).max() < 8.0
+
+
+def test_the_path_follower_settles_after_a_kink_at_200_kmh(car):
+    """Following a straight with one S-kink (8 m across over ~150 m) at 55 m/s, the steering settles. Pure
+    pursuit's loop gain does not change with speed (its preview grows with it), but the lateral integral's grows
+    as v^2: at its full gain the steering kept weaving 20-30 deg peak to peak for 20 s after the kink, and a dry
+    Baku lap at 200 km/h weaved off its seafront straight. Above the speed the integral was validated at (150 km/h)
+    its gain now falls as 1/v^2; at or below it nothing changes."""
+    v, dur, ds = 55.0, 32.0, 2.0
+    xs = np.arange(0.0, v * (dur + 4) + 200, ds)
+    path = np.stack([xs, 4.0 * (1 + np.tanh((xs - 3.0 * v - 150.0) / 40.0))], axis=1)
+    plan = _path_plan(path, ds, np.full(len(xs), v), duration_s=dur, speed0_mps=v)
+    res = simulate_batch([plan], [car])
+    t, sw = res.time_s, np.degrees(res.data["steer_angle_true_rad"][0])
+    after = max(np.ptp(sw[(t >= a) & (t < a + 2.0)]) for a in (4.0, 6.0, 8.0))
+    last = np.ptp(sw[t >= dur - 4.0])
+    assert after > 15.0, after  # (the kink does excite the loop)
+    assert last < 0.3 * after, (last, after)
+    assert car["driver"]["lateral_integral_speed_mps"] == pytest.approx(150 / 3.6, abs=0.01)
