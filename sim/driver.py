@@ -286,12 +286,12 @@ class Driver:
         y_local = -dxg * np.sin(psi) + dyg * np.cos(psi)
         dist2 = np.maximum(dxg * dxg + dyg * dyg, 1.0)
         curvature = 2.0 * y_local / dist2
-        self.lat_int += err * CONTROL_DT
         # pure pursuit's loop gain does not change with speed (its preview grows with it: 2 v^2 / ld^2), the
         # integral's grows with v^2 (lateral acceleration per road-wheel angle): above the speed it was validated at,
-        # it keeps the weight it has there (at the full gain a dry Baku lap at 200 km/h weaved off its straight)
-        k_i = self.k_lat_i * np.minimum(1.0, (self.v_lat_i / speed) ** 2)
-        delta = np.arctan(v.L * curvature) - k_i * self.lat_int
+        # it gathers the error at (v_ref / v)^2, keeping the weight it has there (at the full gain a dry Baku lap at
+        # 200 km/h weaved off its straight); gathered, not applied, so that slowing down adds no steering
+        self.lat_int += err * CONTROL_DT * np.minimum(1.0, (self.v_lat_i / speed) ** 2)
+        delta = np.arctan(v.L * curvature) - self.k_lat_i * self.lat_int
         # a driver does not wind the wheels far past the tyres' grip: at most the
         # kinematic angle of the sharpest curvature over the search window ahead
         s_car = start + frac

@@ -344,7 +344,7 @@ def test_the_path_follower_settles_after_a_kink_at_200_kmh(car):
     pursuit's loop gain does not change with speed (its preview grows with it), but the lateral integral's grows
     as v^2: at its full gain the steering kept weaving 20-30 deg peak to peak for 20 s after the kink, and a dry
     Baku lap at 200 km/h weaved off its seafront straight. Above the speed the integral was validated at (150 km/h)
-    its gain now falls as 1/v^2; at or below it nothing changes."""
+    it now gathers the error at (v_ref / v)^2 of its rate; at or below it nothing changes."""
     v, dur, ds = 55.0, 32.0, 2.0
     xs = np.arange(0.0, v * (dur + 4) + 200, ds)
     path = np.stack([xs, 4.0 * (1 + np.tanh((xs - 3.0 * v - 150.0) / 40.0))], axis=1)
@@ -356,3 +356,19 @@ def test_the_path_follower_settles_after_a_kink_at_200_kmh(car):
     assert after > 15.0, after  # (the kink does excite the loop)
     assert last < 0.3 * after, (last, after)
     assert car["driver"]["lateral_integral_speed_mps"] == pytest.approx(150 / 3.6, abs=0.01)
+
+
+def test_slowing_down_adds_no_integral_steering(car):
+    """The integral's speed scaling sits on what it gathers, not on what it applies: a car on a straight path, on
+    the line, with an integral gathered earlier, gets the same steering command at 55 and at 45 m/s (scaled on the
+    output, braking from 200 to 150 km/h would raise the integral's share by 1.8 with no error to explain it)."""
+    ds = 2.0
+    xs = np.arange(0.0, 600.0, ds)
+    veh, drv = _sliding_driver(car, np.stack([xs, np.zeros_like(xs)], axis=1), ds)
+    cmds = []
+    for v in (55.0, 45.0, 30.0):
+        x = veh.initial_state(np.array([v]))
+        x[0, IX], x[0, IY], x[0, IPSI] = 100.0, 0.0, 0.0
+        drv.lat_int[:] = 0.8  # (m s, gathered before)
+        cmds.append(drv._follow(x)[0][0])
+    assert cmds[0] != 0.0 and cmds[0] == pytest.approx(cmds[1], rel=1e-9) == pytest.approx(cmds[2], rel=1e-9)
