@@ -806,6 +806,8 @@ def _joint_passes(data: Data, sim: Sim, conds: Sequence[Any], first: Stage, chos
         chosen_sims = _sims_for(fit, first.background, first.sims_of, data)
         if k + 1 < JOINT_PASSES:
             log(f"{fit.candidate.key} moved from {read_at:.4g} to {fit.estimate:.4g}: its runs' conditions again")
+        else:
+            log(f"{fit.candidate.key} still moved from {read_at:.4g} to {fit.estimate:.4g} after {JOINT_PASSES} passes")
     return fit, _cause_spread(data, sim, conds, first, fit, per_run, log)
 
 
@@ -841,7 +843,9 @@ def with_cause_spread(per_run: Sequence[Mapping[str, Any]], at_ends: Sequence[Se
     the grip) the conditions read at either end of the cause's 95 % interval (``at_ends``: :func:`_conditions_over`
     there) differ from the estimate: the larger difference (``cause_spread``, the condition's own units) is added in
     quadrature to each side of its interval, within its range (a side already at the range's end stays there, as the
-    model error's does in :func:`virtsensor.diagnose.nuisance.fit`). The estimates stay. Returns new dicts."""
+    model error's does in :func:`virtsensor.diagnose.nuisance.fit`), and ``excited``/``bounded_above`` say what
+    the widened interval does (one that now spans the whole range is no longer excited: the run cannot tell its
+    friction from the cause's). The estimates stay. Returns new dicts."""
     out: list[dict[str, Any]] = []
     for r, qs in enumerate(per_run):
         row: dict[str, Any] = {}
@@ -854,6 +858,7 @@ def with_cause_spread(per_run: Sequence[Mapping[str, Any]], at_ends: Sequence[Se
             if hi < g1 - 1e-9:
                 hi = min(g1, est + float(np.hypot(hi - est, spread)))
             d["ci95"], d["cause_spread"] = [lo, hi], float(spread)
+            d["excited"], d["bounded_above"] = bool(lo > g0 + 1e-9 or hi < g1 - 1e-9), bool(hi < g1 - 1e-9)
             row[q] = d
         out.append(row)
     return out
@@ -870,9 +875,9 @@ def _cause_spread(data: Data, sim: Sim, conds: Sequence[Any], first: Stage, fit:
     if not fit.significant or not (np.isfinite(lo) and np.isfinite(hi)) or not per_run:
         return per_run
     b0, b1 = c.bounds
-    sims = _sims_for(fit, first.background, first.sims_of, data)
-    ends = [_conditions_over(data, sim, conds, c, float(np.clip(v, b0, b1)), sims, log, keep_day=True)
-            for v in (lo, hi)]
+    vals = [float(np.clip(v, b0, b1)) for v in (lo, hi)]
+    at = sim.run([c.hyp(v) for v in vals], [True] * len(vals))  # (the car there: the runs whose values are known)
+    ends = [_conditions_over(data, sim, conds, c, v, o, log, keep_day=True) for v, o in zip(vals, at, strict=True)]
     return with_cause_spread(per_run, ends)
 
 

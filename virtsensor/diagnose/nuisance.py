@@ -20,9 +20,10 @@ quantity, the catalogue's stated accuracy of the matching day-wide cause
 half a grid step off, a sine with dwell at the grip limit left residuals several times a
 control day's). :func:`fit` returns the items of the nearest grid point meanwhile.
 
-Limitation: the quantities are identified on the car with no effect, then the day's cause
-with each run at its value (one pass of what would be an alternating joint fit): a cause
-that also acts on grip (a pressure, a payload) shifts the per-run friction it leaves.
+The quantities are first identified on the car with no effect, then the day's cause with each
+run at its value; :func:`virtsensor.diagnose.identify._joint_passes` alternates the two until
+the quantities are read at the cause's estimate, and widens their intervals by what the cause's
+own interval leaves unknown (a pressure or a payload also acts on grip).
 """
 
 from __future__ import annotations
