@@ -1142,3 +1142,6 @@ def test_a_runs_friction_interval_holds_what_the_cause_leaves_unknown():
     assert mu[2]["ci95"][0] == 0.85 and mu[2]["ci95"][1] == pytest.approx(0.88 + np.hypot(0.04, 0.02))
     assert per_run[0]["mu"]["ci95"] == [0.93, 1.01]  # (new dicts: the input is not changed)
     assert with_cause_spread(per_run, [])[0]["mu"]["ci95"] == [0.93, 1.01]
+    assert mu[2]["excited"] and mu[2]["bounded_above"]
+    wide = with_cause_spread([cond(0.97, 0.93, 1.01)], [[cond(0.77, 0.85, 0.9)]])[0]["mu"]
+    assert wide["ci95"] == [0.85, 1.15] and not wide["excited"] and not wide["bounded_above"]  # (the whole range)
