@@ -845,21 +845,17 @@ def with_cause_spread(per_run: Sequence[Mapping[str, Any]], at_ends: Sequence[Se
     quadrature to each side of its interval, within its range (a side already at the range's end stays there, as the
     model error's does in :func:`virtsensor.diagnose.nuisance.fit`), and ``excited``/``bounded_above`` say what
     the widened interval does (one that now spans the whole range is no longer excited: the run cannot tell its
-    friction from the cause's). The estimates stay. Returns new dicts."""
+    friction from the cause's; :func:`virtsensor.diagnose.nuisance.widened`). The estimates stay. Returns new
+    dicts."""
+    from virtsensor.diagnose import nuisance
+
     out: list[dict[str, Any]] = []
     for r, qs in enumerate(per_run):
         row: dict[str, Any] = {}
         for q, d in qs.items():
-            d = dict(d)
-            est, (lo, hi), (g0, g1) = d["estimate"], d["ci95"], d["range"]
+            est, (lo, hi) = d["estimate"], d["ci95"]
             spread = max((abs(end[r][q]["estimate"] - est) for end in at_ends if q in end[r]), default=0.0)
-            if lo > g0 + 1e-9:
-                lo = max(g0, est - float(np.hypot(est - lo, spread)))
-            if hi < g1 - 1e-9:
-                hi = min(g1, est + float(np.hypot(hi - est, spread)))
-            d["ci95"], d["cause_spread"] = [lo, hi], float(spread)
-            d["excited"], d["bounded_above"] = bool(lo > g0 + 1e-9 or hi < g1 - 1e-9), bool(hi < g1 - 1e-9)
-            row[q] = d
+            row[q] = {**d, **nuisance.widened(est, lo, hi, d["range"], spread), "cause_spread": float(spread)}
         out.append(row)
     return out
 

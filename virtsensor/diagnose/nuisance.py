@@ -85,6 +85,18 @@ def _interval(grid: np.ndarray, j: np.ndarray, feff: float) -> tuple[float, floa
     return est, min(lo, est), max(hi, est)
 
 
+def widened(est: float, lo: float, hi: float, rng: Sequence[float], extra: float) -> dict[str, Any]:
+    """An interval ``lo .. hi`` about ``est`` with ``extra`` (the quantity's units) added in quadrature to each side,
+    within the range ``rng``; a side already at the range's end stays there (the grid could not bound it). Returns
+    ``ci95``, ``excited`` (either side inside the range: the run bounds its value) and ``bounded_above``."""
+    g0, g1 = rng
+    if lo > g0 + 1e-9:
+        lo = max(g0, est - float(np.hypot(est - lo, extra)))
+    if hi < g1 - 1e-9:
+        hi = min(g1, est + float(np.hypot(hi - est, extra)))
+    return {"ci95": [lo, hi], "excited": bool(lo > g0 + 1e-9 or hi < g1 - 1e-9), "bounded_above": bool(hi < g1 - 1e-9)}
+
+
 def grid(conds: Sequence[Any]) -> dict[str, list[Any]]:
     """Per ranged quantity, the :data:`GRID` hypotheses that re-simulate every run with it unknown at its
     own grid points (the others keep their values)."""
@@ -133,12 +145,8 @@ def fit(data, sim, conds: Sequence[Any], nominal: Any, log, hyps_of: dict[str, l
         for r in who:
             est, lo, hi = _interval(grids[r], prof[r], feff)
             g0, g1 = conds[r].unknown()[q]
-            me = MODEL_ERROR.get(q, 0.0)
-            lo = max(g0, est - float(np.hypot(est - lo, me))) if lo > g0 + 1e-9 else lo
-            hi = min(g1, est + float(np.hypot(hi - est, me))) if hi < g1 - 1e-9 else hi
-            per_run[r][q] = {"estimate": est, "ci95": [lo, hi], "range": [g0, g1],
-                             "excited": bool(lo > g0 + 1e-9 or hi < g1 - 1e-9),
-                             "bounded_above": bool(hi < g1 - 1e-9)}
+            per_run[r][q] = {"estimate": est, "range": [g0, g1],
+                             **widened(est, lo, hi, (g0, g1), MODEL_ERROR.get(q, 0.0))}
             k = int(np.argmin(np.abs(grids[r] - est)))
             sim.day[r][q] = float(est)
             current[r] = outs[k][r]
