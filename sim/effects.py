@@ -32,7 +32,7 @@ from sim.params import apply_overrides
 
 #: the causes, in report order (``none`` is the answer when nothing explains the data)
 CAUSES = ("tyre_pressure", "sensor_delay", "sensor_offset", "sensor_gain", "vehicle_mass",
-          "steering_friction", "road_friction", "relaxation_length")
+          "steering_friction", "road_friction", "relaxation_length", "steering_ratio")
 
 #: signals a sensor effect may sit on: the 12 estimator inputs (Table II order)
 SENSOR_SIGNALS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "steer_torque_nm",
@@ -114,6 +114,11 @@ EFFECTS: dict[str, Effect] = {
                (0.15, 0.35), 0.05, (0.05, 0.3), -1),
         Effect("relaxation_length", "1", "scale of the tyres' relaxation lengths", 1.0, (0.25, 4.0),
                (0.8, 1.5), 0.3, (0.3, 0.35), +1),
+        # another rack (or pinion) than the car's: the road wheels turn 1/value as far for a steering-wheel angle,
+        # and the kingpin moments reach the column value times larger. Measured on the column, it looks like a
+        # steering-angle gain and a steering-torque gain at once (what the diagnosis named before it was here)
+        Effect("steering_ratio", "1", "steering ratio (steering-wheel per road-wheel angle) relative to the car's",
+               1.0, (0.7, 1.4), (0.10, 0.18), 0.03, (0.03, 0.25)),
     )
 }
 
@@ -160,6 +165,8 @@ def effect_overrides(cause: str, value: float, params: Mapping[str, Any], signal
         return {"tyres.friction_scale": float(value)}
     if cause == "relaxation_length":
         return {"tyres.relaxation_scale": float(value)}
+    if cause == "steering_ratio":
+        return {"steering.ratio": float(value) * float(params["steering"]["ratio"])}
     raise ValueError(f"unknown cause {cause!r} (one of {', '.join(CAUSES)})")
 
 

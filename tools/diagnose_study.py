@@ -3,14 +3,14 @@
 
 Each case simulates a test day of "measured" runs of a car with something hidden, and gives
 ``virtsensor.diagnose`` only the files (and, on mixed-surface days, the conditions file the test
-engineer would write: each run's surface as a friction range). The plan (:func:`plan`, 40 cases):
+engineer would write: each run's surface as a friction range). The plan (:func:`plan`, 41 cases):
 
-* ``single``: one catalogue effect on a uniform dry day (the friction stated, 1.0), two per cause,
-  sensor effects on signals drawn at random;
+* ``single``: one catalogue effect on a uniform dry day (the friction stated, 1.0), two per cause of the
+  first catalogue and one steering ratio (case 6), sensor effects on signals drawn at random;
 * ``mixed``: one effect (any cause but the day-wide road friction, which is not identifiable when
   every run's friction is only known as a range) on a day of dry, wet and low-grip runs;
 * ``two``: two effects at once (different causes), uniform day;
-* ``foreign``: an effect outside the catalogue (steering ratio, toe, camber, another tyre);
+* ``foreign``: an effect outside the catalogue (front toe, camber, another tyre, rear toe);
 * ``control``: nothing hidden, three uniform and three mixed-surface.
 
 It must name the cause(s) (``unexplained`` for the foreign effects, ``none`` for the controls),
@@ -22,7 +22,7 @@ on other seeds (900-999) and never on these.
 
 Usage::
 
-    python tools/diagnose_study.py --out study            # all 40 cases; resumable
+    python tools/diagnose_study.py --out study            # all 41 cases; resumable
     python tools/diagnose_study.py --out study --only 3 7  # some cases again
     python tools/diagnose_study.py --out study --no-retrain # the diagnosis only (no gain measured)
     # -> study/cases/NN.json (one per case, written as it ends), study/study.json, study/study.md
@@ -43,27 +43,33 @@ from typing import Any
 import numpy as np
 
 MIXED = ("dry", "wet", "low", "wet", "dry")
+#: the catalogue the study's cases were first drawn from: kept, so that a case number and its seed hide the same
+#: effect as in the studies before (docs/diagnose_study.md)
+STUDY_CAUSES = ("tyre_pressure", "sensor_delay", "sensor_offset", "sensor_gain", "vehicle_mass",
+                "steering_friction", "road_friction", "relaxation_length")
+#: case 6 hid a steering ratio out of the catalogue; since the ratio is in it (``steering_ratio``), case 6 hides
+#: it as a catalogue effect and case 40 a rear toe, out of it
 FOREIGN_KINDS = ("steering_ratio", "toe", "camber", "tyre")
 
 
 def plan() -> list[dict[str, Any]]:
-    """The 40 cases: kind and what to hide (drawn from the case's seed when not given)."""
-    from sim.effects import CAUSES
-
+    """The 41 cases: kind and what to hide (drawn from the case's seed when not given)."""
     cases: list[dict[str, Any]] = []
     for _ in range(2):
-        cases += [{"kind": "single", "causes": [c]} for c in CAUSES]
-    mixed_causes = [c for c in CAUSES if c != "road_friction"]
+        cases += [{"kind": "single", "causes": [c]} for c in STUDY_CAUSES]
+    mixed_causes = [c for c in STUDY_CAUSES if c != "road_friction"]
     cases += [{"kind": "mixed", "causes": [mixed_causes[i % len(mixed_causes)]]} for i in range(8)]
     pairs = [("tyre_pressure", "sensor_delay"), ("vehicle_mass", "sensor_offset"),
              ("steering_friction", "sensor_gain"), ("tyre_pressure", "steering_friction"),
              ("sensor_delay", "sensor_offset"), ("relaxation_length", "vehicle_mass")]
     cases += [{"kind": "two", "causes": list(p)} for p in pairs]
-    cases += [{"kind": "foreign", "foreign": f} for f in FOREIGN_KINDS]
+    cases += [{"kind": "single", "causes": [f]} if f == "steering_ratio" else {"kind": "foreign", "foreign": f}
+              for f in FOREIGN_KINDS]
     cases += [{"kind": "control", "mixed": m} for m in (False, True, False, True, False, True)]
     # interleave the kinds, so that a partial run already covers every kind
     order = sorted(range(len(cases)), key=lambda i: (i % 5, i))
-    return [dict(cases[i], case=n) for n, i in enumerate(order)]
+    return [dict(cases[i], case=n) for n, i in enumerate(order)] + [{"kind": "foreign", "foreign": "rear_toe",
+                                                                      "case": len(cases)}]
 
 
 def _hidden(spec: dict[str, Any], rng: np.random.Generator) -> list[Any]:

@@ -55,16 +55,14 @@ class Foreign:
 
 
 def draw_foreign(name: str, rng: np.random.Generator) -> Foreign:
-    """An out-of-catalogue effect at a random realistic size: ``steering_ratio`` (a rack 10-18 % quicker or
-    slower), ``toe`` (front toe 0.25-0.5 deg per wheel off), ``camber`` (front static camber -1.5 to -2.5 deg),
-    ``tyre`` (another tyre on all four wheels, the bundled 255/55 R20)."""
+    """An out-of-catalogue effect at a random realistic size: ``toe`` (front toe 0.25-0.5 deg per wheel off),
+    ``camber`` (front static camber -1.5 to -2.5 deg), ``tyre`` (another tyre on all four wheels, the bundled
+    255/55 R20), ``rear_toe`` (rear toe 0.25-0.5 deg per wheel off: a rear axle knocked out of alignment).
+    A steering ratio, out of the catalogue at first, is in it (``steering_ratio``)."""
     from sim.params import car_parameters
 
     car = car_parameters()
     sign = 1.0 if rng.random() < 0.5 else -1.0
-    if name == "steering_ratio":
-        return Foreign(name, (("steering.ratio", round(car["steering"]["ratio"] * (1 + sign * rng.uniform(0.10, 0.18)),
-                                                       3)),))
     if name == "toe":
         return Foreign(name, (("tyres.toe_in_front_rad",
                                round(car["tyres"]["toe_in_front_rad"] + sign * np.radians(rng.uniform(0.25, 0.5)),
@@ -73,10 +71,14 @@ def draw_foreign(name: str, rng: np.random.Generator) -> Foreign:
         return Foreign(name, (("tyres.static_camber_front_rad", round(-np.radians(rng.uniform(1.5, 2.5)), 6)),))
     if name == "tyre":
         return Foreign(name, (("tyres.file", "tyres/mf61_255_55R20.tir"),))
+    if name == "rear_toe":
+        return Foreign(name, (("tyres.toe_in_rear_rad",
+                               round(car["tyres"]["toe_in_rear_rad"] + sign * np.radians(rng.uniform(0.25, 0.5)),
+                                     6)),))
     raise ValueError(f"unknown out-of-catalogue effect {name!r}")
 
 
-FOREIGN = ("steering_ratio", "toe", "camber", "tyre")
+FOREIGN = ("toe", "camber", "tyre", "rear_toe")
 
 
 @dataclass
