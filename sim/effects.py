@@ -115,7 +115,7 @@ EFFECTS: dict[str, Effect] = {
         Effect("relaxation_length", "1", "scale of the tyres' relaxation lengths", 1.0, (0.25, 4.0),
                (0.8, 1.5), 0.3, (0.3, 0.35), +1),
         # another rack (or pinion) than the car's: the road wheels turn 1/value as far for a steering-wheel angle,
-        # and the kingpin moments reach the column value times larger. Measured on the column, it looks like a
+        # and the kingpin moments reach the column 1/value as large. Measured on the column, it looks like a
         # steering-angle gain and a steering-torque gain at once (what the diagnosis named before it was here)
         Effect("steering_ratio", "1", "steering ratio (steering-wheel per road-wheel angle) relative to the car's",
                1.0, (0.7, 1.4), (0.10, 0.18), 0.03, (0.03, 0.25)),

@@ -1079,7 +1079,10 @@ def test_the_named_cause_is_estimated_where_it_fits_best():
     assert abs(got.sim_value - truth) < 0.5 * tol, got.sim_value  # (the car the second stage starts from)
     assert 0 < sim.count - before <= idn.CONVERGE_ROUNDS + 1
     assert stage.fits == [got] and got.significant and got.ci95[0] < truth < got.ci95[1]
-    assert idn._converge(data, sim, stage, got, lambda msg: None) is got  # converged: nothing more to simulate
+    # converged: nothing more to simulate (its search itself, not the once-per-stage guard)
+    assert idn._converge_search(data, sim, stage.searches["vehicle_mass"], stage.sims_of, lambda msg: None) == 0
+    after = sim.count
+    assert idn._converge(data, sim, stage, got, lambda msg: None) is got and sim.count == after
 
 
 def test_the_runs_conditions_are_read_over_the_cause_they_are_fitted_with(monkeypatch):
@@ -1181,12 +1184,17 @@ def test_the_first_cause_is_ranked_among_look_alikes_at_their_converged_fits(mon
     idn._converge_rivals(None, object(), first, lambda msg: None)
     assert converged == ["sensor_gain[steer_angle_rad]", "steering_ratio"]
     assert first.fits[0].candidate.key == "steering_ratio"
-    # a rival that converges to the lead's share is converged too, each once
+    # the share is of the best converged evidence, not of the last one converged, each search converged once
     converged.clear()
     first.fits = [fit("a", 100.0), fit("b", 60.0), fit("c", 40.0)]
-    converged_bic.update({"a": 80.0, "b": 70.0, "c": 45.0})
+    converged_bic.update({"a": 95.0, "b": 70.0, "c": 40.0})
     idn._converge_rivals(None, object(), first, lambda msg: None)
-    assert converged == ["a", "b", "c"], converged  # c: 40 >= 0.5 x 70 once b converged
+    assert converged == ["a", "b"], converged  # c: 40 < 0.5 x 95 (the last converged, b's 70, would take it)
+    converged.clear()
+    first.fits = [fit("a", 100.0), fit("b", 60.0), fit("c", 46.0)]
+    converged_bic.update({"a": 80.0, "b": 90.0, "c": 46.0})
+    idn._converge_rivals(None, object(), first, lambda msg: None)
+    assert converged == ["a", "b", "c"], converged  # c: 46 >= 0.5 x 90, b's once it converged above a
 
 
 def test_a_search_is_converged_once_per_stage(monkeypatch):

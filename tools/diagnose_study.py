@@ -78,12 +78,27 @@ def _hidden(spec: dict[str, Any], rng: np.random.Generator) -> list[Any]:
 
     out: list[Any] = []
     for c in spec.get("causes", []):
+        if c == "steering_ratio":
+            out.append(_ratio_as_before(rng))
+            continue
         while True:
             h = draw_hidden(rng, (c,))
             if all(h.signal is None or h.signal != o.signal for o in out):
                 break
         out.append(h)
     return out
+
+
+def _ratio_as_before(rng: np.random.Generator) -> Any:
+    """Case 6's steering ratio drawn as when it was out of the catalogue (a rack 10-18 % quicker or slower: the
+    sign, then the size, the ratio rounded to 0.001), as a factor of the car's: each seed hides the same rack as in
+    the studies before (seed 61006: 16.887, 40006: 13.007)."""
+    from sim.effects import Hidden
+    from sim.params import car_parameters
+
+    ratio = float(car_parameters()["steering"]["ratio"])
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    return Hidden("steering_ratio", round(round(ratio * (1 + sign * rng.uniform(0.10, 0.18)), 3) / ratio, 6))
 
 
 def run_case(spec: dict[str, Any], seed: int, base, before, args) -> dict[str, Any]:
