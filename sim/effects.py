@@ -30,9 +30,12 @@ import numpy as np
 
 from sim.params import apply_overrides
 
+#: the catalogue before the steering ratio joined it: seeded draws made from it (the diagnosis study's cases, the
+#: hidden-effect test) keep hiding what they hid
+FIRST_CAUSES = ("tyre_pressure", "sensor_delay", "sensor_offset", "sensor_gain", "vehicle_mass",
+                "steering_friction", "road_friction", "relaxation_length")
 #: the causes, in report order (``none`` is the answer when nothing explains the data)
-CAUSES = ("tyre_pressure", "sensor_delay", "sensor_offset", "sensor_gain", "vehicle_mass",
-          "steering_friction", "road_friction", "relaxation_length", "steering_ratio")
+CAUSES = (*FIRST_CAUSES, "steering_ratio")
 
 #: signals a sensor effect may sit on: the 12 estimator inputs (Table II order)
 SENSOR_SIGNALS = ("ax_mps2", "ay_mps2", "vx_mps", "yaw_rate_radps", "steer_angle_rad", "steer_torque_nm",

@@ -43,21 +43,20 @@ from typing import Any
 import numpy as np
 
 MIXED = ("dry", "wet", "low", "wet", "dry")
-#: the catalogue the study's cases were first drawn from: kept, so that a case number and its seed hide the same
-#: effect as in the studies before (docs/diagnose_study.md)
-STUDY_CAUSES = ("tyre_pressure", "sensor_delay", "sensor_offset", "sensor_gain", "vehicle_mass",
-                "steering_friction", "road_friction", "relaxation_length")
 #: case 6 hid a steering ratio out of the catalogue; since the ratio is in it (``steering_ratio``), case 6 hides
 #: it as a catalogue effect and case 40 a rear toe, out of it
 FOREIGN_KINDS = ("steering_ratio", "toe", "camber", "tyre")
 
 
 def plan() -> list[dict[str, Any]]:
-    """The 41 cases: kind and what to hide (drawn from the case's seed when not given)."""
+    """The 41 cases: kind and what to hide (drawn from the case's seed when not given), from the catalogue the
+    cases were first drawn from, so that a case number and its seed hide what they hid in the studies before."""
+    from sim.effects import FIRST_CAUSES
+
     cases: list[dict[str, Any]] = []
     for _ in range(2):
-        cases += [{"kind": "single", "causes": [c]} for c in STUDY_CAUSES]
-    mixed_causes = [c for c in STUDY_CAUSES if c != "road_friction"]
+        cases += [{"kind": "single", "causes": [c]} for c in FIRST_CAUSES]
+    mixed_causes = [c for c in FIRST_CAUSES if c != "road_friction"]
     cases += [{"kind": "mixed", "causes": [mixed_causes[i % len(mixed_causes)]]} for i in range(8)]
     pairs = [("tyre_pressure", "sensor_delay"), ("vehicle_mass", "sensor_offset"),
              ("steering_friction", "sensor_gain"), ("tyre_pressure", "steering_friction"),
