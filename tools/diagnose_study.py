@@ -177,7 +177,9 @@ def score_case(spec: dict[str, Any], seed: int, case, res: dict[str, Any], t_gen
             "gain_ci95_nm": gain.get("ci95_nm"), "estimator_kept": res.get("estimator_kept"),
             "seconds_generate": t_gen, "seconds_diagnose": t_diag,
             "seconds_identify": res.get("seconds_identify"),
-            "top": [(c["cause"], c["signal"], round(c["bic_gain"], 1)) for c in res.get("candidates", [])[:3]]}
+            "top": [(c["cause"], c["signal"], round(c["bic_gain"], 1)) for c in res.get("candidates", [])[:3]],
+            # a named motion-sensor gain measured again from the car's kinematics (None: not such a gain)
+            "kinematics": [c.get("kinematics") for c in res.get("causes", [])]}
 
 
 def main(argv: list[str] | None = None) -> int:

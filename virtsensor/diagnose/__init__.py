@@ -124,7 +124,8 @@ def _cause_entry(fit) -> dict[str, Any]:
     c = fit.candidate
     return {"cause": c.cause, "signal": c.signal, "estimate": fit.estimate, "ci95": list(fit.ci95),
             "unit": _unit(fit), "nominal": c.nominal, "bic_gain": fit.bic_gain,
-            "variance_explained": fit.variance_explained}
+            "variance_explained": fit.variance_explained,
+            **({"kinematics": fit.groups["kinematics"]} if "kinematics" in fit.groups else {})}
 
 
 def _run_conditions(idn, runs: Sequence[MeasuredRun], conditions: Sequence[Any] = ()) -> list[dict[str, Any]]:

@@ -576,6 +576,8 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
             if pair is not None:
                 chosen, second, best_sims = pair
                 causes = [chosen, *[f for f in second if f.significant][:1]]
+    for f in causes:
+        _kinematic_check(data, f, best_sims)
     rss_best = data.rss(best_sims)
     idn = Identification(first.fits, chosen, first.rss0, dict(data.n), feff, nominal, best_sims, sim.count, data.names,
                          data.shifts, causes, second, per_run, sim.day, None, rss_best,
@@ -585,6 +587,37 @@ def identify(runs: Sequence[MeasuredRun], base: Mapping[str, Any], names: tuple[
     idn.excluded = {runs[r].name: why for r, why in excluded.items()}
     idn.unexplained = _unexplained(data, idn)
     return idn
+
+
+def _kinematic_check(data: Data, f: Fit, sims: Sequence[Sequence[Mapping[str, Any]]]) -> None:
+    """A named gain of the yaw-rate, speed or lateral-acceleration sensor measured again from the car's kinematics
+    (:mod:`virtsensor.diagnose.kinematics`) over the re-simulation ``sims`` of the named causes: recorded as
+    ``groups["kinematics"]``; where the two intervals are disjoint the fit is not consistent (the day is
+    unexplained). Any other cause, or too few straight-to-straight stretches on the day: nothing recorded."""
+    from virtsensor.diagnose import kinematics as kin
+
+    c = f.candidate
+    if c.cause != "sensor_gain" or c.signal not in kin.TERMS or not set(kin.TERMS) <= set(data.names):
+        return
+    segs = []
+    for r, per_run in enumerate(sims):
+        run = data.runs[r]
+        for s, item in enumerate(per_run):
+            seg = run.segments[s]
+            valid = np.logical_and.reduce([data.masks[n][r][s] for n in kin.TERMS])
+            segs.append(kin.Segment(run.table["time_s"][seg.start:seg.stop],
+                                    {n: run.table[n][seg.start:seg.stop] for n in kin.TERMS},
+                                    {n: item["pred"][n] for n in kin.TERMS}, valid))
+    s = kin.gain_shift(segs, c.signal)
+    if s is None:
+        return
+    simulated = f.sim_value if f.sim_value is not None else f.estimate  # the gain ``sims`` hold
+    agrees = not kin.contradicts(simulated, f.ci95, s)
+    g, h = kin.kinematic_gain(simulated, s)
+    f.groups["kinematics"] = {"estimate": g, "half_width": h,
+                              "confidence": kin.CONFIDENCE, "stretches": s.stretches, "informative": False,
+                              "agrees": agrees}
+    f.consistent = f.consistent and agrees
 
 
 #: a run whose conditions are identified is left out of the day's comparison when the nominal car at its identified
@@ -1506,7 +1539,9 @@ def _unexplained(data: Data, idn: Identification) -> dict[str, Any] | None:
     signals = list(over)[:5] or [k for k, v in sorted(remain.items(), key=lambda kv: -kv[1]) if v > 0.5][:5]
     return {"forced_onto": f.candidate.key if f else None, "estimate": f.estimate if f else None,
             "disagreeing_groups": {g: {k: v for k, v in i.items() if k != "points"} for g, i in f.groups.items()
-                                   if not i.get("agrees", True)} if f else {},
+                                   if not i.get("agrees", True) and g != "kinematics"} if f else {},
+            "kinematics": f.groups["kinematics"] if f and not f.groups.get("kinematics", {}).get("agrees", True)
+            else None,
             "held_out": f.held_out if f and not _passes(f.held_out) else {},
             "excess": over, "excess_limit": EXCESS_LIMIT,
             "signals": signals or [max(remain, key=remain.__getitem__)],

@@ -126,6 +126,11 @@ def _cause_lines(res: Mapping[str, Any]) -> list[str]:
                        "others' expense: " + "; ".join(
                            f"the {g} signals alone put it at {_f(i['estimate'])} (+-{_f(i['half_width'], 2)})"
                            for g, i in u["disagreeing_groups"].items()))
+        if u.get("kinematics"):
+            k = u["kinematics"]
+            why.append(f"the best one, `{u['forced_onto']}` at {_f(u['estimate'])}, is not the sensor's gain: the "
+                       f"car's kinematics (ay - r vx over {k['stretches']} straight-to-straight stretches) put it at "
+                       f"{_f(k['estimate'])} (+-{_f(k['half_width'], 2)}, {100 * k['confidence']:.0f} %)")
         if u.get("held_out"):
             h = u["held_out"]
             why.append(f"the best one, `{u['forced_onto']}` at {_f(u['estimate'])}, does not hold on runs it was "
@@ -151,6 +156,12 @@ def _cause_lines(res: Mapping[str, Any]) -> list[str]:
                    f"(95 % interval {_f(c['ci95'][0])} to {_f(c['ci95'][1])}; nominal {_f(c['nominal'])}), "
                    f"explaining {100 * c['variance_explained']:.0f} % of the misfit (likelihood-ratio R2)"
                    + (" over the first cause." if i else "."))
+        if c.get("kinematics"):
+            k = c["kinematics"]
+            out.append("")
+            out.append(f"The car's kinematics (ay - r vx over {k['stretches']} straight-to-straight stretches, no "
+                       f"vehicle model) put this gain at {_f(k['estimate'])} (+-{_f(k['half_width'], 2)}, "
+                       f"{100 * k['confidence']:.0f} %): they agree.")
         out.append("")
     sig = res["signature"].get("explains", {})
     if sig:
