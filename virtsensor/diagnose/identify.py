@@ -604,18 +604,18 @@ def _kinematic_check(data: Data, f: Fit, sims: Sequence[Sequence[Mapping[str, An
         run = data.runs[r]
         for s, item in enumerate(per_run):
             seg = run.segments[s]
-            valid = np.logical_and.reduce([data.masks[n][r][s] for n in kin.TERMS])
-            segs.append(kin.Segment(run.table["time_s"][seg.start:seg.stop],
-                                    {n: run.table[n][seg.start:seg.stop] for n in kin.TERMS},
-                                    {n: item["pred"][n] for n in kin.TERMS}, valid))
-    s = kin.gain_shift(segs, c.signal)
-    if s is None:
-        return
+            pred = {n: item["pred"][n] for n in kin.TERMS}
+            meas = {n: run.table[n][seg.start:seg.stop] for n in kin.TERMS}
+            valid = np.logical_and.reduce([data.masks[n][r][s] & np.isfinite(pred[n]) & np.isfinite(meas[n])
+                                           for n in kin.TERMS])
+            segs.append(kin.Segment(run.table["time_s"][seg.start:seg.stop], meas, pred, valid))
     simulated = f.sim_value if f.sim_value is not None else f.estimate  # the gain ``sims`` hold
-    agrees = not kin.contradicts(simulated, f.ci95, s)
-    g, h = kin.kinematic_gain(simulated, s)
-    f.groups["kinematics"] = {"estimate": g, "half_width": h,
-                              "confidence": kin.CONFIDENCE, "stretches": s.stretches, "informative": False,
+    k = kin.measure(segs, c.signal, simulated)
+    if k is None:
+        return
+    agrees = not kin.contradicts(f.ci95, k)
+    f.groups["kinematics"] = {"estimate": k.gain, "half_width": k.half_width,
+                              "confidence": kin.CONFIDENCE, "stretches": k.stretches, "informative": False,
                               "agrees": agrees}
     f.consistent = f.consistent and agrees
 
