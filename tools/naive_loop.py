@@ -101,23 +101,32 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
         while not stop.is_set():
             peer.recv(0.05)
 
+    before = set(threading.enumerate())
     notifier = can.Notifier(bus, [Latest()], timeout=1.0)
+    receivers = [th for th in set(threading.enumerate()) - before if th.name.startswith("Notifier")]
     ticker = threading.Thread(target=tick_loop, name="naive-tick", daemon=True)
     drainer = threading.Thread(target=drain, name="naive-drain", daemon=True)
-    feeder.start()
-    drainer.start()
-    ticker.start()
-    time.sleep(1.0)  # settle: history filled
-    threads = [ticker, *notifier._readers]  # (the Notifier's receive thread)
-    c0, w0, s0 = sum(bench._thread_cpu_s(threads)), time.monotonic(), counter[1]
-    time.sleep(seconds)
-    c1, w1, s1 = sum(bench._thread_cpu_s(threads)), time.monotonic(), counter[1]
-    stop.set()
-    notifier.stop()
-    for th in (ticker, feeder, drainer):
-        th.join(2)
-    bus.shutdown()
-    peer.shutdown()
+    try:
+        feeder.start()
+        drainer.start()
+        ticker.start()
+        time.sleep(1.0)  # settle: history filled
+        threads = [ticker, *receivers]  # (the Notifier's receive thread: python-can names it "Notifier for bus")
+        if len(threads) != 2:
+            raise RuntimeError(f"expected the Notifier's one receive thread, found {len(receivers)}")
+        c0, w0, s0 = sum(bench._thread_cpu_s(threads)), time.monotonic(), counter[1]
+        time.sleep(seconds)
+        c1, w1, s1 = sum(bench._thread_cpu_s(threads)), time.monotonic(), counter[1]
+        if not all(th.is_alive() for th in threads):
+            raise RuntimeError("a thread of the naive loop died during the measurement")
+    finally:
+        stop.set()
+        notifier.stop()
+        for th in (ticker, feeder, drainer):
+            if th.ident is not None:
+                th.join(2)
+        bus.shutdown()
+        peer.shutdown()
     return 100.0 * (c1 - c0) / (w1 - w0), (s1 - s0) / (w1 - w0)
 
 
@@ -143,9 +152,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.getLogger("virtsensor").setLevel(logging.ERROR)  # (the daemon's events, e.g. envelope exits: not here)
     rows = []
-    for r in range(args.rounds):
-        d = daemon_cpu(args.seconds, args.cpu_latency_us)
-        n, rate = naive_cpu(args.seconds)
+    for r in range(args.rounds):  # (the order alternates: a drift of the machine falls on both alike)
+        if r % 2:
+            n, rate = naive_cpu(args.seconds)
+            d = daemon_cpu(args.seconds, args.cpu_latency_us)
+        else:
+            d = daemon_cpu(args.seconds, args.cpu_latency_us)
+            n, rate = naive_cpu(args.seconds)
         rows.append({"round": r + 1, "daemon_cpu_percent": round(d, 3), "naive_cpu_percent": round(n, 3),
                      "naive_sat_front_per_s": round(rate, 2)})
         print(f"round {r + 1}: daemon {d:.3f} %  naive {n:.3f} % ({rate:.1f} SAT_FRONT/s)", flush=True)
