@@ -113,8 +113,9 @@ def measure(segments: Sequence[Segment], signal: str, simulated: float) -> Kinem
     cancel between the car and its re-simulation. ``ay`` and ``r`` are not in the re-simulation's loop: for them
     this is exact, whatever gain was simulated. ``vx`` drives it (the re-simulated car runs at the measured speed
     over the simulated gain), so the re-simulated car's own ``r`` and ``ay`` follow the gain it holds, and the
-    kinematic gain lies between the true one and the simulated one, pulled towards the latter by how much the
-    car's yaw response changes with speed: a contradiction can be missed there, never made up. (A slope of the
+    kinematic gain is off the true one by a share of the simulated gain's own error (up to a third of it in
+    synthetic drives, either way, as the car's sideslip and yaw response change with speed): small where the fit
+    is right, so a contradiction there takes a fit whose interval misses the truth. (A slope of the
     measured integrals alone does not depend on the simulated gain, but the stretches' own dynamics spread it
     about five times as wide: ±0.09 against ±0.02 on seed 40000's case 35, a speed gain on a mixed-surface day.)
     """
