@@ -72,6 +72,8 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
     sess = ort.InferenceSession(str(model), opts, providers=["CPUExecutionProvider"])
     in_name = sess.get_inputs()[0].name
     sat = db.get_message_by_name("SAT_FRONT")
+    lo, hi = sat.get_signal_by_name("SAT_FL").minimum, sat.get_signal_by_name("SAT_FL").maximum  # (the DBC's range)
+    alive_max = int(sat.get_signal_by_name("SAT_FRONT_Counter").maximum)
     builder = FeatureBuilder(spec)
     ch = bench._virtual_channel()
     peer, bus = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
@@ -91,9 +93,9 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
             if x is None or not np.all(np.isfinite(x)):
                 continue
             y = sess.run(None, {in_name: np.asarray([x], dtype=np.float32)})[0][0]
-            counter[0] = (counter[0] + 1) % 15
+            counter[0] = (counter[0] + 1) % (alive_max + 1)
             values = {"SAT_FRONT_CRC": 0, "SAT_FRONT_Counter": counter[0], "SAT_FL_Status": 0, "SAT_FR_Status": 0,
-                      "SAT_FL": min(max(float(y[0]), -300.0), 300.0), "SAT_FR": min(max(float(y[1]), -300.0), 300.0)}
+                      "SAT_FL": min(max(float(y[0]), lo), hi), "SAT_FR": min(max(float(y[1]), lo), hi)}
             bus.send(can.Message(arbitration_id=sat.frame_id, data=sat.encode(values), is_extended_id=False))
             counter[1] += 1
 
