@@ -139,6 +139,7 @@ def test_small_circuit_is_driven_round_on_the_line(oval_run) -> None:
     assert oval_run.request.track and oval_run.request.laps == 1
 
 
+@pytest.mark.slow
 def test_simulate_circuit_cli_writes_the_run_and_its_outcome(tmp_path: Path, capsys) -> None:
     track = write_xy(tmp_path / "oval.csv", stadium())
     out = tmp_path / "run.csv"
@@ -193,6 +194,7 @@ def test_refuses_a_self_intersecting_centreline(tmp_path: Path, capsys, shape: s
     _refused(_circuit_argv(tmp_path, str(track)), capsys, tmp_path, fragment)
 
 
+@pytest.mark.slow
 def test_a_figure_of_eight_crossing_at_a_bridge_is_driven(tmp_path: Path) -> None:
     """Suzuka (bacinger/f1-circuits jp-1962) crosses itself at 55 deg on a bridge, and was refused as "not a
     simple loop", although the driver finds the car along the road just ahead of it and drives it round.
@@ -324,6 +326,7 @@ def _straight_plan(mu: float, grip: tuple[float, float] | None) -> Plan:
                 path_speed=np.minimum(np.sqrt(64.0 + 6.0 * s), 30.0), path_ds=ds, mu_values=(mu,), path_grip=grip)
 
 
+@pytest.mark.slow
 def test_the_track_driver_does_not_spin_the_driven_wheels_on_a_wet_road() -> None:
     """Asked for more acceleration than a wet road gives the front axle, the track driver
     feathers the throttle (``path_grip``); the same plan without it spins the front wheels."""
@@ -387,6 +390,7 @@ def test_a_lap_driven_to_plan_is_completed_with_its_distance(oval_run) -> None:
     assert out["planned_m"] < out["driven_m"] < out["planned_m"] + 60 / 3.6
 
 
+@pytest.mark.slow
 def test_a_car_that_falls_behind_its_plan_says_so_and_how_far_it_got(tmp_path: Path, capsys) -> None:
     """A crippled motor (10 Nm, the least a car may have) cannot hold the speed profile: when the planned time
     runs out the lap is not driven. The run is whole (every planned sample) but ``behind-plan``, not ``completed``."""
@@ -429,6 +433,7 @@ def _frozen_after_end(plans: list[Plan], params: list[dict]) -> tuple[list, list
     return [res.outcome(i) for i in range(len(plans))], states, [w for w in caught if w.category is RuntimeWarning]
 
 
+@pytest.mark.slow
 def test_a_run_that_ended_stays_where_it_ended_while_the_batch_goes_on() -> None:
     """A spun run is not integrated on while a longer run of its batch is (integrated on, a spun car
     diverges until numpy overflows; ``test_a_spun_circuit_run_in_a_long_batch_warns_nothing``)."""
@@ -466,6 +471,7 @@ def test_a_spun_circuit_run_in_a_long_batch_warns_nothing(tmp_path: Path) -> Non
     assert not [w for w in caught if w.category is RuntimeWarning], [str(w.message) for w in caught]
 
 
+@pytest.mark.slow
 def test_random_circuits_are_deterministic_drivable_and_track_like():
     """random:SEED circuits: the same for a seed, closed, never self-crossing (star-shaped), with corners
     like a grand-prix circuit's (the module docstring's figures)."""

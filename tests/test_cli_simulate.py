@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from sim_support import recorded_inputs
 
 from virtsensor.cli import main
 from virtsensor.recordings.canlog import read_csv
@@ -38,7 +39,8 @@ def test_simulate_writes_the_canonical_20hz_table(tmp_path):
 
 def test_parameter_overrides_change_the_car(tmp_path):
     light, heavy = tmp_path / "light.csv", tmp_path / "heavy.csv"
-    common = ["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--seed", "1"]
+    inputs = str(recorded_inputs(tmp_path, 15.0, n=20))  # a short run: any manoeuvre shows the load
+    common = ["simulate", "recorded", "--inputs", inputs, "--mu", "1", "--seed", "1"]
     assert main([*common, "--out", str(light)]) == 0
     assert main([*common, "--set", "vehicle.mass_kg=1750", "--out", str(heavy)]) == 0
     a, b = read_csv(light), read_csv(heavy)
@@ -162,6 +164,7 @@ def test_malformed_tir_is_named(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_campaign_is_deterministic_whatever_the_number_of_workers(tmp_path, capsys):
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["campaign", "tiny", "--out", str(a), "--seed", "4", "--quiet", "--jobs", "1"]) == 0
@@ -182,6 +185,7 @@ def test_campaign_is_deterministic_whatever_the_number_of_workers(tmp_path, caps
     assert res.returncode == 2 and "not empty" in res.stderr
 
 
+@pytest.mark.slow
 def test_a_recorded_run_is_resimulated_from_its_driver_inputs(tmp_path):
     """Drive the simulator with the steering-wheel angle and speed of a recording:
     the same car on the same road gives back the same SATs."""
@@ -204,23 +208,9 @@ def test_a_recorded_run_is_resimulated_from_its_driver_inputs(tmp_path):
     assert res.returncode == 2 and "--inputs" in res.stderr
 
 
-def _recorded_inputs(tmp_path, speed_mps):
-    """A table of driver inputs: a gentle steer at the given speed per row (m/s), 20 Hz for 4 s."""
-    from virtsensor.recordings.canlog import write_csv
-
-    n = 80
-    t = np.arange(n) * 0.05
-    table = {"time_s": t, **{s: np.zeros(n) for s in INPUTS}, **{s: np.zeros(n) for s in OUTPUTS}}
-    table["steer_angle_rad"] = 0.3 * np.sin(2 * np.pi * 0.5 * t)
-    table["vx_mps"] = np.broadcast_to(speed_mps, (n,)).astype(float)
-    path = tmp_path / "inputs.csv"
-    write_csv(path, table)
-    return path
-
-
 def test_recorded_inputs_that_never_move_the_car_write_nothing(tmp_path, capsys):
     """(It wrote a 1-row table, 'STOPPED', exit 0: a table train and score refuse.)"""
-    inputs = _recorded_inputs(tmp_path, 0.0)
+    inputs = recorded_inputs(tmp_path, 0.0)
     out = tmp_path / "rec.csv"
     assert main(["simulate", "recorded", "--mu", "1", "--inputs", str(inputs), "--out", str(out)]) == 2
     err = capsys.readouterr().err
@@ -230,7 +220,7 @@ def test_recorded_inputs_that_never_move_the_car_write_nothing(tmp_path, capsys)
 
 def test_a_run_that_stops_after_a_usable_stretch_is_written_and_says_so(tmp_path, capsys):
     """The car stops halfway (the recorded speed drops to 0): the run up to there is kept, cut short, exit 0."""
-    inputs = _recorded_inputs(tmp_path, np.where(np.arange(80) < 40, 15.0, 0.0))
+    inputs = recorded_inputs(tmp_path, np.where(np.arange(80) < 40, 15.0, 0.0))
     out = tmp_path / "rec.csv"
     assert main(["simulate", "recorded", "--mu", "1", "--inputs", str(inputs), "--out", str(out)]) == 0
     assert "STOPPED at t=" in capsys.readouterr().err
@@ -239,21 +229,26 @@ def test_a_run_that_stops_after_a_usable_stretch_is_written_and_says_so(tmp_path
 
 def test_a_run_never_takes_over_another_recordings_metadata(tmp_path, capsys):
     """``x.blf`` beside ``x.csv`` would share ``x.json``: refused in one line, exit 2, the csv's metadata kept;
-    writing ``x.csv`` again (its own metadata) is allowed."""
+    writing ``x.csv`` again (its own metadata) is allowed. (Short recorded runs: the manoeuvre does not matter.)"""
     csv, blf, meta = tmp_path / "x.csv", tmp_path / "x.blf", tmp_path / "x.json"
-    assert main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.7", "--seed", "3", "--out", str(csv)]) == 0
+    inputs = str(recorded_inputs(tmp_path, 15.0, n=20))
+
+    def simulate(mu: str, out) -> int:
+        return main(["simulate", "recorded", "--mu", mu, "--inputs", inputs, "--out", str(out)])
+
+    assert simulate("0.7", csv) == 0
     before = meta.read_bytes()
     capsys.readouterr()
-    assert main(["simulate", "single-sine", "--speed", "60", "--mu", "0.5", "--out", str(blf)]) == 2
+    assert simulate("0.5", blf) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "metadata of another recording, x.csv" in err[0], err
     assert meta.read_bytes() == before and not blf.exists()
-    assert main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.5", "--seed", "3", "--out", str(csv)]) == 0
-    assert json.loads(meta.read_text())["file"].endswith("x.csv")
+    assert simulate("0.5", csv) == 0
+    assert json.loads(meta.read_text())["file"].endswith("x.csv") and meta.read_bytes() != before
     (tmp_path / "sub").mkdir()
     for other in ("", ".", "sub"):  # (metadata naming no recording file: nothing to protect)
         meta.write_text(json.dumps({"file": other}))
-        assert main(["simulate", "single-sine", "--speed", "60", "--mu", "0.5", "--out", str(blf)]) == 0
+        assert simulate("0.5", blf) == 0
         blf.unlink()
 
 
@@ -297,6 +292,7 @@ def test_a_simulation_that_diverges_is_one_line_naming_the_run(tmp_path, capsys,
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_a_campaign_whose_worker_diverges_is_one_line_and_leaves_nothing(tmp_path):
     """The divergence happens in a loky worker (one batch per run, two workers) while the other runs are written;
     joblib re-raises it in the campaign's process, which removes what was written and says which run. Injected

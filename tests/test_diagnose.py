@@ -64,6 +64,7 @@ def test_hidden_draws_are_realistic_and_reproducible():
             assert abs(d.value - e.nominal) > e.floor
 
 
+@pytest.mark.slow
 def test_sensor_errors_act_on_one_signal_only():
     from sim.api import simulate
 
@@ -126,6 +127,7 @@ def test_an_ensemble_merges_into_one_exact_network(tmp_path):
     assert OnnxModel.load(tmp_path / "e.onnx").predict(X[:3]).shape == (3, 2)
 
 
+@pytest.mark.slow
 def test_the_calibrated_estimator_is_trained_like_the_nominal_one():
     """Like for like: the calibrated estimator is retrained with the nominal one's recipe, campaign, seed,
     epochs and ensemble, whatever the caller passes (a study reuses one nominal estimator across cases), so
@@ -149,6 +151,7 @@ def test_the_calibrated_estimator_is_trained_like_the_nominal_one():
     assert np.array_equal(after.pipeline.predict(X), before.pipeline.predict(X))
 
 
+@pytest.mark.slow
 def test_a_road_friction_is_a_condition_of_the_day_and_the_estimator_is_not_retrained_for_it():
     """A day-wide road friction calibrates the re-simulations, not the car: the estimator, whose campaign spans a
     range of roads, stays the nominal one (no training: the nominal estimator's campaign is never simulated), the
@@ -455,6 +458,7 @@ def test_a_hidden_effect_is_named_estimated_and_the_estimator_gains(hidden_case)
     assert f"({res['n_eff_factor']:.3f} x n" in md
 
 
+@pytest.mark.slow
 def test_a_control_car_answers_none_through_the_cli(tmp_path, capsys, monkeypatch):
     import virtsensor.diagnose as dg
     from virtsensor.cli import main

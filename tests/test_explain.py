@@ -66,6 +66,7 @@ def _explain(setup, out, *extra):
                  "--out", str(out), "--samples", "60", "--background", "30", "--quiet", *extra])
 
 
+@pytest.mark.slow
 def test_figures_json_ranking_and_reproducibility(setup, tmp_path, capsys):
     out1, out2 = tmp_path / "a" / "figs", tmp_path / "b"
     assert _explain(setup, out1, "--seed", "3") == 0  # nested directory is created
@@ -95,6 +96,7 @@ def test_figures_json_ranking_and_reproducibility(setup, tmp_path, capsys):
     assert (out2 / "explain.json").read_text() == (out1 / "explain.json").read_text()
 
 
+@pytest.mark.slow
 def test_permutation_explainer_is_seeded(setup, tmp_path):
     root, data, model = setup
     docs = []

@@ -138,6 +138,7 @@ def _write_runs(d, n_runs=8, n=240):
     return d
 
 
+@pytest.mark.slow
 def test_train_and_evaluate_from_the_command_line(tmp_path, capsys):
     import json
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from sim_support import recorded_inputs
 
 from virtsensor.fileio import staged_dir
 
@@ -132,9 +133,11 @@ def test_simulate_writes_the_run_and_its_metadata_both_or_neither(tmp_path, caps
     from virtsensor import cli
     from virtsensor.commands import simulate as cmd
 
-    out = tmp_path / "x.csv"
-    assert cli.main(["simulate", "steering-pulse", "--speed", "50", "--mu", "0.7", "--out", str(out)]) == 0
-    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    out, rec = tmp_path / "x.csv", tmp_path / "rec"
+    rec.mkdir()
+    inputs = str(recorded_inputs(rec, 15.0, n=20))  # a short run: the manoeuvre does not matter here
+    assert cli.main(["simulate", "recorded", "--inputs", inputs, "--mu", "0.7", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
     assert sorted(before) == ["x.csv", "x.json"]
     capsys.readouterr()
 
@@ -142,10 +145,10 @@ def test_simulate_writes_the_run_and_its_metadata_both_or_neither(tmp_path, caps
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(cmd, "dumps", full)
-    assert cli.main(["simulate", "steering-pulse", "--speed", "60", "--mu", "0.5", "--out", str(out)]) == 1
+    assert cli.main(["simulate", "recorded", "--inputs", inputs, "--mu", "0.5", "--out", str(out)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "No space left on device" in err[0] and str(out) in err[0], err
-    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
 
 
 def test_a_target_with_the_longest_legal_name_is_staged(tmp_path):

@@ -54,6 +54,7 @@ def models(runs, tmp_path_factory):
 
 
 # ------------------------------------------------------------------------------------------ campaign
+@pytest.mark.slow
 def test_campaign_draws_four_pressures_per_run_and_forced_pressure_wins(tmp_path):
     from sim.campaign import PRESSURE_LIMITS_BAR, SET_PRESSURE_BAR, draw_pressures, paper_preset
 

@@ -135,6 +135,7 @@ def test_sine_with_dwell_follows_fmvss126(car):
     assert np.abs(err).max() < 0.05 * abs(amp) + np.deg2rad(3)
 
 
+@pytest.mark.slow
 def test_halving_the_step_changes_sat_under_one_percent(car):
     plan = build_plan("sine-with-dwell", 80.0, 1.0, 2, car)
     fine = car_parameters({"simulation.step_s": car["simulation"]["step_s"] / 2})
@@ -147,6 +148,7 @@ def test_halving_the_step_changes_sat_under_one_percent(car):
         assert diff / rms < 0.01, (w, diff / rms)
 
 
+@pytest.mark.slow
 def test_sat_peaks_before_lateral_force_and_falls_with_mu_in_the_car(car):
     """Fig. 1 of the paper, seen from the car: on a slow constant-radius run past the
     limit, the front-axle SAT peaks while the lateral force still grows, and the
@@ -256,6 +258,7 @@ def test_path_speed_target_is_continuous_along_the_path(car):
     assert np.interp(120.0, xs, speed) == pytest.approx(targets[2000], abs=1e-6)
 
 
+@pytest.mark.slow
 def test_path_speed_puts_no_chatter_on_the_drive_torque(car):
     """Following a path's speed profile (2 m between vertices, as on the track): the
     motor torque rises smoothly with the target. With the target read at the nearest
@@ -330,6 +333,7 @@ def test_steering_reference_ramps_through_each_control_step(car, monkeypatch):
     assert on_ramp[0, ISWD] * veh.J_sw[0] == pytest.approx(t_column, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_path_following_puts_no_chatter_on_the_column(car):
     """A double lane change on ice (40 km/h, mu 0.2, the fronts saturated): the assist
     torque carries the manoeuvre, not a 22 Hz chatter. With a vertex-quantised
@@ -339,6 +343,7 @@ def test_path_following_puts_no_chatter_on_the_column(car):
     assert np.abs(run["assist_torque_true_nm"]).max() < 8.0
 
 
+@pytest.mark.slow
 def test_the_path_follower_settles_after_a_kink_at_200_kmh(car):
     """Following a straight with one S-kink (8 m across over ~150 m) at 55 m/s, the steering settles. Pure
     pursuit's loop gain does not change with speed (its preview grows with it), but the lateral integral's grows
