@@ -6,8 +6,8 @@ wakes for every frame and decodes it with cantools into a dict of latest values,
 the feature vector (the project's :class:`~virtsensor.features.FeatureBuilder`, so both run the same model on
 the same vectors), runs onnxruntime (``InferenceSession.run``, one thread) and sends SAT_FRONT encoded by
 cantools. No E2E (a zero CRC), no timeouts, no statuses: it does less than the daemon. Both are fed by the
-bench's feeder (each frame at its own instant, :func:`virtsensor.daemon.bench._feeder`) on python-can's ``virtual``
-bus, and both are measured as the CPU time of their own threads over wall time (% of one core); the daemon
+bench's feeder (each frame at its own instant, :func:`virtsensor.daemon.bench.feeder_thread`) on python-can's
+``virtual`` bus, and both are measured as the CPU time of their own threads over wall time (% of one core); the daemon
 holds its PM QoS CPU-latency request only when ``--cpu-latency-us`` is given, the naive loop never.
 
 Usage::
@@ -75,10 +75,10 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
     lo, hi = sat.get_signal_by_name("SAT_FL").minimum, sat.get_signal_by_name("SAT_FL").maximum  # (the DBC's range)
     alive_max = int(sat.get_signal_by_name("SAT_FRONT_Counter").maximum)
     builder = FeatureBuilder(spec)
-    ch = bench._virtual_channel()
+    ch = bench.virtual_channel()
     peer, bus = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
     stop = threading.Event()
-    feeder = bench._feeder(peer, bench.Inputs(), stop)
+    feeder = bench.feeder_thread(peer, bench.Inputs(), stop)
     counter = [0, 0]  # alive counter, frames sent
 
     def tick_loop() -> None:
@@ -116,9 +116,9 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
         threads = [ticker, *receivers]  # (the Notifier's receive thread: python-can names it "Notifier for bus")
         if len(threads) != 2:
             raise RuntimeError(f"expected the Notifier's one receive thread, found {len(receivers)}")
-        c0, w0, s0 = sum(bench._thread_cpu_s(threads)), time.monotonic(), counter[1]
+        c0, w0, s0 = sum(bench.thread_cpu_s(threads)), time.monotonic(), counter[1]
         time.sleep(seconds)
-        c1, w1, s1 = sum(bench._thread_cpu_s(threads)), time.monotonic(), counter[1]
+        c1, w1, s1 = sum(bench.thread_cpu_s(threads)), time.monotonic(), counter[1]
         if not all(th.is_alive() for th in threads):
             raise RuntimeError("a thread of the naive loop died during the measurement")
     finally:
@@ -141,7 +141,7 @@ def daemon_cpu(seconds: float, cpu_latency_us: int | None) -> float:
     model = OnnxModel.load(assets.model_path())
     fr = bench.measure_free_running(model, CanMatrix.load(assets.dbc_path()), bench.Inputs(), seconds,
                                     cpu_latency_us)
-    return float(bench._cpu_percent(fr))
+    return float(bench.daemon_cpu_percent(fr))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -60,7 +60,8 @@ from virtsensor.errors import UserError
 from virtsensor.fileio import atomic_write_bytes
 from virtsensor.signals import TABLE_TICK_S as TICK_S
 
-__all__ = ["run_bench", "write_markdown", "write_histogram", "percentiles", "await_frame", "Inputs"]
+__all__ = ["run_bench", "write_markdown", "write_histogram", "percentiles", "await_frame", "Inputs",
+           "measure_free_running", "feeder_thread", "virtual_channel", "thread_cpu_s", "daemon_cpu_percent"]
 
 #: replayed window (s): 3.0 s holds a multiple of 15 frames (one alive-counter period) of every 10/20/100 ms message
 LOOP_S = 3.0
@@ -289,7 +290,8 @@ def _slow_message_counters(batches: list[list[Any]], tail_n: int) -> list[list[t
 # ---------------------------------------------------------------------------------------------------------------
 # the measurements
 # ---------------------------------------------------------------------------------------------------------------
-def _virtual_channel() -> str:
+def virtual_channel() -> str:
+    """A fresh channel name for python-can's ``virtual`` interface, shared by nothing else in the process."""
     return f"bench-{uuid.uuid4().hex[:10]}"
 
 
@@ -305,7 +307,7 @@ def _sync_rig(model: Any, matrix: Any, **kw: Any) -> tuple[str, Any, Any, int]:
     (``stop()`` shuts it down); the channel lets a caller add its own buses."""
     import can
 
-    ch = _virtual_channel()
+    ch = virtual_channel()
     bus = can.Bus(interface="virtual", channel=ch)
     listener = can.Bus(interface="virtual", channel=ch)
     vs = _sensor(model, matrix, bus, sync_id=SYNC_ID, **kw)
@@ -419,7 +421,7 @@ def measure_e2e_in_process(model: Any, matrix: Any, inputs: Inputs, n_ticks: int
     return out
 
 
-def _thread_cpu_s(threads: Any) -> list[float]:
+def thread_cpu_s(threads: Any) -> list[float]:
     """CPU time (s) of each thread (``pthread_getcpuclockid``; nan where unavailable)."""
     out = []
     for th in threads:
@@ -430,7 +432,7 @@ def _thread_cpu_s(threads: Any) -> list[float]:
     return out
 
 
-def _feeder(tx: Any, inputs: Inputs, stop: threading.Event) -> threading.Thread:
+def feeder_thread(tx: Any, inputs: Inputs, stop: threading.Event) -> threading.Thread:
     """A thread sending the input frames in real time, each at its own simulated instant (frames due
     within 1 ms of each other go together), so every message keeps its cycle on the wire: a 10 ms message
     arrives every 10 ms, not in one burst per tick (which an E2E receiver rightly judges a timeout)."""
@@ -469,14 +471,14 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
 
     from virtsensor.daemon.runner import SPIN_S
 
-    ch = _virtual_channel()
+    ch = virtual_channel()
     # one peer node on the channel, as on a car's bus: it sends the inputs (feeder thread) and reads the
     # daemon's frames (drain thread). A second, never-read peer bus would make every daemon send copy its
     # frame into one more queue, which grows without bound.
     peer = can.Bus(interface="virtual", channel=ch)
     vs = _sensor(model, matrix, can.Bus(interface="virtual", channel=ch), cpu_latency_us=cpu_latency_us)
     stop = threading.Event()
-    feeder = _feeder(peer, inputs, stop)
+    feeder = feeder_thread(peer, inputs, stop)
 
     def drain() -> None:
         while not stop.is_set():
@@ -490,9 +492,9 @@ def measure_free_running(model: Any, matrix: Any, inputs: Inputs, seconds: float
     time.sleep(0.5)  # settle: history filled, first ticks done
     threads, ts = vs.threads, vs.tick_stats
     wakes0, ticks0, ov0 = ts.wakes, vs.counters["ticks"], vs.counters["overruns"]
-    pt0, p0, w0, rss0 = _thread_cpu_s(threads), os.times(), time.monotonic(), rss_mb()
+    pt0, p0, w0, rss0 = thread_cpu_s(threads), os.times(), time.monotonic(), rss_mb()
     time.sleep(seconds)
-    pt1, p1, w1, rss1 = _thread_cpu_s(threads), os.times(), time.monotonic(), rss_mb()
+    pt1, p1, w1, rss1 = thread_cpu_s(threads), os.times(), time.monotonic(), rss_mb()
     jit = ts.wake_late_us(wakes0)
     ticks, overruns = vs.counters["ticks"] - ticks0, vs.counters["overruns"] - ov0
     st = vs.stats()
@@ -765,7 +767,9 @@ def run_bench(model_path: str | os.PathLike | None = None, *, quick: bool = Fals
     return result
 
 
-def _cpu_percent(fr: dict[str, Any]) -> float:
+def daemon_cpu_percent(fr: dict[str, Any]) -> float:
+    """The daemon's CPU (% of one core) in a :func:`measure_free_running` result: its own threads' CPU time where
+    the platform gives per-thread clocks, else the whole process's."""
     d = fr["cpu_percent_daemon_threads"]
     return float(d if d is not None else fr["cpu_percent_process"])
 
@@ -788,10 +792,10 @@ def _free_running_figures(model: Any, matrix: Any, inputs: Inputs, seconds: floa
     idle = measure_free_running(model, matrix, inputs, seconds)
     runs.append(idle)
     head = runs[0]
-    out.update(jitter_us=head["jitter_us"], cpu_percent_at_20hz=_cpu_percent(head),
+    out.update(jitter_us=head["jitter_us"], cpu_percent_at_20hz=daemon_cpu_percent(head),
                cpu_percent_process_at_20hz=head["cpu_percent_process"], rss_mb_at_20hz=head["rss_mb"],
                free_running=head, jitter_us_default_idle=idle["jitter_us"],
-               cpu_percent_at_20hz_default_idle=_cpu_percent(idle), free_running_default_idle=idle)
+               cpu_percent_at_20hz_default_idle=daemon_cpu_percent(idle), free_running_default_idle=idle)
     return out
 
 
