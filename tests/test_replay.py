@@ -85,6 +85,7 @@ def _timed_run(frames, channel):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_real_time_replay_timing(frames, channel):
     """p99 inter-frame timing error < 2 ms at the receiver, over 10 s of frames at rate 1.0.
 
@@ -94,7 +95,7 @@ def test_real_time_replay_timing(frames, channel):
     runs). Drift or a sleep-only player would fail every run.
     """
     if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
-        pytest.skip("measures real-time timing, which the other workers' tests upset: run the slow tier with -n 0")
+        pytest.skip("measures real-time timing, which the other workers' tests upset: run it with -n 0")
     ts = np.array([f.timestamp for f in frames])
     assert ts[-1] - ts[0] > 9.9
     runs: list[tuple[float, float]] = []
