@@ -246,9 +246,9 @@ def test_a_run_never_takes_over_another_recordings_metadata(tmp_path, capsys):
     assert simulate("0.5", csv) == 0
     assert json.loads(meta.read_text())["file"].endswith("x.csv") and meta.read_bytes() != before
     (tmp_path / "sub").mkdir()
-    for other in ("", ".", "sub"):  # (metadata naming no recording file: nothing to protect)
+    for other, mu in (("", "0.6"), (".", "0.8"), ("sub", "0.9")):  # (metadata naming no recording: nothing to protect)
         meta.write_text(json.dumps({"file": other}))
-        assert simulate("0.5", blf) == 0
+        assert simulate(mu, blf) == 0
         blf.unlink()
 
 
