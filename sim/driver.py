@@ -406,8 +406,8 @@ class Driver:
         The motor drives the front wheels through an open differential and the car has no traction control.
         Accelerating out of a corner unloads the inner front wheel (to 1.8 kN of its 3.9 kN static load on a dry
         random circuit at 113 km/h); the differential gives it the same torque as the outer one, it spins (14-21 %
-        slip there, up to 130 % on another lap), its side force goes, the car runs wide of the line with the
-        steering wound on, and the driver's corrections put it off the track: 4 of the 24 dry laps of three
+        slip there, up to 144 % on another lap), its side force goes, the car runs wide of the line with the
+        steering wound on, and the driver's corrections put it off the track: 2 of the 24 dry laps of three
         `circuits` campaigns (seeds 0, 0 with drawn pressures, 1901) ended so. So the driver (or a traction
         control) feathers the throttle as the more spinning front wheel's drive slip ``kappa`` rises from
         ``FRONT_SPIN_RELIEF[0]`` (share 1) to ``FRONT_SPIN_RELIEF[1]`` (share 0), linearly. Acts only where
