@@ -114,6 +114,13 @@ class Plan:
         )
 
 
+def _relief_share(slip: np.ndarray, relief: tuple[float, float], acting: np.ndarray) -> np.ndarray:
+    """(B,) share (0..1) of a command a driver keeps while a wheel slips ``slip`` ((B,), -): 1 up to
+    ``relief[0]``, 0 from ``relief[1]``, linear in between; exactly 1.0 where not ``acting``."""
+    on, off = relief
+    return np.where(acting, np.clip((off - slip) / (off - on), 0.0, 1.0), 1.0)
+
+
 def _pad(rows: Sequence[np.ndarray], n: int, fill: str = "edge") -> np.ndarray:
     out = np.empty((len(rows), n), dtype=np.asarray(rows[0]).dtype)
     for i, row in enumerate(rows):
@@ -388,37 +395,28 @@ class Driver:
         ``acting`` (runs braking under :meth:`_graded_force`); elsewhere, and wherever the slip is
         under the first threshold, both shares are exactly 1.0: those runs are unchanged.
         """
-        ones = np.ones(self.v.B)
         if not acting.any():
+            ones = np.ones(self.v.B)
             return ones, ones
         slip = -x[:, IKA]
-
-        def share(axle: slice, relief: tuple[float, float]) -> np.ndarray:
-            on, off = relief
-            return np.where(acting, np.clip((off - slip[:, axle].max(axis=1)) / (off - on), 0.0, 1.0), ones)
-
-        return share(slice(0, 2), self.FRONT_SLIP_RELIEF), share(slice(2, 4), self.REAR_SLIP_RELIEF)
+        return (_relief_share(slip[:, :2].max(axis=1), self.FRONT_SLIP_RELIEF, acting),
+                _relief_share(slip[:, 2:].max(axis=1), self.REAR_SLIP_RELIEF, acting))
 
     def _spin_relief(self, x: np.ndarray, acting: np.ndarray) -> np.ndarray:
         """(B,) share (0..1) of its motor-torque demand that a driver following ``path_speed`` keeps while a
         driven front wheel starts to spin.
 
-        The motor drives the front wheels through an open differential and the car has no traction control.
-        Accelerating out of a corner unloads the inner front wheel (to 1.8 kN of its 3.9 kN static load on a dry
-        random circuit at 113 km/h); the differential gives it the same torque as the outer one, it spins (14-21 %
-        slip there, up to 144 % on another lap), its side force goes, the car runs wide of the line with the
-        steering wound on, and the driver's corrections put it off the track: 2 of the 24 dry laps of three
-        `circuits` campaigns (seeds 0, 0 with drawn pressures, 1901) ended so. So the driver (or a traction
-        control) feathers the throttle as the more spinning front wheel's drive slip ``kappa`` rises from
-        ``FRONT_SPIN_RELIEF[0]`` (share 1) to ``FRONT_SPIN_RELIEF[1]`` (share 0), linearly. Acts only where
-        ``acting`` (runs driving under :meth:`_graded_force`); elsewhere, and wherever the slip is under the first
-        threshold, the share is exactly 1.0: those runs are unchanged."""
-        ones = np.ones(self.v.B)
+        The motor drives the front wheels through an open differential and the car has no traction control:
+        accelerating out of a corner unloads the inner front wheel, the differential gives it the same torque as
+        the outer one, it spins, its side force goes and the car runs wide (the README's "A driven wheel that
+        spins" has the laps this put off the road). So the driver (or a traction control) feathers the throttle as
+        the more spinning front wheel's drive slip ``kappa`` rises from ``FRONT_SPIN_RELIEF[0]`` (share 1) to
+        ``FRONT_SPIN_RELIEF[1]`` (share 0), linearly. Acts only where ``acting`` (runs driving under
+        :meth:`_graded_force`); elsewhere, and wherever the slip is under the first threshold, the share is exactly
+        1.0: those runs are unchanged."""
         if not acting.any():
-            return ones
-        on, off = self.FRONT_SPIN_RELIEF
-        spin = x[:, IKA][:, :2].max(axis=1)
-        return np.where(acting, np.clip((off - spin) / (off - on), 0.0, 1.0), ones)
+            return np.ones(self.v.B)
+        return _relief_share(x[:, IKA][:, :2].max(axis=1), self.FRONT_SPIN_RELIEF, acting)
 
     def _brake_torques(self, x: np.ndarray, brake_dem: np.ndarray, graded: np.ndarray) -> np.ndarray:
         """(B, 4) brake torques (Nm) for a front brake demand ``brake_dem`` (Nm per wheel), the rear
