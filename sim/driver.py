@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim.linear import linear_model
 from sim.params import CONTROL_PERIOD_S
 from sim.vehicle import IKA, IOM, IPSI, IR, IS, ISW, IVX, IX, IY, Inputs, Vehicle
 
@@ -184,6 +185,7 @@ class Driver:
         self.max_rate = dp("robot_max_rate_radps")
         self.cmd_tau = dp("command_time_constant_s")
         self.slip_margin = dp("steer_slip_margin_rad")
+        self.k_us = np.zeros(B)
         self.follow_sw = np.zeros(B)
 
         # paths, padded to one length; runs without a path get a straight line
@@ -214,6 +216,10 @@ class Driver:
         self.grip_drive = np.array([g[0] for g in grip], dtype=float)
         self.grip_brake = np.array([g[1] for g in grip], dtype=float)
         self.graded = np.isfinite(self.grip_drive)
+        # the track driver knows its car's understeer gradient (rad per m/s^2; 0: the kinematic gain only)
+        if self.graded.any():
+            self.k_us = np.array([linear_model(t).understeer_gradient if g else 0.0
+                                  for t, g in zip(params, self.graded, strict=True)])
         self.off_limit = np.array([np.inf if p.track_half_width_m is None else p.track_half_width_m for p in plans])
         self.ax_ff = np.zeros(B)
         seg = np.diff(self.path, axis=1)
@@ -292,9 +298,8 @@ class Driver:
         self.lat_err = err  # + left of the path
         speed = np.maximum(x[:, IVX], 1.0)
         ld = np.maximum(self.preview_min, self.preview_time * speed)
-        s_tgt = np.minimum(start + frac + ld / self.path_ds, last)
-        j = np.clip(np.floor(s_tgt).astype(int), 0, np.maximum(last - 1, 0))
-        tgt = self._lerp(self.path, j, np.clip(s_tgt - j, 0.0, 1.0))
+        s_car = start + frac
+        tgt = self._at(self.path, np.minimum(s_car + ld / self.path_ds, last))
         psi = x[:, IPSI]
         dxg, dyg = tgt[:, 0] - pos[:, 0], tgt[:, 1] - pos[:, 1]
         y_local = -dxg * np.sin(psi) + dyg * np.cos(psi)
@@ -305,10 +310,15 @@ class Driver:
         # it gathers the error at (v_ref / v)^2, keeping the weight it has there (at the full gain a dry Baku lap at
         # 200 km/h weaved off its straight); gathered, not applied, so that slowing down adds no steering
         self.lat_int += err * CONTROL_DT * np.minimum(1.0, (self.v_lat_i / speed) ** 2)
-        delta = np.arctan(v.L * curvature) - self.k_lat_i * self.lat_int
+        # the track driver steers the path's own curvature (one command lag ahead) with its car's understeer too:
+        # pure pursuit's kinematic gain alone holds a corner at speed only off the line, on the outside, by as
+        # much as the missing K_us v^2 kappa asks for (more than half the steering at 170 km/h on a 210 m corner)
+        under = self.k_us * speed * speed
+        kappa_ff = self._at(self.path_curv, np.minimum(s_car + speed * self.cmd_tau / self.path_ds, last))
+        delta = np.arctan(v.L * curvature) + under * kappa_ff - self.k_lat_i * self.lat_int
         # a driver does not wind the wheels far past the tyres' grip: at most the
-        # kinematic angle of the sharpest curvature over the search window ahead
-        s_car = start + frac
+        # kinematic angle of the sharpest curvature over the search window ahead, plus a margin that also covers
+        # the understeer term (K_us a_y, a few hundredths of a radian at the car's grip)
         self.station_m = s_car * self.path_ds
         k_ahead = self._max_abs_along(self.path_curv, s_car, np.minimum(s_car + self.WINDOW - 1, last))
         limit = np.arctan(v.L * np.maximum(k_ahead, np.abs(curvature))) + self.slip_margin
@@ -327,6 +337,12 @@ class Driver:
         f = f.reshape(f.shape + (1,) * (profile.ndim - 2))
         return (1.0 - f) * profile[self._rows, j] + f * profile[self._rows, nxt]
 
+    def _at(self, profile: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """``profile`` (B, M, ...) at each run's fractional path index ``s`` (0..its last vertex; linear between
+        vertices)."""
+        j = np.clip(np.floor(s).astype(int), 0, np.maximum(self.path_len - 2, 0))
+        return self._lerp(profile, j, np.clip(s - j, 0.0, 1.0))
+
     def _max_abs_along(self, profile: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
         """Largest |profile| between fractional path indices ``s0 <= s1`` (one pair per run).
 
@@ -336,16 +352,11 @@ class Driver:
         vertices would step each time a vertex enters or leaves the span).
         """
         last = self.path_len - 1
-
-        def at(s: np.ndarray) -> np.ndarray:
-            j = np.clip(np.floor(s).astype(int), 0, last)
-            return np.abs(self._lerp(profile, j, np.clip(s - j, 0.0, 1.0)))
-
         j = np.floor(s0).astype(int)[:, None] + 1 + np.arange(self.WINDOW)[None, :]
         inside = j < s1[:, None]
         vals = np.abs(profile[self._rows[:, None], np.minimum(j, last[:, None])])
         inner = np.where(inside, vals, 0.0).max(axis=1)
-        return np.maximum(inner, np.maximum(at(s0), at(s1)))
+        return np.maximum(inner, np.maximum(np.abs(self._at(profile, s0)), np.abs(self._at(profile, s1))))
 
     def _foot(self, pos: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Foot of ``pos`` on each run's path segment a->b: (fraction 0..1, point, squared distance)."""
