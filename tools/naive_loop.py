@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The daemon's CPU at 20 Hz against a naive loop on the same frames and model, interleaved.
+"""The daemon's CPU at 20 Hz against a naive loop and a floor loop on the same frames and model, interleaved.
 
 The naive loop is what an integrator writes first (issue 15, item 9): a python-can ``Notifier`` whose thread
 wakes for every frame and decodes it with cantools into a dict of latest values, and a 20 Hz loop that builds
@@ -10,11 +10,18 @@ bench's feeder (each frame at its own instant, :func:`virtsensor.daemon.bench.fe
 ``virtual`` bus, and both are measured as the CPU time of their own threads over wall time (% of one core); the daemon
 holds its PM QoS CPU-latency request only when ``--cpu-latency-us`` is given, the naive loop never.
 
+The floor loop is the least any daemon built on python-can and onnxruntime does at 20 Hz on these frames: one
+thread that wakes every 50 ms, drains the bus (``recv(0)`` until empty) keeping each frame's raw bytes by ID (no
+decode, no E2E, no timeouts, no statuses, no features), runs the model once through a preallocated onnxruntime
+IOBinding and sends one preallocated SAT_FRONT frame. It holds the same PM QoS request as the daemon. Its CPU is
+what the machine charges for waking, reading the frames and running the model at all; the daemon's figure
+over it is what the daemon's own work costs.
+
 Usage::
 
     python tools/naive_loop.py [--rounds 3] [--seconds 10] [--cpu-latency-us 0] [--json F]
 
-Prints each round's figures, then the medians and their ratio (naive / daemon).
+Prints each round's figures, then the medians and their ratios (naive / daemon, daemon / floor).
 """
 
 from __future__ import annotations
@@ -132,6 +139,79 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
     return 100.0 * (c1 - c0) / (w1 - w0), (s1 - s0) / (w1 - w0)
 
 
+def floor_cpu(seconds: float, cpu_latency_us: int | None) -> tuple[float, float]:
+    """CPU (% of one core) of the floor loop's thread over ``seconds`` of feeding (holding a PM QoS request of
+    ``cpu_latency_us`` when given), and its SAT_FRONT frames sent per second (20 when it keeps up)."""
+    import can
+    import onnxruntime as ort
+
+    from virtsensor import assets
+    from virtsensor.daemon import bench
+    from virtsensor.daemon.pmqos import CpuLatencyRequest
+    from virtsensor.model.onnx import INPUT_NAME, OUTPUT_NAME, make_session
+
+    sess, _ = make_session(assets.model_path().read_bytes())
+    n_in = sess.get_inputs()[0].shape[1]
+    x, y = np.zeros((1, n_in), np.float32), np.zeros((1, 2), np.float32)
+    binding = sess.io_binding()
+    binding.bind_ortvalue_input(INPUT_NAME, ort.OrtValue.ortvalue_from_numpy(x))
+    binding.bind_ortvalue_output(OUTPUT_NAME, ort.OrtValue.ortvalue_from_numpy(y))
+    ch = bench.virtual_channel()
+    peer, bus = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
+    stop = threading.Event()
+    feeder = bench.feeder_thread(peer, bench.Inputs(), stop)
+    out = can.Message(arbitration_id=0x300, data=bytearray(8), is_extended_id=False)
+    raw: dict[int, bytes] = {}
+    sent = [0]
+
+    def tick_loop() -> None:
+        recv, run, send = bus.recv, sess.run_with_iobinding, bus.send
+        t0 = time.monotonic()
+        k = 0
+        while not stop.is_set():
+            k += 1
+            rem = t0 + k * 0.05 - time.monotonic()
+            if rem > 0 and stop.wait(rem):
+                return
+            msg = recv(0)
+            while msg is not None:
+                raw[msg.arbitration_id] = msg.data
+                msg = recv(0)
+            run(binding)
+            send(out)
+            sent[0] += 1
+
+    def drain() -> None:
+        while not stop.is_set():
+            peer.recv(0.05)
+
+    request = CpuLatencyRequest(cpu_latency_us) if cpu_latency_us is not None else None
+    if request is not None and not request.acquire():
+        raise RuntimeError(f"PM QoS request refused: {request.error}")
+    ticker = threading.Thread(target=tick_loop, name="floor-tick", daemon=True)
+    drainer = threading.Thread(target=drain, name="floor-drain", daemon=True)
+    try:
+        feeder.start()
+        drainer.start()
+        ticker.start()
+        time.sleep(1.0)
+        c0, w0, s0 = sum(bench.thread_cpu_s([ticker])), time.monotonic(), sent[0]
+        time.sleep(seconds)
+        c1, w1, s1 = sum(bench.thread_cpu_s([ticker])), time.monotonic(), sent[0]
+        if not ticker.is_alive():
+            raise RuntimeError("the floor loop's thread died during the measurement")
+    finally:
+        stop.set()
+        for th in (ticker, feeder, drainer):
+            if th.ident is not None:
+                th.join(2)
+        bus.shutdown()
+        peer.shutdown()
+        if request is not None:
+            request.release()
+    return 100.0 * (c1 - c0) / (w1 - w0), (s1 - s0) / (w1 - w0)
+
+
 def daemon_cpu(seconds: float, cpu_latency_us: int | None) -> float:
     from virtsensor import assets
     from virtsensor.canbus.codec import CanMatrix
@@ -154,21 +234,27 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.getLogger("virtsensor").setLevel(logging.ERROR)  # (the daemon's events, e.g. envelope exits: not here)
     rows = []
-    for r in range(args.rounds):  # (the order alternates: a drift of the machine falls on both alike)
-        if r % 2:
-            n, rate = naive_cpu(args.seconds)
-            d = daemon_cpu(args.seconds, args.cpu_latency_us)
-        else:
-            d = daemon_cpu(args.seconds, args.cpu_latency_us)
-            n, rate = naive_cpu(args.seconds)
-        rows.append({"round": r + 1, "daemon_cpu_percent": round(d, 3), "naive_cpu_percent": round(n, 3),
-                     "naive_sat_front_per_s": round(rate, 2)})
-        print(f"round {r + 1}: daemon {d:.3f} %  naive {n:.3f} % ({rate:.1f} SAT_FRONT/s)", flush=True)
-    med_d = statistics.median(x["daemon_cpu_percent"] for x in rows)
-    med_n = statistics.median(x["naive_cpu_percent"] for x in rows)
+    loops = {"daemon": lambda: (daemon_cpu(args.seconds, args.cpu_latency_us), None),
+             "naive": lambda: naive_cpu(args.seconds), "floor": lambda: floor_cpu(args.seconds, args.cpu_latency_us)}
+    order = list(loops)
+    for r in range(args.rounds):  # (the order rotates: a drift of the machine falls on all three alike)
+        row: dict[str, float | int | None] = {"round": r + 1}
+        for name in order[r % 3:] + order[:r % 3]:
+            cpu, rate = loops[name]()
+            row[f"{name}_cpu_percent"] = round(cpu, 3)
+            if rate is not None:
+                row[f"{name}_sat_front_per_s"] = round(rate, 2)
+        rows.append(row)
+        print(f"round {r + 1}: daemon {row['daemon_cpu_percent']:.3f} %  naive {row['naive_cpu_percent']:.3f} % "
+              f"({row['naive_sat_front_per_s']:.1f} SAT_FRONT/s)  floor {row['floor_cpu_percent']:.3f} % "
+              f"({row['floor_sat_front_per_s']:.1f} SAT_FRONT/s)", flush=True)
+    med = {name: statistics.median(float(x[f"{name}_cpu_percent"]) for x in rows) for name in loops}  # type: ignore[arg-type]
     out = {"rounds": rows, "seconds": args.seconds, "cpu_latency_us": args.cpu_latency_us,
-           "daemon_median": med_d, "naive_median": med_n, "ratio_naive_over_daemon": round(med_n / med_d, 2)}
-    print(f"medians: daemon {med_d:.3f} %, naive {med_n:.3f} %; naive / daemon {med_n / med_d:.2f}")
+           "daemon_median": med["daemon"], "naive_median": med["naive"], "floor_median": med["floor"],
+           "ratio_naive_over_daemon": round(med["naive"] / med["daemon"], 2),
+           "ratio_daemon_over_floor": round(med["daemon"] / med["floor"], 2)}
+    print(f"medians: daemon {med['daemon']:.3f} %, naive {med['naive']:.3f} %, floor {med['floor']:.3f} %; "
+          f"naive / daemon {out['ratio_naive_over_daemon']:.2f}, daemon / floor {out['ratio_daemon_over_floor']:.2f}")
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0
