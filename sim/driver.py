@@ -268,7 +268,8 @@ class Driver:
         return self.mu0 + (self.mu_step * (s[:, None] >= self.mu_dist)).sum(axis=1)
 
     def _follow(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pure-pursuit steering with integral action; returns (sw angle, target speed)."""
+        """Pure-pursuit steering with integral action, plus the car's understeer ``K_us v^2 kappa`` of the path
+        ahead for runs that follow a speed profile; returns (steering-wheel angle (rad), target speed (m/s))."""
         v = self.v
         rows = self._rows
         pos = x[:, [IX, IY]]
