@@ -33,13 +33,61 @@ import statistics
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+
+@contextmanager
+def fed_virtual_bus() -> Iterator[tuple[Any, threading.Event]]:
+    """``(bus, stop)``: a fresh ``virtual`` bus fed by the bench's feeder (each input frame at its own instant), its
+    peer's own queue drained, until the block ends (``stop`` set, threads joined, both buses shut down)."""
+    import can
+
+    from virtsensor.daemon import bench
+
+    ch = bench.virtual_channel()
+    peer, bus = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
+    stop = threading.Event()
+    feeder = bench.feeder_thread(peer, bench.Inputs(), stop)
+
+    def drain() -> None:
+        while not stop.is_set():
+            peer.recv(0.05)
+
+    drainer = threading.Thread(target=drain, name="peer-drain", daemon=True)
+    try:
+        feeder.start()
+        drainer.start()
+        yield bus, stop
+    finally:
+        stop.set()
+        for th in (feeder, drainer):
+            if th.ident is not None:
+                th.join(2)
+        bus.shutdown()
+        peer.shutdown()
+
+
+def measure(threads: list[threading.Thread], seconds: float, sent: list[int]) -> tuple[float, float]:
+    """CPU (% of one core) of ``threads`` over ``seconds`` after 1 s of settling, and frames sent per second
+    (``sent[-1]``, counted by the loop). RuntimeError if a thread dies meanwhile."""
+    from virtsensor.daemon import bench
+
+    time.sleep(1.0)  # settle: history filled
+    c0, w0, s0 = sum(bench.thread_cpu_s(threads)), time.monotonic(), sent[-1]
+    time.sleep(seconds)
+    c1, w1, s1 = sum(bench.thread_cpu_s(threads)), time.monotonic(), sent[-1]
+    if not all(th.is_alive() for th in threads):
+        raise RuntimeError(f"a thread ({', '.join(th.name for th in threads)}) died during the measurement")
+    return 100.0 * (c1 - c0) / (w1 - w0), (s1 - s0) / (w1 - w0)
 
 
 def naive_cpu(seconds: float) -> tuple[float, float]:
@@ -51,7 +99,6 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
 
     from virtsensor import assets
     from virtsensor import signals as cat
-    from virtsensor.daemon import bench
     from virtsensor.features import FeatureBuilder, FeatureSpec
     from virtsensor.model.card import ModelCard, card_path_for
 
@@ -82,13 +129,9 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
     lo, hi = sat.get_signal_by_name("SAT_FL").minimum, sat.get_signal_by_name("SAT_FL").maximum  # (the DBC's range)
     alive_max = int(sat.get_signal_by_name("SAT_FRONT_Counter").maximum)
     builder = FeatureBuilder(spec)
-    ch = bench.virtual_channel()
-    peer, bus = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
-    stop = threading.Event()
-    feeder = bench.feeder_thread(peer, bench.Inputs(), stop)
     counter = [0, 0]  # alive counter, frames sent
 
-    def tick_loop() -> None:
+    def tick_loop(bus: Any, stop: threading.Event) -> None:
         t0 = time.monotonic()
         k = 0
         while not stop.is_set():
@@ -106,37 +149,20 @@ def naive_cpu(seconds: float) -> tuple[float, float]:
             bus.send(can.Message(arbitration_id=sat.frame_id, data=sat.encode(values), is_extended_id=False))
             counter[1] += 1
 
-    def drain() -> None:
-        while not stop.is_set():
-            peer.recv(0.05)
-
-    before = set(threading.enumerate())
-    notifier = can.Notifier(bus, [Latest()], timeout=1.0)
-    receivers = [th for th in set(threading.enumerate()) - before if th.name.startswith("Notifier")]
-    ticker = threading.Thread(target=tick_loop, name="naive-tick", daemon=True)
-    drainer = threading.Thread(target=drain, name="naive-drain", daemon=True)
-    try:
-        feeder.start()
-        drainer.start()
-        ticker.start()
-        time.sleep(1.0)  # settle: history filled
-        threads = [ticker, *receivers]  # (the Notifier's receive thread: python-can names it "Notifier for bus")
-        if len(threads) != 2:
-            raise RuntimeError(f"expected the Notifier's one receive thread, found {len(receivers)}")
-        c0, w0, s0 = sum(bench.thread_cpu_s(threads)), time.monotonic(), counter[1]
-        time.sleep(seconds)
-        c1, w1, s1 = sum(bench.thread_cpu_s(threads)), time.monotonic(), counter[1]
-        if not all(th.is_alive() for th in threads):
-            raise RuntimeError("a thread of the naive loop died during the measurement")
-    finally:
-        stop.set()
-        notifier.stop()
-        for th in (ticker, feeder, drainer):
-            if th.ident is not None:
-                th.join(2)
-        bus.shutdown()
-        peer.shutdown()
-    return 100.0 * (c1 - c0) / (w1 - w0), (s1 - s0) / (w1 - w0)
+    with fed_virtual_bus() as (bus, stop):
+        before = set(threading.enumerate())
+        notifier = can.Notifier(bus, [Latest()], timeout=1.0)
+        receivers = [th for th in set(threading.enumerate()) - before if th.name.startswith("Notifier")]
+        ticker = threading.Thread(target=tick_loop, args=(bus, stop), name="naive-tick", daemon=True)
+        try:
+            ticker.start()
+            if len(receivers) != 1:  # (python-can names the Notifier's receive thread "Notifier for bus")
+                raise RuntimeError(f"expected the Notifier's one receive thread, found {len(receivers)}")
+            return measure([ticker, *receivers], seconds, counter)
+        finally:
+            stop.set()
+            notifier.stop()
+            ticker.join(2)
 
 
 def floor_cpu(seconds: float, cpu_latency_us: int | None) -> tuple[float, float]:
@@ -146,7 +172,6 @@ def floor_cpu(seconds: float, cpu_latency_us: int | None) -> tuple[float, float]
     import onnxruntime as ort
 
     from virtsensor import assets
-    from virtsensor.daemon import bench
     from virtsensor.daemon.pmqos import CpuLatencyRequest
     from virtsensor.model.onnx import INPUT_NAME, OUTPUT_NAME, make_session
 
@@ -156,15 +181,11 @@ def floor_cpu(seconds: float, cpu_latency_us: int | None) -> tuple[float, float]
     binding = sess.io_binding()
     binding.bind_ortvalue_input(INPUT_NAME, ort.OrtValue.ortvalue_from_numpy(x))
     binding.bind_ortvalue_output(OUTPUT_NAME, ort.OrtValue.ortvalue_from_numpy(y))
-    ch = bench.virtual_channel()
-    peer, bus = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
-    stop = threading.Event()
-    feeder = bench.feeder_thread(peer, bench.Inputs(), stop)
     out = can.Message(arbitration_id=0x300, data=bytearray(8), is_extended_id=False)
     raw: dict[int, bytes] = {}
     sent = [0]
 
-    def tick_loop() -> None:
+    def tick_loop(bus: Any, stop: threading.Event) -> None:
         recv, run, send = bus.recv, sess.run_with_iobinding, bus.send
         t0 = time.monotonic()
         k = 0
@@ -181,35 +202,21 @@ def floor_cpu(seconds: float, cpu_latency_us: int | None) -> tuple[float, float]
             send(out)
             sent[0] += 1
 
-    def drain() -> None:
-        while not stop.is_set():
-            peer.recv(0.05)
-
     request = CpuLatencyRequest(cpu_latency_us) if cpu_latency_us is not None else None
     if request is not None and not request.acquire():
         raise RuntimeError(f"PM QoS request refused: {request.error}")
-    ticker = threading.Thread(target=tick_loop, name="floor-tick", daemon=True)
-    drainer = threading.Thread(target=drain, name="floor-drain", daemon=True)
     try:
-        feeder.start()
-        drainer.start()
-        ticker.start()
-        time.sleep(1.0)
-        c0, w0, s0 = sum(bench.thread_cpu_s([ticker])), time.monotonic(), sent[0]
-        time.sleep(seconds)
-        c1, w1, s1 = sum(bench.thread_cpu_s([ticker])), time.monotonic(), sent[0]
-        if not ticker.is_alive():
-            raise RuntimeError("the floor loop's thread died during the measurement")
+        with fed_virtual_bus() as (bus, stop):
+            ticker = threading.Thread(target=tick_loop, args=(bus, stop), name="floor-tick", daemon=True)
+            try:
+                ticker.start()
+                return measure([ticker], seconds, sent)
+            finally:
+                stop.set()
+                ticker.join(2)
     finally:
-        stop.set()
-        for th in (ticker, feeder, drainer):
-            if th.ident is not None:
-                th.join(2)
-        bus.shutdown()
-        peer.shutdown()
         if request is not None:
             request.release()
-    return 100.0 * (c1 - c0) / (w1 - w0), (s1 - s0) / (w1 - w0)
 
 
 def daemon_cpu(seconds: float, cpu_latency_us: int | None) -> float:
