@@ -3,8 +3,8 @@
 Pure pursuit asks for the curvature of the arc to its preview point and turns it into a road-wheel angle with
 the kinematic (Ackermann) gain ``atan(L kappa)``. At speed a car needs more: its steady-state steering is
 ``L kappa + K_us v^2 kappa`` (``K_us`` the understeer gradient, rad per m/s^2), so a kinematic driver holds a
-corner only once its lateral error has grown enough to ask for the rest; at 170 km/h on a 210 m corner that
-is most of the steering, and a random circuit's S-bend put the car off the road that way. The driver that
+corner only once its lateral error has grown enough to ask for the rest, on the outside of the line (a random
+circuit's lap at 170 km/h left the road that way; README, "A driver that knows its car's understeer"). The driver that
 follows a speed profile adds its car's ``K_us v^2 kappa`` of the path ahead; the open-loop and ISO path
 manoeuvres (the paper's campaign) keep the kinematic gain, bit for bit.
 """
