@@ -185,7 +185,6 @@ class Driver:
         self.max_rate = dp("robot_max_rate_radps")
         self.cmd_tau = dp("command_time_constant_s")
         self.slip_margin = dp("steer_slip_margin_rad")
-        self.k_us = np.zeros(B)
         self.follow_sw = np.zeros(B)
 
         # paths, padded to one length; runs without a path get a straight line
@@ -216,10 +215,13 @@ class Driver:
         self.grip_drive = np.array([g[0] for g in grip], dtype=float)
         self.grip_brake = np.array([g[1] for g in grip], dtype=float)
         self.graded = np.isfinite(self.grip_drive)
-        # the track driver knows its car's understeer gradient (rad per m/s^2; 0: the kinematic gain only)
-        if self.graded.any():
-            self.k_us = np.array([linear_model(t).understeer_gradient if g else 0.0
-                                  for t, g in zip(params, self.graded, strict=True)])
+        # the track driver knows its car's understeer gradient (rad per m/s^2; 0: the kinematic gain only), one
+        # linear model per distinct parameter tree (a campaign's runs share one)
+        k_us_of: dict[int, float] = {}
+        for t, g in zip(params, self.graded, strict=True):
+            if g and id(t) not in k_us_of:
+                k_us_of[id(t)] = linear_model(t).understeer_gradient
+        self.k_us = np.array([k_us_of[id(t)] if g else 0.0 for t, g in zip(params, self.graded, strict=True)])
         self.off_limit = np.array([np.inf if p.track_half_width_m is None else p.track_half_width_m for p in plans])
         self.ax_ff = np.zeros(B)
         seg = np.diff(self.path, axis=1)
@@ -313,7 +315,7 @@ class Driver:
         self.lat_int += err * CONTROL_DT * np.minimum(1.0, (self.v_lat_i / speed) ** 2)
         # the track driver steers the path's own curvature (one command lag ahead) with its car's understeer too:
         # pure pursuit's kinematic gain alone holds a corner at speed only off the line, on the outside, by as
-        # much as the missing K_us v^2 kappa asks for (more than half the steering at 170 km/h on a 210 m corner)
+        # much as the missing K_us v^2 kappa asks for
         under = self.k_us * speed * speed
         kappa_ff = self._at(self.path_curv, np.minimum(s_car + speed * self.cmd_tau / self.path_ds, last))
         delta = np.arctan(v.L * curvature) + under * kappa_ff - self.k_lat_i * self.lat_int
