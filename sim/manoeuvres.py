@@ -36,9 +36,9 @@ from sim.driver import (
     Plan,
 )
 from sim.linear import linear_model
+from sim.params import MU_RANGE
 
 G = 9.81
-MU_RANGE = (0.1, 1.2)
 #: "driven briskly": share of the road's friction the track speed profile asks of the
 #: car in corners. The tyres give about 0.85 g on a mu = 1 road and the front-heavy
 #: car understeers before that; 0.62 is brisk and still on the line (0.85 and 0.72

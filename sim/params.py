@@ -16,6 +16,7 @@ import difflib
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +25,11 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib  # type: ignore[no-redef]
 
-DATA_DIR = Path(__file__).resolve().parent / "data"
+#: the simulator's data folder (package data of :mod:`sim`, found through :mod:`importlib.resources`)
+DATA_DIR = Path(str(files("sim").joinpath("data")))
 DEFAULT_CAR = DATA_DIR / "car_c_segment.toml"
+#: road friction coefficients the simulator accepts (lowest, highest), the ``--mu`` range of every command
+MU_RANGE = (0.1, 1.2)
 
 
 class ParamError(ValueError):

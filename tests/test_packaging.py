@@ -89,8 +89,8 @@ def test_a_command_whose_extra_is_missing_names_it_in_one_line(tmp_path, argv, e
 
 def test_the_missing_extra_is_named_once_with_what_pip_installs_and_the_help_still_reads(tmp_path):
     """``virtsensor train`` on the base install: one line that names the command once and the PyPI names
-    (scikit-learn, not the module sklearn); ``train --help`` shows the options (exit 0) and which extra to install;
-    a command whose options come from the simulator refuses its help in the same one line."""
+    (scikit-learn, not the module sklearn); ``train --help``, and the help of every other command of an extra, shows
+    the options (exit 0) and which extra to install."""
     code = _BLOCK.format(blocked=("sklearn", "skl2onnx", "scipy", "joblib", "tqdm", "threadpoolctl", "shap",
                                   "matplotlib"))
     r = subprocess.run([sys.executable, "-c", code, "train"], capture_output=True, text=True, cwd=tmp_path)
@@ -99,8 +99,15 @@ def test_the_missing_extra_is_named_once_with_what_pip_installs_and_the_help_sti
     h = subprocess.run([sys.executable, "-c", code, "train", "--help"], capture_output=True, text=True, cwd=tmp_path)
     flat = " ".join(h.stdout.split())  # (argparse wraps the epilog)
     assert h.returncode == 0 and "--data" in flat and "pip install 'virtsensor[train]'" in flat, h
-    s = subprocess.run([sys.executable, "-c", code, "simulate", "--help"], capture_output=True, text=True,
-                       cwd=tmp_path)
+    for name, option in (("simulate", "--track"), ("diagnose", "--measured"), ("campaign", "--out"),
+                         ("evaluate", "--model"), ("explain", "--model")):  # (every command of an extra)
+        s = subprocess.run([sys.executable, "-c", code, name, "--help"], capture_output=True, text=True,
+                           cwd=tmp_path)
+        flat = " ".join(s.stdout.split())
+        assert s.returncode == 0 and option in flat and "pip install 'virtsensor[" in flat, (name, s.stderr)
+        assert "Traceback" not in s.stderr, s.stderr
+    s = subprocess.run([sys.executable, "-c", code, "simulate", "fishhook", "--mu", "1", "--out", "x.csv"],
+                       capture_output=True, text=True, cwd=tmp_path)
     assert s.returncode == 2 and s.stderr.count("\n") == 1 and "virtsensor[train]" in s.stderr, s.stderr
     assert "scikit-learn" in s.stderr  # (every module of the extra that is missing, not the first one imported)
     for argv, code_ in ((["train", "--he"], 0), (["train", "--data", "d", "-h"], 0), (["train", "--out", "-h"], 2),
@@ -136,6 +143,9 @@ def test_the_built_wheel_runs_the_demo_and_the_daemon_from_an_empty_directory(tm
     for asset in ("virtsensor/assets/models/improved.onnx", "virtsensor/assets/models/improved.card.json",
                   "virtsensor/assets/dbc/virtsensor.dbc"):
         assert asset in names, asset
+    licences = {n.split("/licenses/", 1)[1] for n in names if ".dist-info/licenses/" in n}
+    assert licences == {"LICENSE", "NOTICE", *(f"LICENSES/{p.name}" for p in (ROOT / "LICENSES").glob("*.txt"))}, \
+        licences  # (the bundled third-party data ships with its licence texts)
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)],
                    check=True, capture_output=True)
     env = {**os.environ, "PYTHONPATH": str(site)}

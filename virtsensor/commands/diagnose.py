@@ -27,7 +27,7 @@ HELP = "sim-to-real: compare measured runs with their re-simulation, name the ca
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from sim.manoeuvres import MU_RANGE
+    from sim.params import MU_RANGE
     from virtsensor.commands import _types as t
     from virtsensor.commands._simargs import add_car_arguments
 

@@ -21,18 +21,11 @@ HELP = "play a CAN log (or a simulated manoeuvre) onto a python-can bus"
 DEFAULT_SPEED_KMH, DEFAULT_MU, DEFAULT_SEED = 80.0, 1.0, 0
 
 
-def _mu_range() -> tuple[float, float]:
-    try:
-        from sim.manoeuvres import MU_RANGE
-    except ImportError:  # the simulator is optional for replaying logs
-        return (0.1, 1.2)
-    return MU_RANGE
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from sim.params import MU_RANGE
     from virtsensor.commands import _types as t
 
-    mu_lo, mu_hi = _mu_range()
+    mu_lo, mu_hi = MU_RANGE
     parser.add_argument("file", nargs="?", type=t.existing_file(what="log file"),
                         help="CAN log to play (.blf, .asc, .log, .csv, .trc)")
     parser.add_argument(

@@ -16,7 +16,7 @@ HELP = f"simulate a manoeuvre and write a 20 Hz table (.csv) or a CAN log ({'/'.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from sim.manoeuvres import MU_RANGE
+    from sim.params import MU_RANGE
     from virtsensor.commands import _types as t
 
     parser.add_argument("manoeuvre", metavar="MANOEUVRE",
@@ -123,7 +123,8 @@ def _outcome_text(outcome: dict) -> str:
 def _resimulate(args: argparse.Namespace):
     """Re-simulate a recorded run from its driver inputs (``simulate recorded``)."""
     from sim.api import simulate_plan
-    from sim.manoeuvres import MU_RANGE, from_recording
+    from sim.manoeuvres import from_recording
+    from sim.params import MU_RANGE
     from virtsensor.learning.dataset import load_runs
 
     if args.inputs is None:
