@@ -224,17 +224,27 @@ def test_demo_live_lines_and_max_rate(tmp_path):
     assert "mean" in text and "latency p99" in text
 
 
-def test_demo_without_matplotlib_still_prints_its_figures(tmp_path, monkeypatch):
+def test_demo_without_matplotlib_still_prints_its_figures(tmp_path, monkeypatch, capsys):
+    """Without matplotlib the default plot is skipped with a note and the figures still print; a plot asked for
+    with ``--plot`` is refused in one line (exit 2) before any work, nothing written."""
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    monkeypatch.chdir(tmp_path)
     js = tmp_path / "d.json"
-    rc, text = run_demo_cli("--rate", "max", "--no-live", "--json", str(js), "--plot", str(tmp_path / "p.png"))
+    rc, text = run_demo_cli("--rate", "max", "--no-live", "--json", str(js))
     assert rc == 0, text
     assert "plot skipped: matplotlib is not installed" in text and "pip install" in text
     assert "MAE" in text
     r = json.loads(js.read_text())
     assert r["plot"] is None and "matplotlib" in r["plot_skipped"]
-    assert not (tmp_path / "p.png").exists() and not (tmp_path / "p_limit.png").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.json"]  # (no figures/ folder, no plot)
     assert r["limit_run"]["plot"] is None and r["limit_run"]["grip"]["warning_ticks"] > 0
+    js.unlink()
+    capsys.readouterr()
+    rc, text = run_demo_cli("--rate", "max", "--no-live", "--json", str(js), "--plot", str(tmp_path / "p.png"))
+    err = capsys.readouterr().err
+    assert rc == 2 and text == "" and err.count("\n") == 1, (text, err)
+    assert err.startswith("virtsensor demo: error: --plot needs the optional extra 'plots'"), err
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize(

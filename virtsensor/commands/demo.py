@@ -34,17 +34,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(as fast as possible)")
     parser.add_argument("--no-live", dest="live", action="store_false",
                         help="no line per half second during the run, only the closing figures")
-    parser.add_argument("--plot", metavar="FILE.png", default=DEFAULT_PLOT,
+    parser.add_argument("--plot", metavar="FILE.png", default=None,
                         type=t.output_file(".png", mkdirs=True, companions=lambda p: [limit_plot_path(p)]),
-                        help=f"PNG of estimated vs true SAT and the error (default {DEFAULT_PLOT}; needs matplotlib); "
+                        help=f"PNG of estimated vs true SAT and the error (needs matplotlib, the 'plots' extra: "
+                             f"refused without it; default {DEFAULT_PLOT}, skipped with a note without it); "
                              "on the bundled defaults the limit run's beside it, <name>_limit.png")
     parser.add_argument("--json", dest="json_path", metavar="FILE", default=None, type=t.output_file(),
                         help="write the figures as JSON")
 
 
 def run(args: argparse.Namespace) -> int:
-    from virtsensor.demo import run_demo
+    from virtsensor import plotting
+    from virtsensor.demo import DEFAULT_PLOT, run_demo
 
+    if args.plot is not None:  # (a plot asked for is drawn or refused; the default one is skipped with a note)
+        plotting.require("--plot")
     result = run_demo(model=args.model, recording=args.recording, rate=args.rate, live=args.live,
-                      plot=args.plot, json_path=args.json_path)
+                      plot=DEFAULT_PLOT if args.plot is None else args.plot, json_path=args.json_path)
     return 130 if result["interrupted"] else 0
