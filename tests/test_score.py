@@ -74,7 +74,8 @@ def test_scores_match_the_trainers_metrics_and_the_model_file(recordings: Path, 
 
 
 def test_score_runs_on_the_base_install(recordings: Path, tmp_path: Path) -> None:
-    """No extra is imported: scikit-learn, scipy and the rest of the training stack are blocked."""
+    """No extra is imported: scikit-learn, scipy and the rest of the training stack are blocked; without
+    ``--model`` the shipped improved model is scored."""
     out = tmp_path / "score.json"
     blocked = ("sklearn", "skl2onnx", "scipy", "joblib", "tqdm", "threadpoolctl", "shap", "matplotlib")
     code = (
@@ -82,12 +83,14 @@ def test_score_runs_on_the_base_install(recordings: Path, tmp_path: Path) -> Non
         f"for name in {blocked!r}:\n"
         "    sys.modules[name] = None\n"
         "from virtsensor.cli import main\n"
-        f"sys.exit(main(['score', '--model', {str(MODEL)!r}, '--data', {str(recordings / 'pulse.csv')!r}, "
+        f"sys.exit(main(['score', '--data', {str(recordings / 'pulse.csv')!r}, "
         f"{str(recordings / 'sine.blf')!r}, '--json', {str(out)!r}]))\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert len(json.loads(out.read_text())["runs"]) == 2
+    res = json.loads(out.read_text())
+    assert len(res["runs"]) == 2
+    assert res["model"]["sha256"] == json.loads(MODEL.with_name("improved.card.json").read_text())["sha256"]
 
 
 def _refused(argv: list[str], capsys, fragment: str, out: Path) -> None:

@@ -19,10 +19,13 @@ HELP = "Section IV.B figures: input correlation, SHAP importance/dependence, tra
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from virtsensor.assets import model_path
     from virtsensor.commands import _types as t
 
-    parser.add_argument("--model", required=True, metavar="FILE.onnx", type=t.existing_file(".onnx"),
-                        help="the shipped model (its card beside it names the features)")
+    parser.add_argument("--model", metavar="FILE.onnx", default=None,
+                        type=t.existing_file(".onnx", implicit=model_path),
+                        help="the model (its card beside it names the features; default: the shipped improved "
+                             "model)")
     parser.add_argument("--data", nargs="+", required=True, metavar="PATH", type=t.existing_path(),
                         help="recordings (files or directories), as for train")
     parser.add_argument("--track", metavar="FILE", type=t.existing_file(),
@@ -46,13 +49,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from virtsensor.assets import model_path
     from virtsensor.learning.explain import explain
 
     def log(msg: str) -> None:
         if not args.quiet:
             print(msg, file=sys.stderr)
 
-    doc = explain(args.model, args.data, args.out, track=args.track, circuits=args.circuits, seed=args.seed,
+    model = model_path() if args.model is None else args.model
+    doc = explain(model, args.data, args.out, track=args.track, circuits=args.circuits, seed=args.seed,
                   samples=args.samples, background=args.background, method=args.method, log=log)
     fl = doc["model"]["outputs"][0]
     print(f"{fl}: " + ", ".join(doc["ranking"][fl][:3]) + f"  ({len(doc['figures'])} figures in {args.out})")

@@ -14,10 +14,12 @@ HELP = "score a shipped model (the ONNX file and its card) on recordings: R2 and
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from virtsensor.assets import model_path
     from virtsensor.commands import _types as t
 
-    parser.add_argument("--model", required=True, metavar="FILE.onnx", type=t.existing_file(".onnx"),
-                        help="the model file (its card beside it)")
+    parser.add_argument("--model", metavar="FILE.onnx", default=None,
+                        type=t.existing_file(".onnx", implicit=model_path),
+                        help="the model file (its card beside it; default: the shipped improved model)")
     parser.add_argument("--data", nargs="+", required=True, metavar="PATH", type=t.existing_path(),
                         help="recordings: .csv tables or CAN logs (.blf, .asc, .log, .trc), or directories of them; "
                              "each needs the model's inputs and the wheel-force-transducer SATs")
@@ -27,13 +29,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from virtsensor.assets import model_path
     from virtsensor.fileio import dumps, write_texts
     from virtsensor.learning.dataset import load_runs
     from virtsensor.learning.gripscore import grip_markdown
     from virtsensor.learning.scoring import markdown, needed_signals, score_runs
     from virtsensor.model.onnx import OnnxModel
 
-    model = OnnxModel.load(args.model)
+    model = OnnxModel.load(model_path() if args.model is None else args.model)
     runs = load_runs(args.data, needed=needed_signals(model.card))
     result = score_runs(model, runs)
     table = markdown(result)
