@@ -329,6 +329,8 @@ def check_steerable(track: Track, params: Mapping[str, Any], origin: str) -> Non
 # ---------------------------------------------------------------------- derivation
 def _close(pts: np.ndarray, origin: str) -> np.ndarray:
     """Drop repeated points and check the loop closes; returns the distinct points in order."""
+    if len(pts) < 4:
+        raise TrackError(f"{origin}: a closed centreline needs at least 4 distinct points, the file has {len(pts)}")
     keep = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-6])
     pts = pts[keep]
     if len(pts) > 1 and np.hypot(*(pts[-1] - pts[0])) <= 1e-6:

@@ -55,6 +55,8 @@ def load_defaults(path: Path | str = DEFAULT_CAR) -> dict[str, Any]:
         raise ParamError(f"{path}: cannot read parameter file ({exc.strerror})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ParamError(f"{path}: not valid TOML ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ParamError(f"{path}: not UTF-8 text (byte {exc.start}), as TOML must be") from None
 
 
 def _leaves(tree: Mapping[str, Any], prefix: str = "") -> Iterable[tuple[str, Any]]:

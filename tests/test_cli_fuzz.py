@@ -354,3 +354,59 @@ def test_an_output_never_overwrites_the_default_model(inputs, monkeypatch):
     monkeypatch.setattr("virtsensor.assets.model_path", lambda name="improved": inputs / "m.onnx")
     line = _assert_refused(["bench", "--json", "{tmp}/m.card.json"], inputs)
     assert "--model (default)" in line, line
+
+
+@pytest.mark.parametrize(("argv", "companion"), [
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--out", "{tmp}/new.csv"], "new.json"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--out", "{tmp}/new.blf"], "new.json"),
+    (["train", "--data", "{tmp}/camp", "--out", "{tmp}/new.onnx"], "new.card.json"),
+])
+def test_a_file_written_beside_an_output_must_be_writable_before_any_work(inputs, argv, companion):
+    """The metadata of a run, the card of a model: a directory or a read-only file where it goes refuses the command
+    in one line before any work, and the output's own file (existing here) is left as it was."""
+    out = Path(argv[-1].replace("{tmp}", str(inputs)))
+    out.write_text("precious\n")
+    (inputs / companion).mkdir()
+    line = _assert_refused(argv, inputs)
+    assert f"{inputs / companion} (" in line and "is a directory" in line, line
+    (inputs / companion).rmdir()
+    (inputs / companion).write_text("mine\n")
+    (inputs / companion).chmod(0o444)
+    if not os.access(inputs / companion, os.W_OK):  # (root writes a read-only file anyway: not refused then)
+        line = _assert_refused(argv, inputs)
+        assert "is not writable" in line, line
+    assert out.read_text() == "precious\n" and (inputs / companion).read_text() == "mine\n"
+
+
+@pytest.mark.parametrize(("name", "content", "argv", "needle"), [
+    ("bin.toml", b"\xff\xfe", ["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--out", "{tmp}/a.csv",
+                               "--params", "{tmp}/bin.toml"], "bin.toml: not UTF-8 text (byte 0)"),
+    ("l1.toml", b"x = 1\n\xe9\n", ["campaign", "tiny", "--out", "{tmp}/c", "--params", "{tmp}/l1.toml"],
+     "l1.toml: not UTF-8 text (byte 6)"),
+    ("h.csv", b"x_m,y_m\n", ["simulate", "circuit", "--track", "{tmp}/h.csv", "--speed", "100", "--mu", "1",
+                             "--out", "{tmp}/a.csv"], "h.csv: a closed centreline needs at least 4 distinct points"),
+    ("h2.csv", b"x_m,y_m\n\n", ["simulate", "circuit", "--track", "{tmp}/h2.csv", "--speed", "100", "--mu", "1",
+                                "--out", "{tmp}/a.csv"], "the file has 0"),
+])
+def test_an_unreadable_parameter_file_or_an_empty_centreline_is_one_line(tmp_path, name, content, argv, needle):
+    (tmp_path / name).write_bytes(content)
+    line = _assert_refused(argv, tmp_path)
+    assert needle in line, line
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["tyre", "c_segment_205_55R16", "--set", "LMUY=1e300"], "scaling factor LMUY = 1e+300 is beyond +-100"),
+    (["tyre", "c_segment_205_55R16", "--set", "LKY=-101"], "scaling factor LKY = -101 is beyond +-100"),
+    (["tyre", "c_segment_205_55R16", "--set", "PDY1=1e30"], "coefficient PDY1 = 1e+30 is beyond +-1e+06"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--tyre", "{tmp}/lmuy.tir", "--out",
+      "{tmp}/a.csv"], "lmuy.tir:161: scaling factor LMUY = 1e+300 is beyond +-100"),
+])
+def test_a_tyre_coefficient_no_tyre_has_is_refused_before_any_work(tmp_path, argv, needle):
+    from sim.tir import bundled_tir
+
+    text = bundled_tir("c_segment_205_55R16.tir").read_text()
+    lines = ["LMUY = 1e300" if ln.split("=")[0].strip() == "LMUY" else ln for ln in text.splitlines()]
+    assert lines[160] == "LMUY = 1e300"
+    (tmp_path / "lmuy.tir").write_text("\n".join(lines) + "\n")
+    line = _assert_refused(argv, tmp_path)
+    assert needle in line, line

@@ -302,6 +302,8 @@ class _Slot:
     def __init__(self, option: str, text: str, path: Path, label: str, is_dir: bool) -> None:
         self.path = Path(os.path.realpath(path))
         self.is_dir = is_dir
+        #: written beside the argument's own file (a model card, a run's metadata), not named by the user
+        self.companion = bool(label)
         self.name = f"{option} {text}" if not label else f"{path} ({label} {option} {text})"
 
     def same(self, other: _Slot) -> bool:
@@ -380,9 +382,24 @@ def check_paths(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         role = getattr(action.type, "path_role", None)
         if role is not None:
             (inputs if role == INPUT else outputs).extend(_slots(action, values))
-    problem = path_clash(inputs, outputs)
+    problem = path_clash(inputs, outputs) or next(filter(None, map(_companion_problem, outputs)), None)
     if problem:
         raise UserError(problem)
+
+
+def _companion_problem(slot: _Slot) -> str | None:
+    """Why a file an output writes beside itself (a model card, a run's metadata) cannot be written there, or None:
+    checked with the output's own file, before any work, so that neither is touched when the other cannot be."""
+    p = slot.path
+    if not slot.companion or not p.exists():
+        return None
+    if p.is_dir():
+        return f"{slot.name} is a directory: the file cannot be written there; move it or choose another output name"
+    if not p.is_file():
+        return f"{slot.name} exists and is not a regular file"
+    if not os.access(p, os.W_OK):
+        return f"{slot.name} exists and is not writable"
+    return None
 
 
 def _suffix_ok(p: Path, suffixes: Sequence[str]) -> None:
