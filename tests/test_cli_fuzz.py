@@ -410,3 +410,10 @@ def test_a_tyre_coefficient_no_tyre_has_is_refused_before_any_work(tmp_path, arg
     (tmp_path / "lmuy.tir").write_text("\n".join(lines) + "\n")
     line = _assert_refused(argv, tmp_path)
     assert needle in line, line
+
+
+def test_a_message_quoting_a_file_never_sends_its_control_characters_to_the_terminal(tmp_path):
+    """A parser's message quotes the text it stopped at: an escape sequence there is shown escaped, on one line."""
+    (tmp_path / "e.dbc").write_bytes(b'VERSION ""\n\x1b[31mRED\x1b[0m\n')
+    line = _assert_refused(["run", "--duration", "1", "-i", "virtual", "-c", "x", "--dbc", "{tmp}/e.dbc"], tmp_path)
+    assert "e.dbc: not a valid DBC" in line and "\\x1b[31mRED" in line and "\x1b" not in line, line

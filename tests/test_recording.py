@@ -396,10 +396,21 @@ def test_csv_round_trip(tmp_path):
     assert path.read_text().splitlines()[0] == ",".join(table)
 
 
+def test_a_csv_with_a_byte_order_mark_reads_as_without(tmp_path):
+    """A spreadsheet's "CSV UTF-8" starts with a byte-order mark: it is no part of the first column's name."""
+    p = tmp_path / "bom.csv"
+    p.write_bytes(b"\xef\xbb\xbftime_s,ax_mps2\n0.0,1.0\n0.05,2.0\n")
+    back = read_csv(p)
+    assert list(back) == ["time_s", "ax_mps2"] and back["ax_mps2"].tolist() == [1.0, 2.0]
+
+
 def test_csv_errors_name_file_and_line(tmp_path):
     p = tmp_path / "bad.csv"
     p.write_text("time_s,ax_mps2\n0.0,1.0\n0.05,oops\n")
-    with pytest.raises(UserError, match=r"bad\.csv:3: 'oops' is not a number"):
+    with pytest.raises(UserError, match=r"bad\.csv:3: column ax_mps2: 'oops' is not a number"):
+        read_csv(p)
+    p.write_text("time_s,ax_mps2\n0.0,1.0\n,2.0\n")
+    with pytest.raises(UserError, match=r"bad\.csv:3: column time_s: '' is not a number"):
         read_csv(p)
     p.write_text("time_s,ax_mps2\n0.0,1.0\n0.05\n")
     with pytest.raises(UserError, match=r"bad\.csv:3: expected 2 fields, got 1"):

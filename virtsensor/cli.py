@@ -113,8 +113,16 @@ def _help_or_missing(parser: argparse.ArgumentParser, sub: argparse.ArgumentPars
 
 
 def _fail(command: str, exc: UserError) -> int:
-    print(f"virtsensor {command}: error: {exc}", file=sys.stderr)
+    print(f"virtsensor {command}: error: {_shown(str(exc))}", file=sys.stderr)
     return exc.exit_code
+
+
+def _shown(text: str) -> str:
+    """``text`` as one printable line: a character that is not printable (a newline, an escape sequence, a byte of a
+    binary file quoted in a parser's message) is shown escaped (``\\x1b``), never sent to the terminal."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
 def _stdout_gone() -> bool:

@@ -357,6 +357,7 @@ def _load_db(path: Path | None):
             db = cantools.database.load_file(str(path), database_format="dbc", strict=True)
         except Exception as exc:  # cantools raises ParseError, UnsupportedDatabaseFormatError, ...
             msg = " ".join(str(exc).split())
+            msg = msg if len(msg) <= 240 else msg[:240] + "..."  # (the parser quotes the text it stopped at)
             raise UserError(f"{path}: not a valid DBC: {type(exc).__name__}: {msg}") from None
         _CACHE[key] = (db, _compile(db, str(path)), str(path))
     return _CACHE[key]

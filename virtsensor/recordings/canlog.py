@@ -802,8 +802,9 @@ def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
             try:
                 rows.append([float(p) for p in parts])
             except ValueError:
-                bad = next(p for p in parts if not _is_float(p))
-                raise UserError(f"{path}:{lineno}: {bad.strip()!r} is not a number") from None
+                col = next(k for k, p in enumerate(parts) if not _is_float(p))
+                raise UserError(f"{path}:{lineno}: column {names[col]}: {parts[col].strip()!r} is not a "
+                                "number") from None
     mat = np.array(rows, dtype=np.float64).reshape(len(rows), width)
     return {n: mat[:, i].copy() for i, n in enumerate(names)}
 
@@ -816,7 +817,7 @@ def _utf8_text(path: Path) -> str:
     except OSError as exc:
         raise UserError(f"{path}: cannot read: {exc.strerror or exc}") from None
     try:
-        return raw.decode("utf-8")
+        return raw.decode("utf-8-sig")  # (a byte-order mark, as spreadsheets write "CSV UTF-8", is no column name)
     except UnicodeDecodeError as exc:
         line = raw.count(b"\n", 0, exc.start) + 1
         raise UserError(f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at byte offset {exc.start}); "
