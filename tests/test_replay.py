@@ -343,3 +343,41 @@ def test_a_checked_log_is_read_through_once_before_the_bus_and_played_whole(tmp_
     finally:
         tx.shutdown()
     assert summary.frames_sent == written.frames == len(rx.close(expect=written.frames))
+
+
+def test_open_bus_folds_what_python_can_logs_into_its_one_line_or_hands_it_on(monkeypatch, caplog):
+    """A driver that cannot load logs why before it raises: that note joins the one error line, nothing else is
+    printed; when the bus opens, what it logged is handed on to logging as before."""
+    import logging
+    import warnings
+
+    import can
+
+    from virtsensor.errors import UserError
+    from virtsensor.recordings.replay import open_bus
+
+    def failing(**kw):
+        logging.getLogger("can.fake").warning("fake driver library is unavailable.")
+        raise can.CanInterfaceNotImplementedError("name 'fakeOpen' is not defined")
+
+    monkeypatch.setattr(can, "Bus", failing)
+    with caplog.at_level(logging.WARNING, logger="can"):
+        with pytest.raises(UserError) as info:
+            open_bus("virtual", "x")
+    assert str(info.value) == ("cannot open virtual channel 'x': name 'fakeOpen' is not defined "
+                               "(python-can: fake driver library is unavailable.)"), info.value
+    assert caplog.records == []  # (held back: it is in the line)
+
+    opened = object()
+
+    def noisy(**kw):
+        logging.getLogger("can.fake").warning("timestamps are relative to boot time")
+        warnings.warn("old option", DeprecationWarning, stacklevel=1)
+        return opened
+
+    monkeypatch.setattr(can, "Bus", noisy)
+    with caplog.at_level(logging.WARNING, logger="can"), pytest.warns(DeprecationWarning, match="old option"):
+        assert open_bus("virtual", "x") is opened
+    assert [r.getMessage() for r in caplog.records] == ["timestamps are relative to boot time"]
+    assert logging.getLogger("can").propagate and not any(
+        type(h).__name__ == "Held" for h in logging.getLogger("can").handlers)

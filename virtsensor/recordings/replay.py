@@ -23,12 +23,14 @@ counted). The timing error of a frame is ``perf_counter()`` just before
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import sys
 import time
 from array import array
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -125,11 +127,54 @@ def open_bus(interface: str, channel: str, bitrate: int | None = None, **kwargs)
         raise UserError(f"--interface: unknown interface {interface!r}; valid: {', '.join(valid)}")
     if bitrate is not None:
         kwargs["bitrate"] = bitrate
+    with _bus_notes() as notes:
+        try:
+            return can.Bus(interface=interface, channel=channel, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - interfaces raise CanError, OSError, ImportError, ...
+            failure = " ".join(str(exc).split()) or type(exc).__name__
+        gc.collect()  # (a half-made bus says at its collection that it was not shut down: part of this failure)
+        said = [n for n in notes() if "not properly shut down" not in n and n not in failure]
+        why = f" (python-can: {'; '.join(said)})" if said else ""
+        raise UserError(f"cannot open {interface} channel {channel!r}: {failure}{why}")
+
+
+@contextmanager
+def _bus_notes() -> Iterator[Callable[[], list[str]]]:
+    """While opening a bus: what python-can's interfaces log (WARNING and above) and warn, held back; yields a
+    function returning those messages, one line each. When the block ends without an exception (the bus opened),
+    they are handed on as they would have been; when it raises (the bus did not open), the caller has folded them
+    into its one error line, and they are dropped."""
+    import logging
+    import warnings
+
+    class Held(logging.Handler):
+        def __init__(self) -> None:
+            super().__init__(logging.WARNING)
+            self.records: list[logging.LogRecord] = []
+
+        def emit(self, record: logging.LogRecord) -> None:
+            self.records.append(record)
+
+    log = logging.getLogger("can")
+    held, propagate = Held(), log.propagate
+    log.addHandler(held)
+    log.propagate = False
     try:
-        return can.Bus(interface=interface, channel=channel, **kwargs)
-    except Exception as exc:  # noqa: BLE001 - interfaces raise CanError, OSError, ImportError, ...
-        detail = " ".join(str(exc).split()) or type(exc).__name__
-        raise UserError(f"cannot open {interface} channel {channel!r}: {detail}") from None
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+
+            def notes() -> list[str]:
+                texts = [r.getMessage() for r in held.records] + [str(w.message) for w in caught]
+                return [" ".join(t.split()) for t in texts if t.strip()]
+
+            yield notes
+    finally:
+        log.removeHandler(held)
+        log.propagate = propagate
+    for w in caught:  # (reached only when the bus opened)
+        warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    for r in held.records:
+        log.handle(r)
 
 
 def simulated_frames(
