@@ -311,3 +311,25 @@ def test_the_eq1_observer_is_fitted_on_column_torques_of_whole_runs():
     tr, te = random_split(len(X), 0)
     pred = _observer_fit_predict(ds, {"all": ds}, rows=tr)["all"]
     np.testing.assert_allclose(pred[te], Y[te], atol=1e-6)
+
+
+def test_the_track_laps_come_only_from_a_magny_cours_recording(tmp_path):
+    """``--track`` takes the Magny-Cours recording: a run whose metadata (manifest entry or its own sidecar) names
+    another manoeuvre is refused in one line; one without metadata (measured) is split as given."""
+    import json
+
+    from virtsensor.errors import UserError
+
+    table = synthetic_table(200, 5)
+    table["time_s"] = np.arange(200) * 0.05
+    table.pop("road_mu", None)  # (no truth: the two halves in time)
+    with pytest.raises(UserError, match=r"a steering-pulse run \(its metadata\), not a Magny-Cours recording"):
+        split_track_laps(Run("sp", table, {"manoeuvre": "steering-pulse"}))
+    path = tmp_path / "sp.csv"
+    path.write_text("")
+    (tmp_path / "sp.json").write_text(json.dumps({"file": "sp.csv", "manoeuvre": "fishhook"}))
+    with pytest.raises(UserError, match=r"sp\.csv: a fishhook run"):
+        split_track_laps(Run("sp", table, {}, path))
+    (tmp_path / "sp.json").write_text(json.dumps({"file": "other.csv", "manoeuvre": "fishhook"}))  # (another's)
+    assert set(split_track_laps(Run("sp", table, {}, path))) == {"dry", "wet"}
+    assert set(split_track_laps(Run("mc", table, {"manoeuvre": "magny-cours"}))) == {"dry", "wet"}

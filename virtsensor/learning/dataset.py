@@ -219,7 +219,20 @@ def split_track_laps(run: Run) -> dict[str, Run]:
 
     Uses the simulator's ``road_mu`` truth column where present (the second lap is
     the one with the lower friction); otherwise the two halves in time.
+
+    Raises:
+        UserError: the run's metadata (its campaign manifest's entry, or its own ``<stem>.json``) names another
+            manoeuvre (a recording without one, e.g. measured, is taken as given).
     """
+    from virtsensor.recordings.sidecar import sidecar_of
+
+    what = run.meta.get("manoeuvre")
+    if what is None and run.path is not None:
+        own = sidecar_of(run.path)
+        what = own.doc.get("manoeuvre") if own.matches and own.doc is not None else None
+    if what is not None and what != "magny-cours":
+        raise UserError(f"{run.path or run.name}: a {what} run (its metadata), not a Magny-Cours recording "
+                        "(the dry lap, then the wet one: virtsensor simulate magny-cours)")
     t = run.table
     n = len(t["time_s"])
     if "road_mu" in t:
