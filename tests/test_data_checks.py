@@ -484,6 +484,24 @@ def test_metadata_whose_samples_is_no_count_is_refused_naming_it(simulated, tmp_
             load_runs([run])
 
 
+def test_a_runs_own_metadata_cut_or_damaged_is_refused_not_ignored(simulated, tmp_path):
+    """Metadata that names the run as its ``file`` but is no JSON object (cut while written by another tool, damaged)
+    would leave a cut run unchecked: refused, naming it. Text that is not JSON and names another file is no one's
+    metadata: the run is read as it is."""
+    src = simulated / "run-csv.csv"
+    meta = json.loads(src.with_suffix(".json").read_text())
+    run = tmp_path / "run.csv"
+    run.write_bytes(src.read_bytes())
+    whole = json.dumps({**meta, "file": "run.csv"})
+    for damaged in (whole[: whole.index('"samples"')], whole[:-1], whole.replace(",", ";", 2), "[" + whole):
+        run.with_suffix(".json").write_text(damaged)
+        with pytest.raises(UserError, match=r"run\.json: the metadata of run\.csv is not a JSON object \(cut or "
+                                            r"damaged\)"):
+            load_runs([run])
+    run.with_suffix(".json").write_text(json.dumps({**meta, "file": "other.csv"})[:-9])
+    assert len(load_runs([run])[0].table["time_s"]) == meta["samples"]
+
+
 def test_whose_metadata_a_json_beside_a_run_is(tmp_path):
     """The one test every reader applies (:func:`virtsensor.recordings.sidecar.sidecar_of`): by its ``file``."""
     from virtsensor.recordings.sidecar import sidecar_of

@@ -20,8 +20,10 @@ Every reader decides whose a ``<stem>.json`` is through :func:`sidecar_of`, by i
   conditions or a description from such a file (``diagnose``, ``demo``) keep doing so, no row count is checked.
 
 A file that is absent, not a regular file, larger than :data:`MAX_BYTES`, unreadable, not UTF-8, not JSON (or
-nested too deep to parse) or not a JSON object is no sidecar (:attr:`Sidecar.doc` is None): this module never
-raises for it (a reader that needs the file, such as ``diagnose``'s conditions, reports it itself).
+nested too deep to parse) or not a JSON object is no sidecar (:attr:`Sidecar.doc` is None), with one exception:
+one whose text names the recording as its ``"file"`` is the run's own metadata, cut or damaged, and
+:func:`check_samples` refuses the run (its rows cannot be checked). Otherwise this module never raises for it (a
+reader that needs the file, such as ``diagnose``'s conditions, reports it itself).
 """
 
 from __future__ import annotations
@@ -120,6 +122,10 @@ def check_samples(recording: Path | str, rows: int) -> None:
             ``<link> -> <target>: ...``), or the metadata's ``samples`` is not a count of rows.
     """
     recording = Path(recording)
+    damaged = _damaged_own_metadata(recording)
+    if damaged is not None:
+        raise UserError(f"{damaged}: the metadata of {recording.name} is not a JSON object (cut or damaged), so its "
+                        "rows cannot be checked; write it again (virtsensor simulate) or remove it")
     for sc in metadata_with_samples(recording):
         listed = sc.doc["samples"] if sc.doc is not None else None
         if not isinstance(listed, int) or isinstance(listed, bool) or listed < 0:
@@ -129,3 +135,24 @@ def check_samples(recording: Path | str, rows: int) -> None:
             shown = recording if sc.recording == recording else f"{recording} -> {sc.recording}"
             raise UserError(f"{shown}: {rows} rows read, its metadata {sc.path.name} lists {listed} samples: the "
                             f"file was cut or changed after it was written")
+
+
+def _damaged_own_metadata(recording: Path) -> Path | None:
+    """``<stem>.json`` beside ``recording`` when it is no JSON object (:func:`read_json_object` None) yet names
+    ``recording`` as its ``"file"`` in its text (the first field ``simulate`` writes): the run's own metadata, cut or
+    damaged. None otherwise (no such file, a valid one, or another file's text)."""
+    import json
+    import re
+
+    path = sidecar_path(recording)
+    try:
+        if path == recording or not path.is_file() or path.stat().st_size > MAX_BYTES:
+            return None
+        raw = path.read_bytes()
+    except OSError:
+        return None
+    if read_json_object(path) is not None:
+        return None
+    name = re.escape(json.dumps(recording.name).encode("utf-8"))  # (as the metadata writer spells it)
+    return path if re.search(rb'"file"\s*:\s*' + name, raw) else None
+
