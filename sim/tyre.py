@@ -128,12 +128,9 @@ _COEFFICIENTS: tuple[str, ...] = (
 )
 
 #: Largest magnitude of a scaling factor (``L...``, 1 = the fitted tyre): the MF 6.1 documentation uses them
-#: within a few units (a surface's friction, a tyre's wear); 100 is far outside any such use.
+#: within a few units (a surface's friction, a tyre's wear); 100 is far outside any such use. A scaling factor
+#: multiplies a force or a moment as it is: 1e300 overflows nothing and gives forces of 1e301 N.
 SCALING_LIMIT = 100.0
-#: Largest magnitude of a Magic Formula coefficient (``P/Q/R/S...``): fitted files hold them within about
-#: 2,000 (RBY4 1,747 in MFeval's example file, the largest of the bundled files); 1e6 only refuses a value no
-#: fit gives, which would overflow the model.
-COEFFICIENT_LIMIT = 1.0e6
 
 #: Operating ranges: missing limits mean "unbounded" (FZMIN: 0).
 _RANGE_DEFAULTS: dict[str, float] = {
@@ -416,12 +413,10 @@ class MagicFormula61:
         for key in ("PKY2", "PCY1", "PCX1", "QCZ1"):
             if full[key] == 0.0:
                 raise TirError(f"{at(key)}: coefficient {key} must not be 0")
-        for keys, limit, what in ((SCALING_FACTORS, SCALING_LIMIT, "scaling factor"),
-                                  (_COEFFICIENTS, COEFFICIENT_LIMIT, "Magic Formula coefficient")):
-            for key in keys:
-                if abs(full[key]) > limit:
-                    raise TirError(f"{at(key)}: {what} {key} = {full[key]:g} is beyond +-{limit:g}: no tyre has "
-                                   f"it (a typing slip?)")
+        for key in SCALING_FACTORS:  # (a coefficient that overflows the formula is refused by its figures' check)
+            if abs(full[key]) > SCALING_LIMIT:
+                raise TirError(f"{at(key)}: scaling factor {key} = {full[key]:g} is beyond +-{SCALING_LIMIT:g}: no "
+                               "tyre is scaled so (a typing slip?)")
         if full["LMUV"] != 0.0:
             raise TirError(f"{at('LMUV')}: LMUV (speed-decaying friction) is not supported; set it to 0")
         for key in PLAUSIBLE_RANGES:  # a unit slip in a key the model reads or that states the tyre's size
