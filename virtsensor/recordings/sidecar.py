@@ -151,7 +151,13 @@ def _damaged_own_metadata(recording: Path) -> Path | None:
         raw = path.read_bytes()
     except OSError:
         return None
-    if read_json_object(path) is not None:
+    try:
+        doc = json.loads(raw.decode("utf-8"))
+    except RecursionError:  # (well-formed, only nested deeper than Python parses: not damaged, no sidecar)
+        return None
+    except ValueError:  # (JSONDecodeError, UnicodeDecodeError: cut or damaged)
+        doc = None
+    if isinstance(doc, dict):
         return None
     name = re.escape(json.dumps(recording.name).encode("utf-8"))  # (as the metadata writer spells it)
     return path if re.search(rb'"file"\s*:\s*' + name, raw) else None
