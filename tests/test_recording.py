@@ -552,3 +552,36 @@ def test_a_gz_log_is_checked_whole_before_its_first_frame(tmp_path, run, damage)
         assert "not a .asc.gz CAN log: not gzip-compressed" in message, message
     else:
         assert "not a .asc.gz CAN log: corrupt compressed data after line 0" in message, message
+
+
+def test_a_hole_in_a_message_leaves_its_signals_stale_as_the_daemon_finds_them(tmp_path, run):
+    """A message silent for 1 s (a logger gap, a sensor off): its signals are NaN at every tick where their latest
+    frame is older than its timeout (INPUT_TIMEOUT_CYCLES cycles, the daemon's rule: fresh while age <= timeout),
+    held before that; the other messages' signals are untouched; the vectorised and the online front-end agree."""
+    t, sig = run
+    imu = MATRIX.message_of("ax_mps2")
+    imu_id, cycle = MATRIX.message(imu).frame_id, MATRIX.message(imu).cycle_s
+    frames = [f for f in iter_frames(t, sig) if not (f.arbitration_id == imu_id and 1.5 <= f.timestamp < 2.5)]
+    path = tmp_path / "hole.log"
+    with can.Logger(str(path)) as out:
+        for f in frames:
+            out.on_message_received(f)
+    rec = read_log(path, signals=["ax_mps2", "steer_angle_rad"])
+    tt, ax = rec.table["time_s"], rec.table["ax_mps2"]
+    sent = np.array(sorted(f.timestamp for f in frames if f.arbitration_id == imu_id))
+    sent = np.delete(sent, np.searchsorted(sent, 2.5 - 1e-6))  # (the first frame after the hole fails the E2E
+    # sequence check, 100 frames lost: not usable)
+    latest = sent[np.searchsorted(sent, tt + 1e-6, side="right") - 1]  # (each tick's latest IMU frame)
+    stale = tt - latest > cat.INPUT_TIMEOUT_CYCLES * cycle + 1e-6
+    assert stale.sum() >= 18 and np.isnan(ax[stale]).all() and np.isfinite(ax[~stale]).all()
+    assert np.isfinite(rec.table["steer_angle_rad"]).all()
+    m = MATRIX.fresh()
+    decoded = [m.decode(f.arbitration_id, f.data, f.timestamp) for f in frames]
+    age = {"ax_mps2": cat.INPUT_TIMEOUT_CYCLES * cycle}
+    a = to_table(decoded, ["ax_mps2", "steer_angle_rad"], 20.0, 0.0, max_age=age)
+    b = to_table(decoded, ["ax_mps2", "steer_angle_rad"], 20.0, 0.0, online=True, max_age=age)
+    for k in a.table:
+        np.testing.assert_array_equal(a.table[k], b.table[k])
+    assert np.isnan(a.table["ax_mps2"]).sum() == np.isnan(b.table["ax_mps2"]).sum() >= 18
+    held = to_table(decoded, ["ax_mps2"], 20.0, 0.0)  # (without max_age: held however old)
+    assert np.isfinite(held.table["ax_mps2"]).all()

@@ -46,7 +46,7 @@ Two implementations:
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -257,10 +257,17 @@ def collect(frames: Iterable, signals: Sequence[str]) -> Collected:
     return Collected(times, values, float(t_first), float(t_last), n, jump)
 
 
+def _oldest(signals: Sequence[str], max_age: Mapping[str, float] | None) -> np.ndarray:
+    """Per signal the oldest age (s) a tick may hold (``max_age``, plus :data:`TIME_TOLERANCE_S`); inf: no limit."""
+    ages = max_age or {}
+    return np.array([ages.get(s, math.inf) + TIME_TOLERANCE_S for s in signals], dtype=np.float64)
+
+
 def table_from_collected(
-    col: Collected, signals: Sequence[str], rate_hz: float = 20.0, t0: float | None = None, *, source: str = "frames"
+    col: Collected, signals: Sequence[str], rate_hz: float = 20.0, t0: float | None = None, *, source: str = "frames",
+    max_age: Mapping[str, float] | None = None,
 ) -> TableBuild:
-    """The vectorised half of :func:`to_table`: one ``np.searchsorted`` per signal.
+    """The vectorised half of :func:`to_table`: one ``np.searchsorted`` per signal (``max_age``: see there).
 
     Raises:
         UserError: ``source`` (a file's name, in the message) is not one run's time (:func:`time_problem`).
@@ -275,7 +282,7 @@ def table_from_collected(
     probe = ticks + TIME_TOLERANCE_S
     cols: dict[str, np.ndarray] = {}
     first_ok = 0
-    for s in signals:
+    for s, oldest in zip(signals, _oldest(signals, max_age), strict=True):
         t = np.asarray(col.times[s], dtype=np.float64)
         v = np.asarray(col.values[s], dtype=np.float64)
         if t.size == 0:
@@ -284,7 +291,8 @@ def table_from_collected(
         t, v = t[order], v[order]
         idx = np.searchsorted(t, probe, side="right") - 1
         first_ok = max(first_ok, int(np.searchsorted(idx, 0, side="left")))
-        cols[s] = v[np.maximum(idx, 0)]
+        at = np.maximum(idx, 0)
+        cols[s] = v[at] if oldest == math.inf else np.where(ticks - t[at] > oldest, np.nan, v[at])
     table = {"time_s": ticks[first_ok:]}
     for s in signals:
         table[s] = cols[s][first_ok:]
@@ -299,6 +307,7 @@ def to_table(
     *,
     online: bool = False,
     source: str = "frames",
+    max_age: Mapping[str, float] | None = None,
 ) -> TableBuild:
     """Sample-and-hold table of decoded frames on the tick grid ``t0 + k / rate_hz``.
 
@@ -313,6 +322,10 @@ def to_table(
         online: build through :class:`SampleHoldStore` frame by frame (the
             daemon's path) instead of the vectorised ``searchsorted`` path.
         source: what the frames come from, for messages.
+        max_age: signal -> the oldest value (s) a tick may hold, the daemon's freshness rule (its message's
+            timeout, :data:`~virtsensor.daemon.config.RuntimeConfig` ``timeout_cycles`` times its cycle time):
+            a tick whose latest usable value is older is NaN (stale), as the daemon gives no estimate from it.
+            Signals not named, or None: held however old.
 
     Returns:
         :class:`TableBuild`; leading ticks where some signal has not been seen
@@ -323,8 +336,8 @@ def to_table(
     """
     signals = tuple(signals)
     if online:
-        return _to_table_online(list(frames), signals, rate_hz, t0, source)
-    return table_from_collected(collect(frames, signals), signals, rate_hz, t0, source=source)
+        return _to_table_online(list(frames), signals, rate_hz, t0, source, max_age)
+    return table_from_collected(collect(frames, signals), signals, rate_hz, t0, source=source, max_age=max_age)
 
 
 def _empty(signals: Sequence[str], n_ticks: int) -> TableBuild:
@@ -335,7 +348,8 @@ def _empty(signals: Sequence[str], n_ticks: int) -> TableBuild:
 
 
 def _to_table_online(
-    frames: list, signals: tuple[str, ...], rate_hz: float, t0: float | None, source: str
+    frames: list, signals: tuple[str, ...], rate_hz: float, t0: float | None, source: str,
+    max_age: Mapping[str, float] | None = None,
 ) -> TableBuild:
     frames = [f for f in frames if f is not None]
     if not frames:
@@ -348,6 +362,7 @@ def _to_table_online(
         raise UserError(f"{source}: {why}")
     ticks = tick_times(t_first, t_last, rate_hz, t0)
     store = SampleHoldStore(signals)
+    oldest = _oldest(signals, max_age)
     rows: list[np.ndarray] = []
     kept_ticks: list[float] = []
     dropped = 0
@@ -360,7 +375,8 @@ def _to_table_online(
         if not rows and not store.complete:
             dropped += 1
             continue
-        vals, _ = store.sample(tk)
+        vals, ages = store.sample(tk)
+        vals[ages > oldest] = np.nan  # (stale: older than its message's timeout)
         rows.append(vals)
         kept_ticks.append(tk)
     if not rows:

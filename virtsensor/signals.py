@@ -233,6 +233,11 @@ TPMS_FRONT: tuple[str, ...] = TPMS_SIGNALS[:2]
 TABLE_RATE_HZ = 20.0
 #: One tick of the canonical table (s): the step between its rows, the period of the daemon's clock.
 TABLE_TICK_S = 1.0 / TABLE_RATE_HZ
+#: An input message is stale after this many of its DBC cycles without a usable frame: the daemon's default
+#: (``RuntimeConfig.timeout_cycles``; a value is fresh while ``0 <= age <= timeout``) and the rule the offline
+#: tables apply (:func:`virtsensor.recordings.canlog.decode_recording`): a tick the daemon would find stale holds no
+#: value there either, so a model neither learns from nor is scored on it.
+INPUT_TIMEOUT_CYCLES = 3.0
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ from virtsensor import assets
 from virtsensor.daemon.jsonlog import LOG_LEVELS
 from virtsensor.errors import UserError
 from virtsensor.fileio import read_user_text
+from virtsensor.signals import INPUT_TIMEOUT_CYCLES
 
 __all__ = ["DURATION_MAX_S", "INT_RANGES", "TIMEOUT_CYCLES_RANGE", "RuntimeConfig", "load_config",
            "read_config_file"]
@@ -64,7 +65,7 @@ class RuntimeConfig:
     cpu_latency_us: int | None = None
     duration: float | None = None
     log_level: str = "info"
-    timeout_cycles: float = 3.0
+    timeout_cycles: float = INPUT_TIMEOUT_CYCLES
     model_id: int | None = None
 
     def to_dict(self) -> dict[str, Any]:

@@ -19,6 +19,7 @@ from virtsensor.canbus.codec import CanMatrix
 from virtsensor.daemon.validity import PlausibilityRule, ValidityRules
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
+from virtsensor.signals import INPUT_TIMEOUT_CYCLES
 
 __all__ = ["OUTPUT_SIGNALS", "SYNC_ID", "SYNC_OFFSET_S", "InputLayout", "Wheel", "bitmap_order", "check_references",
            "grip_references", "plausibility_rules", "read_feature_spec", "sync_frames"]
@@ -194,7 +195,7 @@ class InputLayout:
     grip_signals: tuple[str, ...] = ()
 
     @classmethod
-    def from_model(cls, model: Any, matrix: CanMatrix, timeout_cycles: float = 3.0,
+    def from_model(cls, model: Any, matrix: CanMatrix, timeout_cycles: float = INPUT_TIMEOUT_CYCLES,
                    model_id: int | None = None) -> InputLayout:
         """Read the layout from ``model.card``/``model.input_names``/``model.outputs`` and the DBC.
 

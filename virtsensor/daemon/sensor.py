@@ -65,6 +65,7 @@ from virtsensor.daemon.validity import (
     wheel_status,
 )
 from virtsensor.features import FeatureBuilder
+from virtsensor.signals import INPUT_TIMEOUT_CYCLES
 
 __all__ = ["VirtualSensor", "STAGES"]
 
@@ -119,7 +120,7 @@ class VirtualSensor:
     """
 
     def __init__(self, bus: Any, model: Any, matrix: CanMatrix, *, sync_id: int | None = None,
-                 sync_every: int = 1, timeout_cycles: float = 3.0, model_id: int | None = None,
+                 sync_every: int = 1, timeout_cycles: float = INPUT_TIMEOUT_CYCLES, model_id: int | None = None,
                  bus_factory: Callable[[], Any] | None = None, cpu: int | None = None, realtime: bool = False,
                  rt_priority: int = 50, cpu_latency_us: int | None = None, freeze_gc: bool = True,
                  reconnect_backoff_s: float = 0.05,

@@ -723,7 +723,8 @@ def decode_recording(
         raise UserError(
             f"{path}: no frame of the CAN matrix in this log ({counts.get('unknown', 0)} unknown frames)"
         )
-    build: TableBuild = table_from_collected(col, used, rate_hz, col.t_first + t0, source=str(path))
+    build: TableBuild = table_from_collected(col, used, rate_hz, col.t_first + t0, source=str(path),
+                                             max_age=_timeouts(matrix, used))
     table = dict(build.table)
     if tpms is not None:
         table.update(tpms.sample(np.asarray(build.table["time_s"], dtype=np.float64)))
@@ -748,6 +749,18 @@ def decode_recording(
         rate_hz=rate_hz,
         counts_by_status=by_status,
     )
+
+
+def _timeouts(matrix: CanMatrix, signals: Sequence[str]) -> dict[str, float]:
+    """Per signal the oldest value (s) a tick may hold: :data:`~virtsensor.signals.INPUT_TIMEOUT_CYCLES` cycles of
+    its message (messages without a cycle time: no limit), the daemon's freshness rule."""
+    out = {}
+    for s in signals:
+        m = matrix.message_of(s)
+        cycle = matrix.messages[m].cycle_s if m is not None else 0.0
+        if cycle > 0:
+            out[s] = cat.INPUT_TIMEOUT_CYCLES * cycle
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- CSV
