@@ -416,3 +416,16 @@ def test_a_message_quoting_a_file_never_sends_its_control_characters_to_the_term
     (tmp_path / "e.dbc").write_bytes(b'VERSION ""\n\x1b[31mRED\x1b[0m\n')
     line = _assert_refused(["run", "--duration", "1", "-i", "virtual", "-c", "x", "--dbc", "{tmp}/e.dbc"], tmp_path)
     assert "e.dbc: not a valid DBC" in line and "\\x1b[31mRED" in line and "\x1b" not in line, line
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["simulate", "nosuch", "--mu", "1", "--out", "{tmp}/a.csv"],
+     "unknown manoeuvre 'nosuch'; choose one of: free-steer"),  # (not "--speed is required")
+    (["replay", "--manoeuvre", "circuit", "-i", "virtual", "-c", "x"],
+     "--manoeuvre circuit needs a track, which replay does not take"),
+    (["score", "--data", "{tmp}/a.csv", "--json", "-"], "'-' (standard output) is not taken here"),
+])
+def test_the_first_thing_wrong_is_the_thing_named(tmp_path, argv, needle):
+    (tmp_path / "a.csv").write_text("time_s\n0\n")
+    line = _assert_refused(argv, tmp_path)
+    assert needle in line, line

@@ -526,6 +526,8 @@ def output_file(*suffixes: str, mkdirs: bool = False,
         p = Path(text)
         if not text:
             raise argparse.ArgumentTypeError("empty file name")
+        if text == "-":  # (the usual spelling of standard output: never a file named '-' by surprise)
+            raise argparse.ArgumentTypeError("'-' (standard output) is not taken here: give a file name")
         if p.is_dir():
             raise argparse.ArgumentTypeError(f"{p}: is a directory, an output file name is expected")
         if p.exists() and not p.is_file():
@@ -538,7 +540,7 @@ def output_file(*suffixes: str, mkdirs: bool = False,
 
     name = f"out{suffixes[0] if suffixes else '.txt'}"
     invalid = ["{tmp}/dir", f"{{tmp}}/dir{suffixes[0] if suffixes else ''}", f"{{tmp}}/ro/{name}",
-               f"{{tmp}}/file.txt/{name}", ""]
+               f"{{tmp}}/file.txt/{name}", "", "-"]
     if not mkdirs:
         invalid.append(f"{{tmp}}/missing/{name}")
     if suffixes:
@@ -555,7 +557,8 @@ def output_file_or_stdout(*suffixes: str) -> ArgType:
         return text if text == "-" else inner.check_path(text)  # type: ignore[attr-defined]
 
     return _path_tag(check, "output file or -", ["-", *inner.fuzz_valid],  # type: ignore[attr-defined]
-                     inner.fuzz_invalid, role=OUTPUT, slots=output_slots())  # type: ignore[attr-defined]
+                     [v for v in inner.fuzz_invalid if v != "-"],  # type: ignore[attr-defined]
+                     role=OUTPUT, slots=output_slots())
 
 
 def output_dir(*, empty: bool = False) -> ArgType:

@@ -64,6 +64,11 @@ def run(args: argparse.Namespace) -> int:
     if args.manoeuvre == "recorded":
         sim_run = _resimulate(args)
     else:
+        from sim.manoeuvres import MANOEUVRES
+
+        if args.manoeuvre not in MANOEUVRES:  # (before what the manoeuvre would need)
+            raise UserError(f"unknown manoeuvre {args.manoeuvre!r}; choose one of: {', '.join(MANOEUVRES)}, "
+                            "recorded")
         if args.speed is None:
             raise UserError(f"{args.manoeuvre}: --speed KMH is required")
         if args.inputs is not None or args.longitudinal is not None:

@@ -185,9 +185,14 @@ def simulated_frames(
     streams (:func:`sim.api.simulate_streams`) encoded as a car sends them.
 
     Raises:
-        UserError: the simulator package cannot be imported, or the request is invalid.
+        UserError: the simulator package cannot be imported, or the request is invalid (a ``circuit`` needs its
+            track, which ``replay`` does not take: simulate it into a log, then replay that).
     """
     from virtsensor.extras import as_user_error
+
+    if manoeuvre == "circuit":
+        raise UserError("--manoeuvre circuit needs a track, which replay does not take: simulate it into a log "
+                        "(virtsensor simulate circuit --track T --speed S --mu M --out run.blf), then replay run.blf")
 
     try:
         from sim.api import simulate_streams  # lazy: the runtime never needs the simulator
