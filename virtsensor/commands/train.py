@@ -17,6 +17,8 @@ from pathlib import Path
 
 #: Folds of the grid search (whole runs per fold).
 GRID_FOLDS = 3
+#: rows the grid search uses unless --grid-rows says otherwise
+GRID_ROWS = 12000
 HELP = "train the paper's MLP (or the improved one) on recordings and export it to ONNX with its model card"
 
 
@@ -34,8 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="FILE.onnx", type=t.output_file(".onnx"),
                         help="ONNX file; the card goes beside it")
     parser.add_argument("--grid", action="store_true", help="grid search of Section III.B before the final fit")
-    parser.add_argument("--grid-rows", type=t.int_range(100, 10**7), default=12000, metavar="N",
-                        help="rows the grid search uses (100 to 10,000,000; default 12000)")
+    parser.add_argument("--grid-rows", type=t.int_range(100, 10**7), default=None, metavar="N",
+                        help=f"with --grid: rows the grid search uses (100 to 10,000,000; default {GRID_ROWS})")
     parser.add_argument("--seed", type=t.seed(), default=0,
                         help="seed of the splits and the network's initialisation (0 to 2**32-1)")
     parser.add_argument("--jobs", type=t.jobs(), default=-1, metavar="N",
@@ -57,6 +59,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.recipe not in RECIPES:
         raise UserError(f"--recipe: unknown recipe {args.recipe!r}; choose one of: {', '.join(RECIPES)}")
+    if args.grid_rows is not None and not args.grid:
+        raise UserError("--grid-rows goes with --grid (the grid search's rows); add --grid or drop it")
     out = Path(args.out)  # kind, suffix and directory checked by the argument's type
 
     def say(msg: str) -> None:
@@ -84,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         warnings.simplefilter("ignore")  # convergence notes: the iteration counts go to the card instead
         if args.grid:
             try:
-                result = grid_search(ds.X, ds.Y, ds.groups, folds=GRID_FOLDS, max_rows=args.grid_rows,
+                result = grid_search(ds.X, ds.Y, ds.groups, folds=GRID_FOLDS, max_rows=args.grid_rows or GRID_ROWS,
                                      seed=args.seed, n_jobs=args.jobs, progress=not args.quiet,
                                      base_params=recipe["params"])
             except ValueError as exc:  # (no candidate with a finite R2)

@@ -173,7 +173,8 @@ def load_config(file: str | os.PathLike | None = None, overrides: Mapping[str, A
     """Merge a TOML file and overrides (e.g. CLI options; None values are ignored) into a checked config.
 
     Raises:
-        UserError: see :func:`read_config_file`; a missing ``model``, ``interface`` or ``channel``.
+        UserError: see :func:`read_config_file`; a missing ``model``, ``interface`` or ``channel``; a
+            ``sync_every`` other than 1 without a ``sync_id``.
     """
     merged: dict[str, Any] = read_config_file(file) if file is not None else {}
     from_file = {k for k in _PATH_KEYS if merged.get(k) is not None}
@@ -189,6 +190,9 @@ def load_config(file: str | os.PathLike | None = None, overrides: Mapping[str, A
     if merged.get("model") is None:  # the shipped model, whatever the working directory
         merged["model"] = str(assets.model_path())
     cfg = RuntimeConfig(**merged)
+    if cfg.sync_every != 1 and cfg.sync_id is None:
+        raise UserError(f"sync_every {cfg.sync_every} goes with sync_id (sync mode: a tick every n-th sync frame); "
+                        "free-running, the daemon ticks on its own 20 Hz clock: give --sync-id or drop --sync-every")
     missing = [k for k in ("interface", "channel") if getattr(cfg, k) is None]
     if missing:
         src = f" (not in {file} either)" if file is not None else ""
