@@ -432,3 +432,10 @@ def test_the_first_thing_wrong_is_the_thing_named(tmp_path, argv, needle):
     (tmp_path / "a.csv").write_text("time_s\n0\n")
     line = _assert_refused(argv, tmp_path)
     assert needle in line, line
+
+
+def test_explain_refuses_a_directory_where_its_json_goes_before_any_work(tmp_path):
+    (tmp_path / "a.csv").write_text("time_s\n0\n")
+    (tmp_path / "ex" / "explain.json").mkdir(parents=True)
+    line = _assert_refused(["explain", "--data", "{tmp}/a.csv", "--out", "{tmp}/ex"], tmp_path)
+    assert f"{tmp_path / 'ex' / 'explain.json'} is a directory" in line, line

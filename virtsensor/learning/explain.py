@@ -521,7 +521,8 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
 
     Raises:
         UserError: missing/invalid model, data lacking a signal, a track lap or a circuit with fewer than 2
-            usable rows, output directory not writable, shap or matplotlib not installed, nothing to explain.
+            usable rows, output directory not writable (or a directory where explain.json goes), shap or
+            matplotlib not installed, nothing to explain.
         OSError: the figures cannot be written (a full disk), naming ``out``; nothing of them is left.
     """
     say = log or (lambda _msg: None)
@@ -529,6 +530,9 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     shap = require_shap()
     plotting.require("this command")
     out_path = check_out_dir(out)
+    if (out_path / "explain.json").is_dir():  # (found before the work, not when the files are moved into place)
+        raise UserError(f"{out_path / 'explain.json'} is a directory: explain writes its JSON there; move it or "
+                        "choose another --out")
     inp = _load_inputs(model_path, data, track, circuits, seed)
     try:
         with staged_dir(out_path) as stage:
