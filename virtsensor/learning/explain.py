@@ -527,12 +527,12 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
     """
     say = log or (lambda _msg: None)
     _check_options(samples, background, method)
-    shap = require_shap()
-    plotting.require("this command")
     out_path = check_out_dir(out)
     if (out_path / "explain.json").is_dir():  # (found before the work, not when the files are moved into place)
         raise UserError(f"{out_path / 'explain.json'} is a directory: explain writes its JSON there; move it or "
                         "choose another --out")
+    shap = require_shap()
+    plotting.require("this command")
     inp = _load_inputs(model_path, data, track, circuits, seed)
     try:
         with staged_dir(out_path) as stage:
