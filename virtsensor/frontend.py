@@ -9,7 +9,10 @@ where
   :class:`virtsensor.canbus.codec.DecodedFrame`);
 * "at or before" compares the frame timestamp with ``t + TIME_TOLERANCE_S``
   (1 us: the resolution of text log formats), with ties in timestamp resolved
-  in favour of the frame that comes later in the input (stable time order).
+  in favour of the frame that comes later in the input (stable time order);
+* where a largest age is given for a signal (``max_age`` of :func:`to_table`; the CAN
+  log reader gives each signal its message's timeout, as the daemon judges freshness),
+  a value older than that at ``t`` is not held: the tick is NaN (stale).
 
 Times are seconds in the clock of the frame timestamps. Values are SI in the
 catalogue's units.
@@ -323,7 +326,8 @@ def to_table(
             daemon's path) instead of the vectorised ``searchsorted`` path.
         source: what the frames come from, for messages.
         max_age: signal -> the oldest value (s) a tick may hold, the daemon's freshness rule (its message's
-            timeout, :data:`~virtsensor.daemon.config.RuntimeConfig` ``timeout_cycles`` times its cycle time):
+            timeout, :data:`~virtsensor.signals.INPUT_TIMEOUT_CYCLES` times its cycle time, as
+            :func:`~virtsensor.recordings.canlog.decode_recording` passes it):
             a tick whose latest usable value is older is NaN (stale), as the daemon gives no estimate from it.
             Signals not named, or None: held however old.
 
