@@ -367,6 +367,11 @@ def test_open_bus_folds_what_python_can_logs_into_its_one_line_or_hands_it_on(mo
     assert str(info.value) == ("cannot open virtual channel 'x': name 'fakeOpen' is not defined "
                                "(python-can: fake driver library is unavailable.)"), info.value
     assert caplog.records == []  # (held back: it is in the line)
+    with caplog.at_level(logging.WARNING, logger="can"):  # (the daemon's reconnects: logging left as it is)
+        with pytest.raises(UserError, match=r"^cannot open virtual channel 'x': name 'fakeOpen' is not defined$"):
+            open_bus("virtual", "x", fold_notes=False)
+    assert [r.getMessage() for r in caplog.records] == ["fake driver library is unavailable."]
+    caplog.clear()
 
     opened = object()
 

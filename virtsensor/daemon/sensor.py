@@ -403,15 +403,16 @@ def _from_config(cls: type[VirtualSensor], config: RuntimeConfig | Mapping[str, 
     matrix = CanMatrix.load(cfg.dbc)
     opener: Callable[[], Any] | None = bus_factory
     if bus is None:
-        def factory() -> Any:
-            return open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate)
+        def factory() -> Any:  # (a reconnect, beside the tick thread: python-can's logging is left as it is)
+            return open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate, fold_notes=False)
         opener = bus_factory or factory
     sensor = cls(bus, model, matrix, sync_id=cfg.sync_id, sync_every=cfg.sync_every,
                  timeout_cycles=cfg.timeout_cycles, model_id=cfg.model_id, bus_factory=opener,
                  cpu=cfg.cpu, realtime=cfg.realtime, rt_priority=cfg.rt_priority,
                  cpu_latency_us=cfg.cpu_latency_us, **kwargs)
     if opener is not None and bus is None:  # everything checked: now open the bus (UserError if it cannot)
-        sensor._link.bus = opener()
+        first = bus_factory or (lambda: open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate))
+        sensor._link.bus = first()  # (no thread runs yet: python-can's notes fold into a failure's one line)
     sensor.config = cfg
     return sensor
 

@@ -30,7 +30,7 @@ import sys
 import time
 from array import array
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -114,8 +114,12 @@ def parse_rate(text: str | float | None) -> float | None:
     return r
 
 
-def open_bus(interface: str, channel: str, bitrate: int | None = None, **kwargs):
+def open_bus(interface: str, channel: str, bitrate: int | None = None, *, fold_notes: bool = True, **kwargs):
     """Open a python-can bus, validating ``interface`` against ``can.interfaces.VALID_INTERFACES``.
+
+    ``fold_notes``: what python-can logs or warns while the bus is opened is held back and, if it cannot be opened,
+    folded into the one error line (:func:`_bus_notes`). It switches the process's ``can`` logger and warnings
+    filters for that moment, so a caller with other threads running (the daemon's reconnects) passes False.
 
     Raises:
         UserError: unknown interface (listing the valid ones) or a bus that cannot be opened.
@@ -127,12 +131,13 @@ def open_bus(interface: str, channel: str, bitrate: int | None = None, **kwargs)
         raise UserError(f"--interface: unknown interface {interface!r}; valid: {', '.join(valid)}")
     if bitrate is not None:
         kwargs["bitrate"] = bitrate
-    with _bus_notes() as notes:
+    with _bus_notes() if fold_notes else nullcontext(list) as notes:
         try:
             return can.Bus(interface=interface, channel=channel, **kwargs)
         except Exception as exc:  # noqa: BLE001 - interfaces raise CanError, OSError, ImportError, ...
             failure = " ".join(str(exc).split()) or type(exc).__name__
-        gc.collect()  # (a half-made bus says at its collection that it was not shut down: part of this failure)
+        if fold_notes:
+            gc.collect()  # (a half-made bus says at its collection that it was not shut down: part of this failure)
         said = [n for n in notes() if "not properly shut down" not in n and n not in failure]
         why = f" (python-can: {'; '.join(said)})" if said else ""
         raise UserError(f"cannot open {interface} channel {channel!r}: {failure}{why}")
