@@ -107,9 +107,17 @@ def metadata_with_samples(recording: Path | str) -> list[Sidecar]:
     """The metadata that lists the rows of ``recording`` (:attr:`Sidecar.matches` and has ``samples``): its own
     and, when ``recording`` is a symbolic link, its target's own too (a link is judged by its target: a link to
     a cut run is the cut run)."""
-    recording = Path(recording)
+    return [sc for sc in _own_and_target(Path(recording)) if _lists_samples(sc)]
+
+
+def _own_and_target(recording: Path) -> list[Sidecar]:
+    """The sidecars of ``recording`` and, when it is a symbolic link, of its target (each read once)."""
     files = [recording, recording.resolve()] if recording.is_symlink() else [recording]
-    return [sc for sc in map(sidecar_of, files) if sc.matches and sc.doc is not None and "samples" in sc.doc]
+    return [sidecar_of(f) for f in files]
+
+
+def _lists_samples(sc: Sidecar) -> bool:
+    return sc.matches and sc.doc is not None and "samples" in sc.doc
 
 
 def check_samples(recording: Path | str, rows: int) -> None:
@@ -122,11 +130,11 @@ def check_samples(recording: Path | str, rows: int) -> None:
             ``<link> -> <target>: ...``), or the metadata's ``samples`` is not a count of rows.
     """
     recording = Path(recording)
-    damaged = _damaged_own_metadata(recording)
-    if damaged is not None:
-        raise UserError(f"{damaged}: the metadata of {recording.name} is not a JSON object (cut or damaged), so its "
-                        "rows cannot be checked; write it again (virtsensor simulate) or remove it")
-    for sc in metadata_with_samples(recording):
+    sidecars = _own_and_target(recording)
+    if _damaged(sidecars[0]):
+        raise UserError(f"{sidecars[0].path}: the metadata of {recording.name} is not a JSON object (cut or damaged), "
+                        "so its rows cannot be checked; write it again (virtsensor simulate) or remove it")
+    for sc in filter(_lists_samples, sidecars):
         listed = sc.doc["samples"] if sc.doc is not None else None
         if not isinstance(listed, int) or isinstance(listed, bool) or listed < 0:
             raise UserError(f"{sc.path}: samples {listed!r} is not a count of rows (the metadata of "
@@ -137,28 +145,25 @@ def check_samples(recording: Path | str, rows: int) -> None:
                             f"file was cut or changed after it was written")
 
 
-def _damaged_own_metadata(recording: Path) -> Path | None:
-    """``<stem>.json`` beside ``recording`` when it is no JSON object (:func:`read_json_object` None) yet names
-    ``recording`` as its ``"file"`` in its text (the first field ``simulate`` writes): the run's own metadata, cut or
-    damaged. None otherwise (no such file, a valid one, or another file's text)."""
+def _damaged(sc: Sidecar) -> bool:
+    """Whether ``sc`` is the recording's own metadata, cut or damaged: a file that is no sidecar (:attr:`Sidecar.doc`
+    None: not a JSON object) yet names the recording as its ``"file"`` in its text (the first field ``simulate``
+    writes). A file nested deeper than Python parses is well-formed: not damaged. Read only when ``doc`` is None."""
     import json
     import re
 
-    path = sidecar_path(recording)
+    path = sc.path
     try:
-        if path == recording or not path.is_file() or path.stat().st_size > MAX_BYTES:
-            return None
+        if sc.doc is not None or path == sc.recording or not path.is_file() or path.stat().st_size > MAX_BYTES:
+            return False
         raw = path.read_bytes()
     except OSError:
-        return None
+        return False
     try:
-        doc = json.loads(raw.decode("utf-8"))
-    except RecursionError:  # (well-formed, only nested deeper than Python parses: not damaged, no sidecar)
-        return None
+        json.loads(raw.decode("utf-8"))
+    except RecursionError:  # (well-formed, only nested deeper than Python parses: no sidecar)
+        return False
     except ValueError:  # (JSONDecodeError, UnicodeDecodeError: cut or damaged)
-        doc = None
-    if isinstance(doc, dict):
-        return None
-    name = re.escape(json.dumps(recording.name).encode("utf-8"))  # (as the metadata writer spells it)
-    return path if re.search(rb'"file"\s*:\s*' + name, raw) else None
-
+        pass
+    name = re.escape(json.dumps(sc.recording.name).encode("utf-8"))  # (as the metadata writer spells it)
+    return re.search(rb'"file"\s*:\s*' + name, raw) is not None
