@@ -225,6 +225,9 @@ def parse_tir(text: str, path: str | Path = "<string>") -> TirFile:
         if first is not None:
             raise TirError(f"{name}:{lineno}: duplicate key {key} in [{section}] (first on line {first})")
         seen_in_section[(section, key)] = lineno
+        if section != "UNITS" and key in lines:
+            raise TirError(f"{name}:{lineno}: key {key} in [{section}] is already set in [{sections[key]}] on line "
+                           f"{lines[key]} (a coefficient has one value: which one is meant?)")
 
         if section == "UNITS":
             units[key] = str(value)

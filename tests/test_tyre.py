@@ -566,6 +566,22 @@ def test_malformed_tir_names_file_and_line(tmp_path: Path, line: str, message: s
     assert isinstance(exc.value, ValueError)
 
 
+def test_a_key_set_in_two_sections_is_refused(tmp_path: Path) -> None:
+    """A coefficient given again in another section (a pasted block) would silently overwrite the first."""
+    lines = bundled_tir(MF61).read_text().splitlines()
+    first = next(i for i, ln in enumerate(lines) if ln.startswith("QDZ1 "))
+    fnomin = next(i for i, ln in enumerate(lines) if ln.startswith("FNOMIN "))
+    lines.insert(fnomin + 1, "QDZ1 = 0.5")
+    path = tmp_path / "twice.tir"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(TirError) as exc:
+        read_tir(path)
+    msg = str(exc.value)
+    assert msg.startswith(f"{path}:{first + 2}: key QDZ1 in [ALIGNING_COEFFICIENTS] is already set in [VERTICAL] "
+                          f"on line {fnomin + 2}"), msg
+    assert read_tir(bundled_tir(MF61)).units["MASS"] == "kg"  # [UNITS] MASS beside [INERTIA] MASS is no repeat
+
+
 def test_missing_needed_coefficient_is_named(tmp_path: Path) -> None:
     lines = [ln for ln in bundled_tir(MF61).read_text().splitlines() if not ln.startswith("QCZ1 ")]
     path = tmp_path / "short.tir"
