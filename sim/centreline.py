@@ -63,7 +63,7 @@ import scipy.sparse.linalg as sparse_linalg
 from scipy import interpolate
 from scipy.spatial import cKDTree
 
-from sim.track import MAX_LAP_M, MIN_LAP_M, Track, TrackError, check_lap_length
+from sim.track import MAX_LAP_M, MIN_LAP_M, Track, TrackError, check_lap_length, numeric_csv
 
 __all__ = [
     "BRIDGE_MIN_ANGLE_DEG", "BRIDGE_MIN_LOOP_M",
@@ -124,24 +124,10 @@ def read_geojson_lonlat(path: Path) -> tuple[np.ndarray, dict]:
 
 def _read_xy_csv(path: Path) -> np.ndarray:
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = Path(path).read_text(encoding="utf-8-sig")  # (a spreadsheet's "CSV UTF-8" starts with a BOM)
     except (OSError, UnicodeDecodeError) as exc:
         raise TrackError(f"{path}: cannot read ({exc})") from None
-    rows = [(i, ln) for i, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
-    if not rows or [c.strip() for c in rows[0][1].split(",")] != ["x_m", "y_m"]:
-        raise TrackError(f"{path}: expected a header line x_m,y_m (metres)")
-    pts = np.empty((len(rows) - 1, 2))
-    for k, (line_no, line) in enumerate(rows[1:]):
-        cells = line.split(",")
-        try:
-            if len(cells) != 2:
-                raise ValueError
-            pts[k] = [float(cells[0]), float(cells[1])]
-        except ValueError:
-            raise TrackError(f"{path}, line {line_no}: expected two numbers x_m,y_m, got {line.strip()!r}") from None
-        if not np.all(np.isfinite(pts[k])):
-            raise TrackError(f"{path}, line {line_no}: coordinates must be finite")
-    return pts
+    return numeric_csv(text, str(path), ("x_m", "y_m"))
 
 
 def read_points(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:

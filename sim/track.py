@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 __all__ = ["Track", "TrackSample", "TrackError", "BUNDLED_TRACKS", "MAX_LAP_M", "MIN_LAP_M", "check_lap_length",
-           "load_magny_cours", "load_track", "speed_profile", "lap_time"]
+           "load_magny_cours", "load_track", "numeric_csv", "speed_profile", "lap_time"]
 
 COLUMNS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm")
 MAGNY_COURS_CSV = "magny_cours_centreline.csv"
@@ -77,6 +77,37 @@ class TrackSample(NamedTuple):
     y: np.ndarray  #: position y (m)
     heading: np.ndarray  #: tangent angle from +x towards +y (rad), continuous across laps
     curvature: np.ndarray  #: curvature (1/m), > 0 turning left
+
+
+def numeric_csv(text: str, origin: str, columns: tuple[str, ...]) -> np.ndarray:
+    """The rows of a CSV of finite numbers under the header ``columns`` (blank and ``#`` lines skipped), as an
+    ``(n, len(columns))`` array in file order.
+
+    Raises:
+        TrackError: one line naming ``origin`` and the line: another header, a row of another width, a cell that is
+            no finite number (its column named), or a last row the text ends inside (no end of line: a file cut
+            mid-row, whose last number may be cut too).
+    """
+    rows = [(i, ln) for i, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not rows or tuple(c.strip() for c in rows[0][1].split(",")) != columns:
+        raise TrackError(f"{origin}: expected a header line {','.join(columns)}")
+    if len(rows) > 1 and not text.endswith(("\n", "\r")):
+        raise TrackError(f"{origin}, line {rows[-1][0]}: truncated: the file ends inside this row (a complete file "
+                         f"ends every row with an end of line)")
+    out = np.empty((len(rows) - 1, len(columns)))
+    for k, (line_no, line) in enumerate(rows[1:]):
+        cells = line.split(",")
+        if len(cells) != len(columns):
+            raise TrackError(f"{origin}, line {line_no}: expected {len(columns)} numbers {','.join(columns)}, "
+                             f"got {line.strip()!r}")
+        for j, cell in enumerate(cells):
+            try:
+                out[k, j] = float(cell)
+            except ValueError:
+                raise TrackError(f"{origin}, line {line_no}: {columns[j]} {cell.strip()!r} is not a number") from None
+            if not np.isfinite(out[k, j]):
+                raise TrackError(f"{origin}, line {line_no}: {columns[j]} must be finite, got {cell.strip()!r}")
+    return out
 
 
 def _readonly(a: ArrayLike) -> np.ndarray:
@@ -197,14 +228,13 @@ class Track:
 
     @classmethod
     def _from_text(cls, text: str, origin: str) -> Track:
-        lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-        if not lines or tuple(c.strip() for c in lines[0].split(",")) != COLUMNS:
-            raise ValueError(f"{origin}: expected header {','.join(COLUMNS)}")
-        data = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], dtype=float)
-        if data.ndim != 2 or data.shape[1] != len(COLUMNS):
-            raise ValueError(f"{origin}: expected {len(COLUMNS)} columns")
-        s, x, y, heading, curvature = data.T
-        return cls(s, x, y, heading, curvature, float(s[-1]))
+        """A derived centreline from its CSV text; TrackError names ``origin`` (:func:`numeric_csv`, or arrays
+        that are no centreline: fewer than 3 samples, ``s`` not increasing from 0)."""
+        s, x, y, heading, curvature = numeric_csv(text, origin, COLUMNS).T
+        try:
+            return cls(s, x, y, heading, curvature, float(s[-1]) if s.size else 0.0)
+        except ValueError as exc:
+            raise TrackError(f"{origin}: {exc}") from None
 
 
 def load_magny_cours() -> Track:
@@ -240,13 +270,10 @@ def load_track(spec: str | Path, **derive_options: float) -> Track:
         raise TrackError(f"unknown circuit {name!r}: name one of {', '.join(BUNDLED_TRACKS)}, random:SEED, "
                          "or give a .csv or .geojson file")
     if path.suffix.lower() == ".csv" and path.is_file():
-        text = path.read_text(encoding="utf-8", errors="replace")
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
         header = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
         if tuple(c.strip() for c in header.split(",")) == COLUMNS:
-            try:
-                track = Track._from_text(text, str(path))
-            except ValueError as exc:
-                raise TrackError(str(exc)) from None
+            track = Track._from_text(text, str(path))
             check_lap_length(track.length, str(path))
             return track
     from sim.centreline import read_points, track_from_points

@@ -571,7 +571,7 @@ def test_conditions_from_a_csv_and_a_json_beside_the_run(tmp_path):
     runs = [tmp_path / f"run0{i}.csv" for i in (1, 2, 3)]
     (tmp_path / "run01.json").write_text(json.dumps({"conditions": {"mu": "0.5..0.8", "pressure_bar": 1.9}}))
     (tmp_path / "run02.json").write_text(json.dumps({"request": {"mu": 0.3}, "outcome": {}}))  # a sim record
-    (tmp_path / "c.csv").write_text("file,mu,mass_kg\nrun01.csv,0.6..0.7,\nrun03,,1500\n")
+    (tmp_path / "c.csv").write_text("file,mu,mass_kg\nrun01.csv,0.6..0.7,\nrun03,,1500\n", encoding="utf-8-sig")
     c = load_conditions(runs, tmp_path / "c.csv")
     assert c[0].values == {"mu": (0.6, 0.7), "pressure_bar": (1.9, 1.9)}  # the CSV wins, per quantity
     assert c[0].unknown() == {"mu": (0.6, 0.7)} and c[0].exact("pressure_bar") == 1.9
@@ -585,7 +585,8 @@ def test_conditions_from_a_csv_and_a_json_beside_the_run(tmp_path):
     ("file,grip\nrun01.csv,1\n", "line 1: unknown column 'grip'"),
     ("file,mu\nrun01.csv,0.9..0.5\n", "line 2: mu '0.9..0.5': a range needs finite lo <= hi"),
     ("file,mu\nrun01.csv,wet\n", "line 2: mu 'wet' is not a number or a range lo..hi"),
-    ("file,mu\nrun01.csv,3\n", "line 2: mu '3' is outside 0.2..1.2\n"),  # (no unit: mu is a ratio)
+    ("file,mu\nrun01.csv,3\n", "line 2: mu '3' is outside 0.1..1.2\n"),  # (no unit: mu is a ratio; as --mu)
+    ("file,mu\nrun01.csv,0.", "line 2: truncated: the file ends inside this row"),
     ("file,mu\nrun01.csv,1,2\n", "line 2: 3 cells for 2 columns"),
     ("file,mu\nrun09.csv,1\n", "run09.csv is not one of the measured runs"),
 ])

@@ -25,34 +25,47 @@ string, or ``[lo, hi]`` in JSON. An exact value is applied to the run's
 re-simulation. A range is identified for that run as a nuisance parameter
 (:mod:`virtsensor.diagnose.nuisance`) where the run excites it. With no
 condition at all, a run's ``mu`` is the ``--mu`` of the command line if given,
-else unknown over the whole range of :data:`QUANTITIES` (a test day's surfaces
-are rarely all the same).
+else unknown over its :attr:`Quantity.unknown_range`, 0.2..1.2 (a test day's
+surfaces are rarely all the same). A stated friction, by file or ``--mu``, may
+be any the simulator takes (:data:`sim.params.MU_RANGE`).
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from sim.params import MU_RANGE
 from virtsensor.errors import UserError
 
 
 @dataclass(frozen=True)
 class Quantity:
-    """A per-run condition: unit, the range it may take, one line of what it is."""
+    """A per-run condition: unit, the range a stated value may take (``bounds``: what the simulator can
+    re-simulate), one line of what it is, and the range an unknown one is identified over (``prior``; default
+    ``bounds``)."""
 
     name: str
     unit: str
     bounds: tuple[float, float]
     what: str
+    prior: tuple[float, float] | None = None
+
+    @property
+    def unknown_range(self) -> tuple[float, float]:
+        """The range a run's value is identified over where nothing states it."""
+        return self.prior or self.bounds
 
 
 QUANTITIES: dict[str, Quantity] = {q.name: q for q in (
-    Quantity("mu", "1", (0.2, 1.2), "road friction"),
+    # (a stated friction may be any the simulator takes, as `--mu`; an unknown one is searched over the roads of a
+    # test day, dry to wet, not ice)
+    Quantity("mu", "1", MU_RANGE, "road friction", prior=(0.2, 1.2)),
     Quantity("pressure_bar", "bar", (1.2, 3.4), "inflation pressure of all four tyres (gauge)"),
     Quantity("mass_kg", "kg", (900.0, 2500.0), "total mass of the car as driven"),
 )}
@@ -126,12 +139,16 @@ def _from_json(path: Path) -> dict[str, tuple[float, float]] | None:
 
 
 def read_csv(path: Path) -> dict[str, dict[str, tuple[float, float]]]:
-    """``file -> {quantity: (lo, hi)}`` from a conditions CSV; UserError names the file and the line."""
+    """``file -> {quantity: (lo, hi)}`` from a conditions CSV; UserError names the file and the line (a malformed
+    header or row, or a last row the file ends inside: cut mid-row, its last value perhaps cut too)."""
     try:
-        with path.open(newline="") as fh:
-            rows = list(csv.reader(fh))
+        text = path.read_text(encoding="utf-8-sig")  # (a spreadsheet's "CSV UTF-8" starts with a BOM)
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"{path}: cannot read ({type(exc).__name__})") from None
+    rows = list(csv.reader(io.StringIO(text, newline="")))
+    if text.strip() and not text.endswith(("\n", "\r")):
+        raise UserError(f"{path}: line {len(text.splitlines())}: truncated: the file ends inside this row (a complete "
+                        f"file ends every row with an end of line)")
     if not rows or "file" not in [h.strip() for h in rows[0]]:
         raise UserError(f"{path}: line 1: the header needs a 'file' column")
     head = [h.strip() for h in rows[0]]
@@ -181,7 +198,7 @@ def load_conditions(paths: Sequence[Path], csv_path: Path | None = None, *,
             if default_mu is not None:
                 rc.values["mu"], rc.source["mu"] = (default_mu, default_mu), "--mu"
             else:
-                rc.values["mu"], rc.source["mu"] = QUANTITIES["mu"].bounds, "not known"
+                rc.values["mu"], rc.source["mu"] = QUANTITIES["mu"].unknown_range, "not known"
         out.append(rc)
     extra = sorted(set(table) - used)  # a row naming none of the files given
     if extra and csv_path is not None:
