@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import uuid
@@ -463,7 +464,7 @@ def _restamped(frames, stamps):
 @pytest.mark.parametrize("where", ["last", "first"])
 def test_a_log_whose_clock_jumps_is_refused_naming_the_jump(tmp_path, run, where):
     """One frame stamped in Unix time among frames counted from 0 (a logger's clock that jumped): refused, naming
-    the file and the time of the jump, instead of building a tick grid of 34 billion ticks (253 GiB)."""
+    the file and the time of the jump (and, when the time goes back after it, the frame), instead of building a tick grid of 34 billion ticks (253 GiB)."""
     t, sig = run
     path = tmp_path / "jump.log"
     write_log(path, t, sig)
@@ -480,8 +481,9 @@ def test_a_log_whose_clock_jumps_is_refused_naming_the_jump(tmp_path, run, where
         assert message.startswith(f"{path}: its time jumps forward by 1.7e+09 s, from {end:.6f} s to "
                                   "1700000000.000000 s, between consecutive frames"), message
     else:
-        assert message.startswith(f"{path}: its time jumps back by 1.7e+09 s, from 1700000000.000000 s to "
-                                  f"{first:.6f} s, between consecutive frames"), message
+        # (the file reader names the frame whose time goes back, before the front-end sees the jump)
+        assert message.startswith(f"{path}: frame 1 at line 2 goes back in time 1.7e+09 s, from 1700000000.000000 s "
+                                  f"to {first:.6f} s"), message
     assert "\n" not in message
 
 
@@ -512,6 +514,34 @@ def test_a_minute_without_frames_or_more_than_12_hours_is_not_one_run(run):
     with pytest.raises(UserError, match="longer than one run"):
         tick_times(0.0, 1e12, 20.0)
     assert len(tick_times(0.0, MAX_SPAN_S, 20.0)) == MAX_SPAN_S * 20 + 1
+
+
+def test_a_log_whose_time_goes_back_is_refused_and_a_little_disorder_is_read(tmp_path, run):
+    """A frame stamped more than one tick (frontend.MAX_BACK_S) before the latest before it: a clock set back, or
+    two logs joined; the tables would interleave two stretches of driving. A merged logger's few ms of disorder
+    are read, in time order, as the log in order is."""
+    from virtsensor.frontend import MAX_BACK_S
+    from virtsensor.recordings.canlog import read_log
+
+    t, sig = run
+    plain = tmp_path / "ok.log"
+    write_log(plain, t, sig)
+    lines = plain.read_text().splitlines(keepends=True)
+    k = len(lines) // 2
+
+    def variant(name: str, swap_s: float) -> Path:
+        out = list(lines)
+        stamp = float(out[k][1:].split(")", 1)[0])
+        out[k] = f"({stamp + swap_s:.6f})" + out[k].split(")", 1)[1]  # frame k stamped later than frame k + 1
+        path = tmp_path / name
+        path.write_text("".join(out))
+        return path
+
+    little = variant("little.log", 0.004)
+    assert read_log(little).table["time_s"].size == read_log(plain).table["time_s"].size
+    far = variant("far.log", MAX_BACK_S + 0.2)
+    with pytest.raises(UserError, match=rf"^{re.escape(str(far))}: frame {k + 1} at line {k + 2} goes back in time "):
+        read_log(far)
 
 
 @pytest.mark.parametrize("damage", ["gzip cut", "text cut", "not gzip", "corrupt"])

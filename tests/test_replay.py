@@ -275,7 +275,7 @@ def _bad_log(tmp_path, damage: str):
     import gzip
 
     t, sig = synthetic(3.0)
-    suffix = ".log" if damage in ("garbage line", "garbage line .gz", "clock jump") else ".asc"
+    suffix = ".log" if damage in ("garbage line", "garbage line .gz", "clock jump", "clock back") else ".asc"
     plain = tmp_path / f"run{suffix}"
     write_log(plain, t, sig)
     lines = plain.read_bytes().splitlines(keepends=True)
@@ -283,8 +283,13 @@ def _bad_log(tmp_path, damage: str):
         lines.insert(len(lines) // 2, b"garbage line here\n")
     if damage == "clock jump":  # (a last frame stamped in Unix time: the replay would wait for 54 years)
         lines.append(b"(1700000000.000000)" + lines[-1].split(b")", 1)[1])
+    if damage == "clock back":  # (the second half stamped 1 s earlier: a logger's clock set back mid-run)
+        half = len(lines) // 2
+        for i in range(half, len(lines)):
+            stamp, rest = lines[i][1:].split(b")", 1)
+            lines[i] = b"(%.6f)" % (float(stamp) - 1.0) + rest
     text = b"".join(lines)
-    if damage in ("garbage line", "clock jump"):
+    if damage in ("garbage line", "clock jump", "clock back"):
         plain.write_bytes(text)
         return plain
     path = tmp_path / f"run{suffix}.gz"
@@ -294,12 +299,13 @@ def _bad_log(tmp_path, damage: str):
     return path
 
 
-@pytest.mark.parametrize("damage", ["garbage line", "garbage line .gz", "gzip cut", "text cut .gz", "clock jump"])
+@pytest.mark.parametrize("damage", ["garbage line", "garbage line .gz", "gzip cut", "text cut .gz", "clock jump",
+                                    "clock back"])
 def test_a_log_bad_past_its_middle_sends_nothing(tmp_path, channel, capsys, damage):
     """The whole log is read before the bus is opened: a garbage line in the middle of a .log (599 frames went out
     before exit 2), a .asc.gz cut by ``head -c`` (502 frames, then an EOFError), a garbage line or a text cut
-    mid-record inside a complete gzip stream: one line, exit 2, nothing on the bus; replay() itself sends nothing
-    either."""
+    mid-record inside a complete gzip stream, a clock set back 1 s half way (the rest of the log went out late in
+    one burst): one line, exit 2, nothing on the bus; replay() itself sends nothing either."""
     path = _bad_log(tmp_path, damage)
     rx = can.Bus(interface="virtual", channel=channel)
     try:
@@ -319,7 +325,7 @@ def test_a_log_bad_past_its_middle_sends_nothing(tmp_path, channel, capsys, dama
     assert f"{path}: " in err and str(e.value) in err, err
     want = {"garbage line": "unparsable line 'garbage line here'", "garbage line .gz": "unparsable line",
             "gzip cut": "truncated: the gzip stream is cut", "text cut .gz": "truncated: line",
-            "clock jump": "a replay covers at most 12 h"}[damage]
+            "clock jump": "a replay covers at most 12 h", "clock back": "goes back in time 0.99"}[damage]
     assert want in err, err
 
 

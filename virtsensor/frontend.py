@@ -27,6 +27,13 @@ One recording is one run, and its time says so (:func:`time_problem`; a
   jumped (one frame stamped in Unix time among frames counted from 0); sample
   and hold would fill the silence with 1200 ticks of stale values, and a clock
   jump with billions of them;
+* in a log file, no frame is stamped more than :data:`MAX_BACK_S` (one 20 Hz
+  tick) before the frame before it (the file readers check it:
+  :func:`virtsensor.recordings.canlog.iter_log`). A logger that merges its
+  channels may put frames a little out of time order, and the tables replay
+  them in time order; a clock set back by more (an NTP step) or two logs
+  joined end to end would interleave two stretches of driving tick by tick,
+  and a replay would send the rest of the log late, in one burst;
 * the first and the last frame are at most :data:`MAX_SPAN_S` (12 h) apart:
   longer than any one drive a logger records into one file, and at 20 Hz
   864,000 ticks, about 7 MB a column (100 MB for the canonical table's 15),
@@ -58,6 +65,7 @@ from virtsensor.canbus.e2e import USABLE
 from virtsensor.errors import UserError
 
 __all__ = [
+    "MAX_BACK_S",
     "MAX_GAP_S",
     "MAX_SPAN_S",
     "TIME_TOLERANCE_S",
@@ -78,6 +86,9 @@ TIME_TOLERANCE_S = 1e-6
 MAX_GAP_S = 60.0
 #: The longest one run may last, first frame to last (s): 12 h (see the module docstring).
 MAX_SPAN_S = 12 * 3600.0
+#: The most a log file's frame may be stamped before the one before it (s): one 20 Hz tick (see the module
+#: docstring).
+MAX_BACK_S = 0.05
 
 
 class SampleHoldStore:

@@ -26,10 +26,11 @@ line has no end of line, an ASC log without its ``End TriggerBlock`` line) is
 refused as a whole, naming its last good frame and timestamp; so is a CSV table
 whose last row has no end of line. A ``.gz`` text log is decompressed through
 once before its first frame is read, for the same checks on its text and to
-refuse a gzip stream cut short, corrupt or not gzip at all. A log whose time is not one run's (a jump of
-more than a minute between consecutive frames, or more than 12 hours from first
-to last: :func:`virtsensor.frontend.time_problem`) is refused naming the time of
-the jump, before any tick grid is built.
+refuse a gzip stream cut short, corrupt or not gzip at all. A log whose time is not one run's (a frame
+stamped more than one tick before the latest before it, :data:`~virtsensor.frontend.MAX_BACK_S`,
+checked as it is read; a jump of more than a minute between consecutive frames, or
+more than 12 hours from first to last: :func:`virtsensor.frontend.time_problem`)
+is refused naming the frame or the time of the jump, before any tick grid is built.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from virtsensor import signals as cat
 from virtsensor.canbus.codec import CanMatrix
 from virtsensor.canbus.e2e import USABLE, E2EStatus, counter_sequence
 from virtsensor.errors import UserError
-from virtsensor.frontend import TIME_TOLERANCE_S, TableBuild, collect, table_from_collected
+from virtsensor.frontend import MAX_BACK_S, TIME_TOLERANCE_S, TableBuild, collect, table_from_collected
 from virtsensor.recordings.files import LOG_SUFFIXES
 
 __all__ = [
@@ -490,7 +491,9 @@ def iter_log(path: str | os.PathLike) -> Iterator:
 
     Raises:
         UserError: missing file, unknown format, or a read failure, naming the
-            file, the frame index and the line number (text) or byte offset (BLF).
+            file, the frame index and the line number (text) or byte offset (BLF);
+            a frame stamped more than :data:`~virtsensor.frontend.MAX_BACK_S` before
+            the latest one before it (its time goes back), naming the frame.
     """
     import can
     from can.io.player import MESSAGE_READERS
@@ -528,12 +531,22 @@ def iter_log(path: str | os.PathLike) -> Iterator:
             raise UserError(f"{path}: {problem}; {good}")
     index = 0
     quiet = _ReaderWarnings(lines)
+    latest = -math.inf
     try:
         for msg in reader:
             if quiet.skipped is not None:
                 break
+            t = float(msg.timestamp)
+            if t < latest - MAX_BACK_S:
+                at = f" at line {lines.lineno}" if lines is not None else ""
+                raise UserError(f"{path}: frame {index}{at} goes back in time {latest - t:.6g} s, from {latest:.6f} s "
+                                f"to {t:.6f} s (frames may be out of order by {MAX_BACK_S * 1e3:g} ms at most: a "
+                                f"logger's clock set back, or two logs joined?)")
+            latest = max(latest, t)
             yield msg
             index += 1
+    except UserError:
+        raise
     except Exception as exc:  # noqa: BLE001 - translated into one line naming the position
         if lines is not None:
             where = f"line {lines.lineno}"
