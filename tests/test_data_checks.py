@@ -4,6 +4,7 @@ that train, evaluate and diagnose share, and cut logs."""
 from __future__ import annotations
 
 import json
+import os
 import re
 
 import numpy as np
@@ -74,6 +75,25 @@ def test_hidden_and_partial_files_are_never_runs(tmp_path, capsys):
     assert [r.name for r in load_runs([d])] == ["a"]
     code, err = _train(capsys, tmp_path, d / ".partial-b.csv")
     assert code == 2 and "unfinished write" in err and len(err.splitlines()) == 1
+
+
+def test_a_run_the_directory_seems_to_hold_and_does_not_is_refused(tmp_path, capsys):
+    """A link to nothing (a run moved or deleted since) was skipped without a word, and train went on with the
+    rest; so would a named pipe. Both refused in one line naming the entry; other suffixes stay ignored."""
+    d = tmp_path / "plain"
+    d.mkdir()
+    write_csv(d / "a.csv", _table())
+    (d / "notes.txt").symlink_to(tmp_path / "gone.txt")  # (no recording suffix: not a run, ignored)
+    assert [r.name for r in load_runs([d])] == ["a"]
+    (d / "b.csv").symlink_to(tmp_path / "moved" / "b.csv")
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert err.endswith(f"{d / 'b.csv'}: a link to nothing ({tmp_path / 'moved' / 'b.csv'}): the run it named is "
+                        f"gone"), err
+    (d / "b.csv").unlink()
+    os.mkfifo(d / "c.log")
+    with pytest.raises(UserError, match=r"c\.log: not a regular file$"):
+        load_runs([d])
 
 
 def test_a_link_is_judged_by_its_target_not_by_its_own_name_and_folder(tmp_path, capsys):

@@ -464,7 +464,8 @@ def _restamped(frames, stamps):
 @pytest.mark.parametrize("where", ["last", "first"])
 def test_a_log_whose_clock_jumps_is_refused_naming_the_jump(tmp_path, run, where):
     """One frame stamped in Unix time among frames counted from 0 (a logger's clock that jumped): refused, naming
-    the file and the time of the jump (and, when the time goes back after it, the frame), instead of building a tick grid of 34 billion ticks (253 GiB)."""
+    the file and the time of the jump (and, when the time goes back after it, the frame), instead of building a
+    tick grid of 34 billion ticks (253 GiB)."""
     t, sig = run
     path = tmp_path / "jump.log"
     write_log(path, t, sig)

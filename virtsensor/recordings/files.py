@@ -12,7 +12,9 @@ A directory is read as follows:
   checked);
 * with a manifest: exactly the manifest's runs, each present, none extra, each
   file's sha256 as listed (:func:`virtsensor.recordings.manifest.listed_runs`);
-* otherwise: its visible files with a recording suffix, in name order.
+* otherwise: its visible files with a recording suffix, in name order (an entry
+  with such a suffix that is no regular file, a link to nothing say, is refused:
+  a run it seems to hold and does not).
 
 A file given by name whose directory holds a manifest must be one of its runs,
 with its listed sha256.
@@ -115,7 +117,12 @@ def _directory(d: Path) -> list[Source]:
         if not out:
             raise UserError(f"{d / MANIFEST}: lists no runs")
         return out
-    found = sorted(f for f in d.iterdir() if not is_hidden(f) and f.is_file() and f.suffix.lower() in SUFFIXES)
+    found = sorted(f for f in d.iterdir() if not is_hidden(f) and f.suffix.lower() in SUFFIXES)
+    for f in found:
+        if not f.is_file():  # (a run the directory seems to hold and does not: never skipped without a word)
+            what = (f"a link to nothing ({f.readlink()}): the run it named is gone" if f.is_symlink() and
+                    not f.exists() else "not a regular file")
+            raise UserError(f"{f}: {what}")
     if not found:
         raise UserError(f"{d}: no recordings ({', '.join(SUFFIXES)}) in this directory")
     return [_linked(f, None) if f.is_symlink() else Source(f) for f in found]
