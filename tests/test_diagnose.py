@@ -604,6 +604,30 @@ def test_a_bad_conditions_file_is_one_line_and_exit_2(tmp_path, capsys, text, ms
     assert msg in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
 
 
+@pytest.mark.parametrize(("extra", "named"), [
+    (["--campaign", "smoke"], "--campaign sets the retraining"),
+    (["--recipe", "paper", "--seed", "3"], "--recipe, --seed set the retraining"),
+    (["--holdout", "{run}"], "--holdout sets"),
+    (["--ensemble", "1", "--max-iter", "5"], "--max-iter, --ensemble set"),
+    (["--export-model", "{tmp}/m.onnx"], "--export-model sets"),
+])
+def test_a_retraining_option_with_no_retrain_is_refused(tmp_path, capsys, extra, named):
+    """They did nothing without a word (a --seed a user thought fixed the diagnosis, a --holdout never scored)."""
+    from test_measured import _table
+
+    from virtsensor.cli import main
+    from virtsensor.recordings.canlog import write_csv
+
+    run = tmp_path / "run01.csv"
+    write_csv(run, _table())
+    before = set(tmp_path.iterdir())
+    argv = [a.format(run=run, tmp=tmp_path) for a in extra]
+    assert main(["diagnose", "--measured", str(run), "--no-retrain", "--quiet", *argv]) == 2
+    err = capsys.readouterr().err
+    assert named in err and "which --no-retrain skips" in err and len(err.strip().splitlines()) == 1, err
+    assert set(tmp_path.iterdir()) == before
+
+
 def test_a_bad_json_beside_a_run_is_refused(tmp_path, capsys):
     from test_measured import _table
 

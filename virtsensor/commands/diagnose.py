@@ -48,23 +48,45 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default="loky", choices=("loky", "ray"),
                         help="where re-simulations run: local joblib workers (loky, default) or a Ray cluster "
                              "(ray; needs the 'distributed' extra)")
-    parser.add_argument("--campaign", default="wide", help="training campaign preset for the estimators "
+    parser.add_argument("--campaign", default=None, help="training campaign preset for the estimators "
                         "(wide, smoke, tiny, paper; default wide: an estimator trained on smoke errs so much on "
                         "held-out runs that a calibration's gain hardly shows)")
-    parser.add_argument("--recipe", default="improved", help="estimator recipe (paper, improved; default improved)")
+    parser.add_argument("--recipe", default=None, help="estimator recipe (paper, improved; default improved)")
     parser.add_argument("--max-iter", type=t.int_range(1, 100000), default=None, metavar="N",
                         help="MLP epochs (1 to 100000; default: the recipe's)")
-    parser.add_argument("--ensemble", type=t.int_range(1, 10), default=3, metavar="N",
+    parser.add_argument("--ensemble", type=t.int_range(1, 10), default=None, metavar="N",
                         help="networks averaged per estimator (merged into one ONNX network; 1 to 10, default 3)")
-    parser.add_argument("--seed", type=t.seed(), default=0,
-                        help="seed of the campaigns and the training (0 to 2**32-1)")
+    parser.add_argument("--seed", type=t.seed(), default=None,
+                        help="seed of the campaigns and the training (0 to 2**32-1; default 0)")
     parser.add_argument("--n-jobs", type=t.jobs(), default=-1, metavar="N",
                         help="joblib workers for the re-simulations (1 to 1024, or -1: all cores)")
-    parser.add_argument("--no-retrain", action="store_true", help="diagnose only: no calibration, no gain")
+    parser.add_argument("--no-retrain", action="store_true",
+                        help="diagnose only: no calibration, no gain (the options of the retraining, --campaign to "
+                             "--seed, --holdout and --export-model, are refused with it)")
     parser.add_argument("--export-model", metavar="FILE.onnx", type=t.output_file(".onnx"),
                         help="export the calibrated estimator (ONNX and model card)")
     parser.add_argument("--quiet", action="store_true")
     add_car_arguments(parser)
+
+
+#: The options that set the retraining (option, argument name, default): --no-retrain skips what they set.
+RETRAINING = (("--campaign", "campaign", "wide"), ("--recipe", "recipe", "improved"), ("--max-iter", "max_iter", None),
+              ("--ensemble", "ensemble", 3), ("--seed", "seed", 0), ("--holdout", "holdout", None),
+              ("--export-model", "export_model", None))
+
+
+def _check_retraining_options(args: argparse.Namespace) -> None:
+    """Refuse an option of the retraining given with --no-retrain (it would do nothing, without a word); then
+    fill in the defaults of those not given."""
+    from virtsensor.errors import UserError
+
+    given = [opt for opt, name, _ in RETRAINING if getattr(args, name) is not None]
+    if args.no_retrain and given:
+        raise UserError(f"{', '.join(given)} set{'s' if len(given) == 1 else ''} the retraining and the held-out "
+                        f"score, which --no-retrain skips: drop {'it' if len(given) == 1 else 'them'} or --no-retrain")
+    for _, name, default in RETRAINING:
+        if getattr(args, name) is None:
+            setattr(args, name, default)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -75,8 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.learning.training import RECIPES
     from virtsensor.recordings.measured import load_measured
 
-    if args.export_model and args.no_retrain:
-        raise UserError("--export-model needs the retraining; drop --no-retrain")
+    _check_retraining_options(args)
     if args.campaign not in PRESETS:
         raise UserError(f"--campaign {args.campaign!r}: one of {', '.join(PRESETS)}")
     if args.recipe not in RECIPES:
