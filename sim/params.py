@@ -137,15 +137,28 @@ def apply_overrides(
         assignments: ``["section.name=value", ...]`` or ``{"section.name": value}``.
         files: TOML files with the same shape as the defaults (any subset).
     """
+    return _applied(base, assignments, files)[0]
+
+
+def _applied(
+    base: Mapping[str, Any],
+    assignments: Iterable[str] | Mapping[str, Any] = (),
+    files: Iterable[Path | str] = (),
+) -> tuple[dict[str, Any], dict[str, str]]:
+    """:func:`apply_overrides`, and which file set each key it changed last (key -> ``"<file>: "``; keys an
+    assignment set last are not listed: the assignment names its key and value itself)."""
     tree = copy.deepcopy(dict(base))
+    origins: dict[str, str] = {}
     for f in files:
         patch = load_defaults(f)
         for key, value in _leaves(patch):
             _set(tree, key, value, where=f"{f}: ")
+            origins[key] = f"{f}: "
     items = assignments.items() if isinstance(assignments, Mapping) else map(parse_assignment, assignments)
     for key, value in items:
         _set(tree, key, value)
-    return tree
+        origins.pop(key, None)
+    return tree, origins
 
 
 def car_parameters(
@@ -154,8 +167,14 @@ def car_parameters(
     defaults: Path | str = DEFAULT_CAR,
 ) -> dict[str, Any]:
     """The default car with overrides applied and checked (the usual entry point; see :func:`check_car`)."""
-    tree = apply_overrides(load_defaults(defaults), assignments, files)
-    check_car(tree)
+    tree, origins = _applied(load_defaults(defaults), assignments, files)
+    try:
+        check_car(tree)
+    except ParamError as exc:  # a value out of range that a file set: the message names the file too
+        key = next((k for k in origins if any(f"car parameter {k}{c}" in str(exc) for c in "=[")), None)
+        if key is None:
+            raise
+        raise ParamError(f"{origins[key]}{exc}") from None
     return tree
 
 

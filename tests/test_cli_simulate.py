@@ -74,6 +74,22 @@ def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, args, needle):
     assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
+def test_a_value_out_of_range_from_a_params_file_names_the_file(tmp_path):
+    """Its key and value alone sent the user looking through --set and every --params file for it."""
+    from sim.params import ParamError, car_parameters
+
+    toml = tmp_path / "car.toml"
+    toml.write_text("[vehicle]\nmass_kg = 1\n[steering]\nassist_gains = [1, 1, 1, 1, 1, 99]\n")
+    with pytest.raises(ParamError) as e:
+        car_parameters([], [toml])
+    assert str(e.value) == f"{toml}: car parameter vehicle.mass_kg=1 is outside its physical range [300, 5000] kg"
+    with pytest.raises(ParamError) as e:
+        car_parameters(["vehicle.mass_kg=1400"], [toml])
+    assert str(e.value).startswith(f"{toml}: car parameter steering.assist_gains[5]=99 is outside"), str(e.value)
+    with pytest.raises(ParamError, match="^car parameter vehicle.mass_kg=2 "):  # (--set names key and value itself)
+        car_parameters(["vehicle.mass_kg=2", "steering.assist_gains=[1, 1, 1, 1, 1, 1]"], [toml])
+
+
 @pytest.mark.parametrize(("assignment", "needle"), [
     ("vehicle.mass_kg=-5", "vehicle.mass_kg=-5 is outside its physical range [300, 5000] kg"),
     ("vehicle.mass_kg=0", "vehicle.mass_kg=0 is outside its physical range [300, 5000] kg"),

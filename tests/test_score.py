@@ -151,3 +151,14 @@ def test_refuses_an_empty_trc_log_in_one_line(tmp_path: Path, capsys, caplog) ->
     out = tmp_path / "s.json"
     _refused(["score", "--model", str(MODEL), "--data", str(empty), "--json", str(out)], capsys, "empty.trc", out)
     assert "TRCReader" not in caplog.text
+
+
+def test_a_card_without_a_usable_feature_spec_is_named():
+    from virtsensor.errors import UserError
+    from virtsensor.learning.scoring import needed_signals
+    from virtsensor.model.card import ModelCard
+
+    with pytest.raises(UserError, match=r"^x\.card\.json: model card has no usable feature_spec \('name'\)$"):
+        needed_signals(ModelCard({"feature_spec": {"x": 1}}, path="x.card.json"))
+    with pytest.raises(UserError, match=r"^model card has no usable feature_spec "):  # (a card built in memory)
+        needed_signals({"feature_spec": 3})

@@ -41,10 +41,13 @@ def needed_signals(card: Any) -> list[str]:
 
 
 def _spec(card: Any) -> FeatureSpec:
+    """The card's feature spec; UserError names the card's file (a card in memory: "model card")."""
     try:
         return FeatureSpec.from_json(card["feature_spec"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"model card has no usable feature_spec ({exc})") from None
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:
+        path = getattr(card, "path", None)
+        where = f"{path}: model card" if path is not None else "model card"
+        raise UserError(f"{where} has no usable feature_spec ({exc})") from None
 
 
 def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
