@@ -69,8 +69,8 @@ from numpy.typing import ArrayLike, NDArray
 from sim.tir import TirError, TirFile, bundled_tir, read_tir, require_keys
 
 __all__ = ["MagicFormula61", "TyreOutput", "REQUIRED_KEYS", "SCALING_FACTORS", "PLAUSIBLE_RANGES",
-           "PlausibleRange", "TYPICAL_TYRE", "implausible", "non_finite_outputs", "overflow_message",
-           "overflow_problem", "overflowing"]
+           "PlausibleRange", "TYPICAL_TYRE", "FORCE_RATIO_LIMIT", "beyond_a_tyre", "implausible",
+           "non_finite_outputs", "overflow_message", "overflow_problem", "overflowing"]
 
 FloatArray = NDArray[np.float64]
 
@@ -1140,6 +1140,23 @@ _OUTPUT_NAMES = {"fx": "Fx", "fy": "Fy", "mz": "Mz", "my": "My", "t": "trail", "
                  "kxk": "slip stiffness"}
 
 
+#: The largest force a tyre gives per unit of its load in its usual range (Fx or Fy over Fz): a racing slick on a
+#: dry track gives about 2, a road tyre 0.8-1.3; five times its load is no tyre's (a coefficient typed wrong).
+FORCE_RATIO_LIMIT = 5.0
+
+
+def _usual_range(model: MagicFormula61) -> tuple[TyreOutput, TyreOutput, FloatArray]:
+    """The model's pure side-slip and pure longitudinal-slip outputs over the usual range of
+    :func:`non_finite_outputs`, and the wheel loads they are at (N, broadcastable to them)."""
+    p = model._p
+    fz = np.array([0.5, 1.0, 1.5])[:, None, None] * p["FNOMIN"]
+    pres = np.array([0.9, 1.0, 1.1])[None, :, None] * p["INFLPRES"]
+    with np.errstate(all="ignore"):
+        side = model.steady_state(fz, 0.0, np.linspace(-30.0, 30.0, 61) * (math.pi / 180.0), 0.0, p["LONGVL"], pres)
+        longi = model.steady_state(fz, np.linspace(-0.3, 0.3, 61), 0.0, 0.0, p["LONGVL"], pres)
+    return side, longi, fz
+
+
 def non_finite_outputs(model: MagicFormula61) -> dict[str, int]:
     """The outputs that are not finite somewhere in the tyre's usual range (name -> how many points).
 
@@ -1148,44 +1165,64 @@ def non_finite_outputs(model: MagicFormula61) -> dict[str, int]:
     plots of ``virtsensor tyre``). Finite coefficients can still overflow there (PKY1 = 1e308: Kya = inf),
     and a model that does would make any simulation diverge.
     """
-    p = model._p
-    fz = np.array([0.5, 1.0, 1.5])[:, None, None] * p["FNOMIN"]
-    pres = np.array([0.9, 1.0, 1.1])[None, :, None] * p["INFLPRES"]
-    with np.errstate(all="ignore"):
-        side = model.steady_state(fz, 0.0, np.linspace(-30.0, 30.0, 61) * (math.pi / 180.0), 0.0, p["LONGVL"], pres)
-        longi = model.steady_state(fz, np.linspace(-0.3, 0.3, 61), 0.0, 0.0, p["LONGVL"], pres)
+    side, longi, _ = _usual_range(model)
     counts = {name: int(np.sum(~np.isfinite(getattr(side, key))) + np.sum(~np.isfinite(getattr(longi, key))))
               for key, name in _OUTPUT_NAMES.items()}
     return {name: n for name, n in counts.items() if n}
 
 
-def _non_finite_with(params: Mapping[str, float | str], values: Mapping[str, float | str]) -> int:
-    """How many outputs :func:`non_finite_outputs` finds with ``values`` replacing some coefficients (-1: the
-    coefficients are refused then)."""
+def beyond_a_tyre(model: MagicFormula61) -> dict[str, float]:
+    """The outputs that are finite but no tyre's somewhere in the usual range of :func:`non_finite_outputs`
+    (name -> the worst of them): ``Fx``, ``Fy`` over :data:`FORCE_RATIO_LIMIT` times the load (the worst ratio),
+    ``Mz``, ``My`` with a lever ``|M| / Fz`` over the unloaded radius (the worst lever, m: the aligning moment's
+    lever, pneumatic trail and residual, lies within the contact patch, itself shorter than the radius; the rolling
+    resistance's is a hundredth of it). Such a tyre (PDY1 = 1e30 gives Fy of 1e30 times the load) would drive the
+    simulation anywhere but where a car goes."""
+    side, longi, fz = _usual_range(model)
+    radius = model._p["UNLOADED_RADIUS"]
+    out: dict[str, float] = {}
+    with np.errstate(all="ignore"):
+        for key, name, scale, limit in (("fx", "Fx", fz, FORCE_RATIO_LIMIT), ("fy", "Fy", fz, FORCE_RATIO_LIMIT),
+                                        ("mz", "Mz", fz, radius), ("my", "My", fz, radius)):
+            ratios = [np.abs(getattr(o, key)) / scale for o in (side, longi)]
+            worst = max(float(np.max(np.where(np.isfinite(r), r, 0.0))) for r in ratios)
+            if worst > limit:
+                out[name] = worst
+    return out
+
+
+def _bad_outputs(model: MagicFormula61) -> int:
+    """How many outputs of the usual range are not finite, plus how many kinds are beyond a tyre's."""
+    return sum(non_finite_outputs(model).values()) + len(beyond_a_tyre(model))
+
+
+def _bad_with(params: Mapping[str, float | str], values: Mapping[str, float | str]) -> int:
+    """:func:`_bad_outputs` with ``values`` replacing some coefficients (-1: the coefficients are refused then)."""
     try:
-        return sum(non_finite_outputs(MagicFormula61({**params, **values})).values())
+        return _bad_outputs(MagicFormula61({**params, **values}))
     except TirError:
         return -1
 
 
 def overflowing(model: MagicFormula61, given: Iterable[str] = (),
                 restore: Mapping[str, float | str] | None = None) -> list[str]:
-    """The coefficients that make the model's outputs non-finite (:func:`non_finite_outputs`).
+    """The coefficients that make the model's outputs non-finite (:func:`non_finite_outputs`) or no tyre's
+    (:func:`beyond_a_tyre`).
 
     A coefficient can be given back a sane value: one of ``restore`` its value there (what a --set replaced),
     any other of ``given`` (the keys of the file) the value of :data:`TYPICAL_TYRE`. Named: those that each
-    alone make the outputs finite; else the fewest found greedily (each time the one that leaves the fewest
-    outputs non-finite, at most :data:`_MOST_NAMED`) that together do. Empty when none do.
+    alone make the outputs finite and a tyre's; else the fewest found greedily (each time the one that leaves
+    the fewest outputs bad, at most :data:`_MOST_NAMED`) that together do. Empty when none do.
     """
     params = model.params
-    left = sum(non_finite_outputs(model).values())
+    left = _bad_outputs(model)
     typical = MagicFormula61.from_tir(bundled_tir(TYPICAL_TYRE)).params
     sane = dict(restore or {})
     sane.update((key, typical[key]) for key in given if key not in sane and isinstance(params.get(key), float)
                 and isinstance(typical.get(key), float) and typical[key] != params[key])
     chosen: dict[str, float | str] = {}
     while left and len(chosen) < _MOST_NAMED:
-        trials = {key: _non_finite_with(params, {**chosen, key: value}) for key, value in sane.items()
+        trials = {key: _bad_with(params, {**chosen, key: value}) for key, value in sane.items()
                   if key not in chosen}
         trials = {key: n for key, n in trials.items() if 0 <= n < left}
         if not chosen and 0 in trials.values():
@@ -1198,20 +1235,22 @@ def overflowing(model: MagicFormula61, given: Iterable[str] = (),
         return []
     for key in list(chosen):  # one that the later ones made unnecessary
         rest = {k: v for k, v in chosen.items() if k != key}
-        if _non_finite_with(params, rest) == 0:
+        if _bad_with(params, rest) == 0:
             chosen = rest
     return [key for key in sane if key in chosen]  # (--set ones first, then in the file's order)
 
 
 def overflow_message(model: MagicFormula61, what: str, given: Iterable[str] = (),
-                     restore: Mapping[str, float | str] | None = None) -> str:
-    """One line: the model (its source) overflows, ``what`` is not finite, and the coefficient(s) that cause
-    it (:func:`overflowing`), or which to check when no coefficient alone or few together do."""
+                     restore: Mapping[str, float | str] | None = None, *, beyond: bool = False) -> str:
+    """One line: the model (its source) overflows, ``what`` is not finite (``beyond``: ``what`` is no tyre's),
+    and the coefficient(s) that cause it (:func:`overflowing`), or which to check when no coefficient alone or
+    few together do."""
     keys = overflowing(model, given, restore)
     where = model.source
     if len(keys) == 1 and isinstance(given, TirFile) and keys[0] in given.lines:
         where = given.where(keys[0])
-    head = f"{where}: the Magic Formula overflows ({what} not finite)"
+    head = f"{where}: the Magic Formula " + (f"gives {what}, beyond any tyre" if beyond else
+                                             f"overflows ({what} not finite)")
     if keys:
         values = ", ".join(f"{key} = {model.params[key]:g}" for key in keys)
         return f"{head}: {values}; give {'it a value' if len(keys) == 1 else 'them values'} of a tyre's size"
@@ -1220,11 +1259,19 @@ def overflow_message(model: MagicFormula61, what: str, given: Iterable[str] = ()
 
 def overflow_problem(model: MagicFormula61, given: Iterable[str] = (),
                      restore: Mapping[str, float | str] | None = None) -> str | None:
-    """:func:`overflow_message` when some output is not finite in the tyre's usual range, else None."""
+    """:func:`overflow_message` when some output is not finite in the tyre's usual range, or is no tyre's
+    (:func:`beyond_a_tyre`), else None."""
+    where = "at 0.5-1.5 FNOMIN, 0.9-1.1 INFLPRES"
     bad = non_finite_outputs(model)
-    if not bad:
+    if bad:
+        return overflow_message(model, f"{', '.join(bad)} {where}", given, restore)
+    beyond = beyond_a_tyre(model)
+    if not beyond:
         return None
-    return overflow_message(model, f"{', '.join(bad)} at 0.5-1.5 FNOMIN, 0.9-1.1 INFLPRES", given, restore)
+    radius = model._p["UNLOADED_RADIUS"]
+    parts = [f"{name} up to {v:.3g} times the load (over {FORCE_RATIO_LIMIT:g})" if name in ("Fx", "Fy") else
+             f"{name} with a lever of {v:.3g} m (over the unloaded radius, {radius:g} m)" for name, v in beyond.items()]
+    return overflow_message(model, f"{', '.join(parts)} {where}", given, restore, beyond=True)
 
 
 class _PressureTerms:

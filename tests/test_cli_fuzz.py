@@ -399,6 +399,12 @@ def test_an_unreadable_parameter_file_or_an_empty_centreline_is_one_line(tmp_pat
     (["tyre", "c_segment_205_55R16", "--set", "LKY=-101"], "scaling factor LKY = -101 is beyond +-100"),
     (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--tyre", "{tmp}/lmuy.tir", "--out",
       "{tmp}/a.csv"], "lmuy.tir:161: scaling factor LMUY = 1e+300 is beyond +-100"),
+    # finite and no overflow, but a force of 1e28 times the load, an aligning moment's lever of 95 m: named
+    (["tyre", "c_segment_205_55R16", "--set", "PDY1=1e30"], "gives Fy up to 1.83e+28 times the load (over 5), Mz "
+     "with a lever of 3.9e+26 m (over the unloaded radius, 0.3135 m) at 0.5-1.5 FNOMIN, 0.9-1.1 INFLPRES, beyond "
+     "any tyre: PDY1 = 1e+30; give it a value of a tyre's size"),
+    (["simulate", "steering-pulse", "--speed", "60", "--mu", "1", "--tyre", "{tmp}/qdz1.tir", "--out",
+      "{tmp}/a.csv"], "qdz1.tir:"),
 ])
 def test_a_tyre_coefficient_no_tyre_has_is_refused_before_any_work(tmp_path, argv, needle):
     from sim.tir import bundled_tir
@@ -407,6 +413,12 @@ def test_a_tyre_coefficient_no_tyre_has_is_refused_before_any_work(tmp_path, arg
     lines = ["LMUY = 1e300" if ln.split("=")[0].strip() == "LMUY" else ln for ln in text.splitlines()]
     assert lines[160] == "LMUY = 1e300"
     (tmp_path / "lmuy.tir").write_text("\n".join(lines) + "\n")
+    lines = ["QDZ1 = 500" if ln.split("=")[0].strip() == "QDZ1" else ln for ln in text.splitlines()]
+    (tmp_path / "qdz1.tir").write_text("\n".join(lines) + "\n")
+    if "qdz1" in " ".join(argv):
+        at = 1 + next(i for i, ln in enumerate(lines) if ln.startswith("QDZ1 "))
+        needle = f"qdz1.tir:{at}: the Magic Formula gives Mz with a lever of 95.2 m (over the unloaded radius, " \
+                 f"0.3135 m) at 0.5-1.5 FNOMIN, 0.9-1.1 INFLPRES, beyond any tyre: QDZ1 = 500"
     line = _assert_refused(argv, tmp_path)
     assert needle in line, line
 

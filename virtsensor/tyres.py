@@ -6,8 +6,9 @@ coefficient the MF 6.1 model needs and MF 6.1 has no default for, give numbers w
 numbers belong, give a load, size, pressure, reference speed and stiffnesses that a
 passenger-car or light-truck tyre has (a value in the wrong unit is named with the
 unit it looks like: :data:`sim.tyre.PLAUSIBLE_RANGES`), and give a model whose
-outputs are finite over the figures' range (a coefficient so large that the Magic
-Formula overflows is named: :func:`sim.tyre.overflow_problem`). Every failure is a
+outputs are finite and a tyre's over the figures' range (a coefficient so large that
+the Magic Formula overflows, or gives a force over 5 times the load or a moment whose
+lever exceeds the tyre's radius, is named: :func:`sim.tyre.overflow_problem`). Every failure is a
 :class:`~virtsensor.errors.UserError` whose one-line message names the file, the key
 and the line (a ``--set`` key: the file and ``--set``). Optional keys the file
 leaves out take their standard MF 6.1 defaults (scaling factors 1, ``LMUV`` 0, other
