@@ -37,6 +37,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Mapping
+from functools import partial
 from typing import Any
 
 from virtsensor.canbus.codec import STATUS_KEYS, CanMatrix
@@ -401,18 +402,19 @@ def _from_config(cls: type[VirtualSensor], config: RuntimeConfig | Mapping[str, 
         cfg = config if isinstance(config, RuntimeConfig) else load_config(None, config)
     model = OnnxModel.load(str(cfg.model))  # (load_config checked model, interface, channel are set)
     matrix = CanMatrix.load(cfg.dbc)
-    opener: Callable[[], Any] | None = bus_factory
-    if bus is None:
-        def factory() -> Any:  # (a reconnect, beside the tick thread: python-can's logging is left as it is)
-            return open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate, fold_notes=False)
-        opener = bus_factory or factory
+    def configured(fold_notes: bool) -> Callable[[], Any]:
+        """The configured bus's opener; ``fold_notes``: python-can's notes into a failure's one line (only where
+        no other thread runs: a reconnect, beside the tick thread, leaves python-can's logging as it is)."""
+        return bus_factory or partial(open_bus, str(cfg.interface), str(cfg.channel), cfg.bitrate,
+                                      fold_notes=fold_notes)
+
+    opener = configured(False) if bus is None else bus_factory
     sensor = cls(bus, model, matrix, sync_id=cfg.sync_id, sync_every=cfg.sync_every,
                  timeout_cycles=cfg.timeout_cycles, model_id=cfg.model_id, bus_factory=opener,
                  cpu=cfg.cpu, realtime=cfg.realtime, rt_priority=cfg.rt_priority,
                  cpu_latency_us=cfg.cpu_latency_us, **kwargs)
-    if opener is not None and bus is None:  # everything checked: now open the bus (UserError if it cannot)
-        first = bus_factory or (lambda: open_bus(str(cfg.interface), str(cfg.channel), cfg.bitrate))
-        sensor._link.bus = first()  # (no thread runs yet: python-can's notes fold into a failure's one line)
+    if bus is None:  # everything checked: now open the bus (UserError if it cannot; no thread runs yet)
+        sensor._link.bus = configured(True)()
     sensor.config = cfg
     return sensor
 
