@@ -539,8 +539,7 @@ def test_measured_and_holdout_must_differ(tmp_path, capsys):
     (tmp_path / "h" / "a_copy.csv").write_bytes((tmp_path / "a.csv").read_bytes() + b"")
     write_csv(tmp_path / "b.csv", {k: np.round(v, 9) for k, v in _table().items()})  # (more decimals written)
     for held in ("h/a_copy.csv", "b.csv"):
-        assert main(["diagnose", "--measured", str(tmp_path / "a.csv"), "--holdout", str(tmp_path / held),
-                     "--no-retrain"]) == 2
+        assert main(["diagnose", "--measured", str(tmp_path / "a.csv"), "--holdout", str(tmp_path / held)]) == 2
         err = capsys.readouterr().err
         assert "the same run as" in err and "both as --measured and --holdout" in err and err.count("\n") == 1, err
 
