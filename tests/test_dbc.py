@@ -353,6 +353,18 @@ def test_dbc_without_e2e_layout_is_rejected(tmp_path):
         CanMatrix.load(p)
 
 
+def test_two_messages_on_one_id_are_refused(tmp_path, capsys):
+    """VS_Grip moved onto EPAS_Steering's id: cantools kept one by id with a plain log line, and the daemon sent its
+    frames on the steering angle's id. Refused in one line naming both; nothing else printed."""
+    text = DBC.read_text().replace(" 514 ", " 160 ")
+    p = tmp_path / "dup.dbc"
+    p.write_text(text)
+    with pytest.raises(UserError) as e:
+        CanMatrix.load(p)
+    assert str(e.value) == f"{p}: messages EPAS_Steering and VS_Grip share the frame id 0x0A0 (one id, one message)"
+    assert capsys.readouterr().err == ""
+
+
 def test_the_default_matrix_is_the_bundled_package_data():
     from virtsensor.assets import dbc_path
 

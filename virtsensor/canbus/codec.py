@@ -33,6 +33,7 @@ catalogue by :mod:`virtsensor.canbus.dbcgen` (a test keeps the file identical to
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from collections.abc import Callable, Iterable, Mapping, MutableMapping, MutableSequence, Sequence
@@ -353,14 +354,46 @@ def _load_db(path: Path | None):
     except OSError as exc:
         raise UserError(f"{path}: cannot read the DBC: {exc.strerror or exc}") from None
     if key not in _CACHE:
+        held = _HeldRecords()  # (cantools logs a message that replaces another by id: refused below, in one line)
+        cantools_log = logging.getLogger("cantools")
+        cantools_log.addHandler(held)
+        propagate, cantools_log.propagate = cantools_log.propagate, False
         try:
             db = cantools.database.load_file(str(path), database_format="dbc", strict=True)
         except Exception as exc:  # cantools raises ParseError, UnsupportedDatabaseFormatError, ...
             msg = " ".join(str(exc).split())
             msg = msg if len(msg) <= 240 else msg[:240] + "..."  # (the parser quotes the text it stopped at)
             raise UserError(f"{path}: not a valid DBC: {type(exc).__name__}: {msg}") from None
+        finally:
+            cantools_log.removeHandler(held)
+            cantools_log.propagate = propagate
+        _check_ids(db, str(path))
+        for record in held.records:  # (anything else cantools noted goes on as it would have)
+            cantools_log.handle(record)
         _CACHE[key] = (db, _compile(db, str(path)), str(path))
     return _CACHE[key]
+
+
+class _HeldRecords(logging.Handler):
+    """Keeps the log records it is handed (to pass on once the DBC is judged)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def _check_ids(db, source: str) -> None:
+    """Refuse two messages with one frame id: a frame on it would be read as either, and the daemon would send
+    its own frames on another ECU's id (cantools keeps the later one by id, with only a log line)."""
+    first: dict[int, str] = {}
+    for m in db.messages:
+        other = first.setdefault(m.frame_id, m.name)
+        if other != m.name:
+            raise UserError(f"{source}: messages {other} and {m.name} share the frame id 0x{m.frame_id:03X} (one "
+                            "id, one message)")
 
 
 class CanMatrix:
