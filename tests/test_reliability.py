@@ -157,6 +157,45 @@ def test_the_ticks_after_a_gap_are_not_valid_until_the_history_has_refilled(mode
     assert vs.counters["tick_gaps"] == 1
 
 
+@pytest.mark.parametrize(("period", "jitter", "valid"), [
+    (0.05, 0.0, True), (0.05, 0.004, True),  # a regular sync, exact or with +-4 ms of jitter
+    (0.048, 0.0, False), (0.052, 0.0, False), (0.04, 0.0, False), (0.07, 0.0, False), (0.025, 0.0, False),
+])
+def test_a_sync_at_another_rate_than_the_tick_is_never_valid(model, frames, period, jitter, valid):
+    """Sync frames every 40 ms (a gateway), 25 ms, 70 ms, even 48 ms: each gap looks like a tick, but the features'
+    rates and lags are per 50 ms, and the estimates were VALID with 1.3-4 times the error (MAE 2.0 Nm at 50 ms,
+    2.8 at 40, 6.1 at 70, 8.2 at 25 on this stream). Their median gap off the tick by more than 3 % makes every
+    tick a gap in the histories (``tick_rate_off``): INVALID from the 10th gap on. A regular sync, jittered or
+    not, stays VALID, and nothing is counted."""
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp, period=period)
+    if jitter:
+        rng = np.random.default_rng(3)
+        merged = sorted((_restamp(m, m.timestamp + rng.uniform(-jitter, jitter)) if m.arbitration_id == SYNC_ID
+                         else m for m in merged), key=lambda m: m.timestamp)
+    out, vs = _drive_sync(model, merged)
+    late = [st for _, t, st, _ in out if t > frames[0].timestamp + 2.0]
+    if valid:
+        assert late and all(st == (VALID, VALID) for st in late), collections.Counter(late)
+        assert vs.counters["tick_rate_off"] == 0 and vs.counters["tick_gaps"] == 0
+    else:
+        assert late and all(st == (INVALID, INVALID) for st in late), collections.Counter(late)
+        assert vs.counters["tick_rate_off"] > 0
+
+
+def test_a_sync_id_of_the_dbc_must_come_every_tick(model):
+    """EPAS_Steering (10 ms) as the sync: every 5th frame is a 50 ms tick; every one was accepted too (100 Hz
+    ticks, each VALID). The daemon's own messages are never a sync."""
+    from virtsensor.errors import UserError
+
+    epas = MATRIX.messages["EPAS_Steering"].frame_id
+    with pytest.raises(UserError, match=r"^sync id 0xA0 is EPAS_Steering, sent every 10 ms: a tick on every 1 of its "
+                                        r"frames comes every 10 ms, not the 50 ms tick .*; --sync-every 5 fits$"):
+        VirtualSensor(_QueueBus(), model, MATRIX, sync_id=epas, freeze_gc=False)
+    VirtualSensor(_QueueBus(), model, MATRIX, sync_id=epas, sync_every=5, freeze_gc=False).stop()
+    with pytest.raises(UserError, match=r"is the daemon's own VS_Grip"):
+        VirtualSensor(_QueueBus(), model, MATRIX, sync_id=MATRIX.messages["VS_Grip"].frame_id, freeze_gc=False)
+
+
 def test_free_running_backlog_is_aged_by_its_interface_timestamps(model, frames):
     """Free-running, frames drained at each tick, in real time: a backlog the interface held back and
     released late is stale (INVALID), although it has just arrived; live frames then bring VALID back."""

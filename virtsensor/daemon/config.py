@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -67,9 +67,17 @@ class RuntimeConfig:
     log_level: str = "info"
     timeout_cycles: float = INPUT_TIMEOUT_CYCLES
     model_id: int | None = None
+    #: where each setting given came from, for messages: key -> ``"<file>: <key>"`` or ``"--<option>"``
+    origin: dict[str, str] = field(default_factory=dict, compare=False, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        out = asdict(self)
+        del out["origin"]
+        return out
+
+    def where(self, key: str) -> str:
+        """Where ``key`` was set (its config file and key, or its option), for a message about its value."""
+        return self.origin.get(key, f"--{key.replace('_', '-')}")
 
 
 _PATH_KEYS = ("model", "dbc")
@@ -88,6 +96,11 @@ def _coerce(key: str, value: Any, where: str) -> Any:
         value = str(value)
         if key == "log_level" and value.lower() not in LOG_LEVELS:
             raise bad(f"one of {', '.join(LOG_LEVELS)}")
+        if key == "interface":
+            import can
+
+            if value not in can.interfaces.VALID_INTERFACES:
+                raise bad(f"one of python-can's interfaces ({', '.join(sorted(can.interfaces.VALID_INTERFACES))})")
         return value.lower() if key == "log_level" else value
     if key == "sync_id":
         try:
@@ -121,7 +134,7 @@ def _coerce(key: str, value: Any, where: str) -> Any:
     raise UserError(f"{where}: unknown setting {key!r}")  # pragma: no cover - keys are checked first
 
 
-_KEYS = tuple(f.name for f in fields(RuntimeConfig))
+_KEYS = tuple(f.name for f in fields(RuntimeConfig) if f.name != "origin")
 
 
 def _check_path(key: str, value: Path, where: Path) -> None:
@@ -177,6 +190,7 @@ def load_config(file: str | os.PathLike | None = None, overrides: Mapping[str, A
             ``sync_every`` other than 1 without a ``sync_id``.
     """
     merged: dict[str, Any] = read_config_file(file) if file is not None else {}
+    origin = {k: f"{file}: {k}" for k in merged}
     from_file = {k for k in _PATH_KEYS if merged.get(k) is not None}
     for key, value in (overrides or {}).items():
         k = key.replace("-", "_")
@@ -184,12 +198,13 @@ def load_config(file: str | os.PathLike | None = None, overrides: Mapping[str, A
             raise UserError(f"unknown setting {key!r}")
         if value is not None:
             merged[k] = _coerce(k, value, f"--{k.replace('_', '-')}")
+            origin.pop(k, None)
             from_file.discard(k)
     for k in sorted(from_file):  # a path the file gives and no option overrides: checked as the option's own
         _check_path(k, Path(merged[k]), Path(str(file)))
     if merged.get("model") is None:  # the shipped model, whatever the working directory
         merged["model"] = str(assets.model_path())
-    cfg = RuntimeConfig(**merged)
+    cfg = RuntimeConfig(**merged, origin=origin)
     if cfg.sync_every != 1 and cfg.sync_id is None:
         raise UserError(f"sync_every {cfg.sync_every} goes with sync_id (sync mode: a tick every n-th sync frame); "
                         "free-running, the daemon ticks on its own 20 Hz clock: give --sync-id or drop --sync-every")

@@ -51,6 +51,7 @@ from virtsensor.daemon.publish import Publisher
 from virtsensor.daemon.receive import ReceivePath, StageHook
 from virtsensor.daemon.runner import TICK_NS, Runner
 from virtsensor.daemon.stats import TickStats
+from virtsensor.daemon.tickrate import MAX_TICK_GAP_S, MIN_TICK_GAP_S, TickRate
 from virtsensor.daemon.validity import (
     INIT,
     INVALID,
@@ -65,6 +66,7 @@ from virtsensor.daemon.validity import (
     restart_recovery,
     wheel_status,
 )
+from virtsensor.errors import UserError
 from virtsensor.features import FeatureBuilder
 from virtsensor.signals import INPUT_TIMEOUT_CYCLES
 
@@ -83,14 +85,8 @@ _COUNTERS = ("frames", "input_frames", "other_frames", "unknown_ids", "error_fra
              *(STATUS_KEYS[s] for s in E2EStatus if s is not E2EStatus.NODATA),
              "future_stamped", "time_step_back", "implausible_checks", "drained_frames",
              "ticks", "overruns", "tick_errors", "sent", "send_errors", "unsent", "recv_errors", "reconnects",
-             "reconnect_failures", "status_changes", "envelope_exits", "envelope_ticks", "tick_gaps",
+             "reconnect_failures", "status_changes", "envelope_exits", "envelope_ticks", "tick_gaps", "tick_rate_off",
              "clock_unconfirmed_ticks", "unstamped_frames")
-#: The longest time between two ticks (s) over which the feature history still holds rows one tick apart: half a
-#: tick late at most. After a longer gap (a skipped deadline, lost sync frames, a stalled thread), or a tick time
-#: that does not advance, the features would read rows from before it as if 50 ms old: every input with a history
-#: needs that history's worth of ticks again, as after a stale tick (:func:`~virtsensor.daemon.validity.
-#: restart_recovery`: INVALID, or DEGRADED where only non-critical inputs read a history; counted as ``tick_gaps``).
-MAX_TICK_GAP_S = 1.5 * TICK_NS * 1e-9
 
 
 class VirtualSensor:
@@ -126,7 +122,6 @@ class VirtualSensor:
                  rt_priority: int = 50, cpu_latency_us: int | None = None, freeze_gc: bool = True,
                  reconnect_backoff_s: float = 0.05,
                  reconnect_max_s: float = 2.0, stage_hook: StageHook | None = None) -> None:
-        from virtsensor.errors import UserError
 
         if timeout_cycles < 1:
             raise ValueError("timeout_cycles must be >= 1")
@@ -140,9 +135,7 @@ class VirtualSensor:
         self.layout = lay = InputLayout.from_model(model, self.matrix, self.timeout_cycles, model_id)
         self.spec, self.signals, self.critical = lay.spec, lay.signals, lay.critical
         self.input_messages, self.bitmap_bits, self.model_id = lay.input_messages, lay.bitmap_bits, lay.model_id
-        own_ids = {m.frame_id for n, m in self.matrix.messages.items() if n in _OWN_MESSAGES}
-        if sync_id is not None and sync_id in own_ids:
-            raise UserError(f"sync id 0x{sync_id:X} is one of the daemon's own frames (SAT_FRONT/VS_Health)")
+        _check_sync(self.matrix, sync_id, int(sync_every))
         self.sync_id = sync_id
         self.sync_every = int(sync_every)
         self._freeze_gc = freeze_gc
@@ -158,6 +151,7 @@ class VirtualSensor:
         self._link = BusLink(bus, bus_factory, self.counters, self._stop, reconnect_backoff_s, reconnect_max_s)
         self._push = hook("feature_vector", FeatureBuilder(lay.spec).push)
         self._tick_t = -math.inf  # (the previous tick's time)
+        self._rate = TickRate()
         self._predict = hook("inference", model.predict_one)
         self.fallback, self._predict_fb, self._inputs_complete = _fallback_parts(model, lay, hook, self._predict)
         self._send_sat = hook("send", self._link.send)
@@ -347,8 +341,8 @@ class VirtualSensor:
         self._fill_grip(out.sat_values, self.inputs.values, self._state.bad, self.outside_envelope)  # (VS_Grip)
         compute_us = (time.monotonic_ns() - start_ns) // 1000
         self._send_sat(m)
+        lat_us = (time.monotonic_ns() - start_ns) // 1000  # (to SAT_FRONT handed to the bus, as VS_TickLatency says)
         out.grip.send(self._link.send)
-        lat_us = (time.monotonic_ns() - start_ns) // 1000
         c = self.counters
         self._link.send(out.fill_health(c["overruns"], lat_us, bitmap, self.outside_envelope, c["envelope_exits"]))
         self.tick_stats.record_tick(lat_us, compute_us)
@@ -402,6 +396,10 @@ def _from_config(cls: type[VirtualSensor], config: RuntimeConfig | Mapping[str, 
         cfg = config if isinstance(config, RuntimeConfig) else load_config(None, config)
     model = OnnxModel.load(str(cfg.model))  # (load_config checked model, interface, channel are set)
     matrix = CanMatrix.load(cfg.dbc)
+    try:
+        _check_sync(matrix, cfg.sync_id, cfg.sync_every)
+    except UserError as exc:
+        raise UserError(f"{cfg.where('sync_id')}: {exc}") from None
     def configured(fold_notes: bool) -> Callable[[], Any]:
         """The configured bus's opener; ``fold_notes``: python-can's notes into a failure's one line (only where
         no other thread runs: a reconnect, beside the tick thread, leaves python-can's logging as it is)."""
@@ -417,6 +415,32 @@ def _from_config(cls: type[VirtualSensor], config: RuntimeConfig | Mapping[str, 
         sensor._link.bus = configured(True)()
     sensor.config = cfg
     return sensor
+
+
+def _check_sync(matrix: CanMatrix, sync_id: int | None, sync_every: int) -> None:
+    """Refuse a sync id that is one of the daemon's own messages, or a message of the DBC whose cycle time times
+    ``sync_every`` is not the 50 ms tick the features are built on (a sync frame outside the DBC is judged by its
+    spacing as it comes: :mod:`virtsensor.daemon.tickrate`).
+
+    Raises:
+        UserError: naming the message, its cycle and the ``sync_every`` that would fit, if any.
+    """
+    if sync_id is None:
+        return
+    m = matrix.by_id.get(sync_id)
+    if m is None:
+        return
+    if m.name in _OWN_MESSAGES:
+        raise UserError(f"sync id 0x{sync_id:X} is the daemon's own {m.name} ({', '.join(_OWN_MESSAGES)} are sent, "
+                        "not received)")
+    period = m.cycle_s * sync_every
+    if m.cycle_s > 0.0 and abs(period - TICK_NS * 1e-9) > 1e-9:
+        fit = TICK_NS * 1e-9 / m.cycle_s
+        hint = (f"; --sync-every {round(fit)} fits" if abs(fit - round(fit)) < 1e-9 and round(fit) >= 1 else
+                "; no --sync-every fits: give a sync frame of a 50 ms multiple's divisor, or run free")
+        raise UserError(f"sync id 0x{sync_id:X} is {m.name}, sent every {m.cycle_s * 1e3:g} ms: a tick on every "
+                        f"{sync_every} of its frames comes every {period * 1e3:g} ms, not the 50 ms tick the model's "
+                        f"features are built on{hint}")
 
 
 def _fallback_parts(model: Any, lay: InputLayout, hook: Any, predict: Any) -> tuple[Any, Any, Any]:
@@ -441,11 +465,18 @@ def _model_inputs(self: VirtualSensor, x: list[float]) -> tuple[list[float], Any
 
 def _assess_time(self: VirtualSensor, t: float) -> float:
     """The time the tick at ``t`` judges its inputs at: ``t``, or inf (no input fresh) while the free-running
-    clock mapping is not confirmed (:class:`~virtsensor.daemon.receive.ClockMap`: the first drains); a gap since
-    the previous tick restarts the inputs' histories (:data:`MAX_TICK_GAP_S`)."""
+    clock mapping is not confirmed (:class:`~virtsensor.daemon.receive.ClockMap`: the first drains). A tick too
+    soon or too late after the previous one, or one of ticks whose mean spacing is off 50 ms, restarts the
+    inputs' histories (:mod:`virtsensor.daemon.tickrate`)."""
     gap = t - self._tick_t
     self._tick_t = t
-    if not 0.0 < gap <= MAX_TICK_GAP_S and gap != math.inf:
+    if gap == math.inf or gap > MAX_TICK_GAP_S:  # (the first tick, or one after a gap: a new window of gaps)
+        self._rate.restart()
+        if gap != math.inf:
+            _restart_history(self, t, gap)
+    elif not self._rate.regular(gap):
+        _restart_history(self, t, gap, median=self._rate.median_gap_s)
+    elif gap < MIN_TICK_GAP_S:
         _restart_history(self, t, gap)
     if self.inputs.clock.confirmed:
         return t
@@ -453,15 +484,19 @@ def _assess_time(self: VirtualSensor, t: float) -> float:
     return math.inf
 
 
-def _restart_history(self: VirtualSensor, t: float, gap: float) -> None:
-    """After a gap between ticks (see :data:`MAX_TICK_GAP_S`): every input with a history recovers as after a stale
-    tick, and the grip estimate's filters restart (they too take their rows one tick apart); count and log it
-    (the first 3, then every 100th)."""
+def _restart_history(self: VirtualSensor, t: float, gap: float, median: float | None = None) -> None:
+    """After a tick too soon or too late (``median`` None), or one of ticks whose ``median`` gap (s) is off the
+    tick (:mod:`virtsensor.daemon.tickrate`): every input with a history recovers as after a stale tick, and the
+    grip estimate's filters restart (they too take their rows one tick apart); count and log it (the first 3,
+    then every 100th, of each kind)."""
     restart_recovery(self._rules, self._state)
     self._out.grip.restart()
-    n = self.counters["tick_gaps"] = self.counters["tick_gaps"] + 1
+    key = "tick_gaps" if median is None else "tick_rate_off"
+    n = self.counters[key] = self.counters[key] + 1
     if n <= 3 or n % 100 == 0:
-        event(logging.WARNING, "tick_gap", t=round(t, 6), gap_ms=round(gap * 1e3, 3), tick_gaps=n)
+        more = {} if median is None else {"median_gap_ms": round(median * 1e3, 3)}
+        event(logging.WARNING, "tick_gap" if median is None else "tick_rate", t=round(t, 6), gap_ms=round(gap * 1e3, 3),
+              **more, **{key: n})
 
 
 def _log_implausible(self: VirtualSensor, t: float) -> None:
