@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from virtsensor.commands._types import check_paths
 from virtsensor.errors import UserError
 from virtsensor.extras import MissingExtra, as_user_error, missing_extra
+from virtsensor.interrupt import sigint_noted
 
 #: subcommand name -> module under virtsensor.commands, with its one-line help
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -149,6 +150,16 @@ def _quiet_stdout() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command line; its exit code (0 done, 1 the machine's error, 2 a mistake in the request, 130 a
+    Ctrl-C, 143 a SIGTERM where the command turns it into an interrupt)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:  # (a Ctrl-C before the command ran: while its modules load, say)
+        print("virtsensor: interrupted", file=sys.stderr)
+        return int(getattr(exc, "exit_code", 130))
+
+
+def _main(argv: Sequence[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     # First pass: find the subcommand, then let its module add its arguments.
@@ -179,7 +190,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         # the kind of every path argument (file, directory, writable) and no output over an input, before any work
         check_paths(sub_action.choices[args.command], args)
-        return int(mod.run(args) or 0)
+        with sigint_noted():  # (a Ctrl-C some library swallows still ends the command, nothing written after it)
+            return int(mod.run(args) or 0)
     except UserError as exc:
         return _fail(args.command, exc)
     except ModuleNotFoundError as exc:  # an optional path of a base command (e.g. replaying a simulation)

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from virtsensor import interrupt
 from virtsensor.errors import UserError
 
 __all__ = ["PARTIAL_PREFIX", "atomic_write", "atomic_write_bytes", "check_writable", "dumps", "json_default",
@@ -207,6 +208,7 @@ def staged_files(*paths: str | os.PathLike[str] | None) -> Iterator[list[Path | 
                 continue
             temps.append(_temp_beside(t))
         yield temps
+        interrupt.check()  # (a Ctrl-C some library swallowed: nothing is put in place after it)
         temps = [None if tmp is None or not tmp.exists() else tmp for tmp in temps]  # (removed: not written)
         for tmp in temps:
             if tmp is not None:
@@ -270,6 +272,7 @@ def staged_dir(out: str | os.PathLike[str]) -> Iterator[Path]:
     stage.mkdir()  # the mode follows the umask, as a directory made by mkdir
     try:
         yield stage
+        interrupt.check()
         if out.is_dir():
             entries = sorted(stage.iterdir())
             taken = [e.name for e in entries if (out / e.name).is_dir() and not (out / e.name).is_symlink()]

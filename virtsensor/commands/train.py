@@ -52,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor import signals as cat
     from virtsensor.errors import UserError
     from virtsensor.features import SPECS
+    from virtsensor.interrupt import fitted
     from virtsensor.learning.dataset import build_dataset, load_runs
     from virtsensor.learning.evaluation import grouped_split
     from virtsensor.learning.training import RECIPES, grid_search, make_pipeline
@@ -99,12 +100,12 @@ def run(args: argparse.Namespace) -> int:
             say(f"grid search: {len(result.candidates)} candidates in {result.seconds:.0f} s, "
                 f"best R2 {result.best_r2:.4f} with {json.dumps(result.best_params, default=str)}")
         tr, te = grouped_split(ds.groups, args.seed)
-        holdout = make_pipeline(recipe["params"], args.seed).fit(ds.X[tr], ds.Y[tr])
+        holdout = fitted(lambda: make_pipeline(recipe["params"], args.seed).fit(ds.X[tr], ds.Y[tr]))
         report["grouped_holdout"] = metrics(ds.Y[te], holdout.predict(ds.X[te]))
         held = report["grouped_holdout"]
         say(f"runs held out: R2 {held['r2']:.4f}, MAE {held['mae_nm']:.2f} Nm")
         t0 = time.perf_counter()
-        model = make_pipeline(recipe["params"], args.seed).fit(ds.X, ds.Y)
+        model = fitted(lambda: make_pipeline(recipe["params"], args.seed).fit(ds.X, ds.Y))
         fit_s = time.perf_counter() - t0
     report["train"] = metrics(ds.Y, model.predict(ds.X))
     mlp = model.steps[-1][1]

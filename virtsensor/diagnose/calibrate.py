@@ -13,12 +13,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.features import SPECS
+from virtsensor.interrupt import fitted
 from virtsensor.learning.dataset import Run, build_dataset
 from virtsensor.learning.training import RECIPES, make_pipeline
 from virtsensor.metrics import metrics
@@ -70,7 +72,7 @@ def train(params: Mapping[str, Any], *, preset: str = "wide", recipe: str = "imp
         model = make_pipeline(rec["params"], random_state=seed + k)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            model.fit(ds.X, ds.Y)
+            fitted(partial(model.fit, ds.X, ds.Y))
         members.append(model)
     rec["ensemble"] = len(members)
     rec["trained_on"] = {"recipe": recipe, "preset": preset, "seed": int(seed)}

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from virtsensor.features import PAPER, SPECS
+from virtsensor.interrupt import fitted
 from virtsensor.learning.dataset import Dataset, Run, build_dataset, split_track_laps
 from virtsensor.learning.gripscore import grip_markdown
 from virtsensor.learning.training import SteeringObserver, linear_pipeline, make_pipeline
@@ -118,7 +119,7 @@ def evaluate(
         def fit(X: np.ndarray, Y: np.ndarray) -> Any:
             if extra is not None:
                 X, Y = np.concatenate([X, extra.X]), np.concatenate([Y, extra.Y])
-            return make().fit(X, Y)
+            return fitted(lambda: make().fit(X, Y))
 
         out: dict[str, Any] = {}
         tr, te = random_split(len(ds.X), seed)

@@ -30,6 +30,7 @@ from sklearn.neural_network import MLPRegressor
 from sklearn.pipeline import Pipeline
 from sklearn.preprocessing import MinMaxScaler, RobustScaler, StandardScaler
 
+from virtsensor.interrupt import fitted
 from virtsensor.metrics import r2
 from virtsensor.signals import TABLE_TICK_S as TICK_S
 
@@ -152,7 +153,7 @@ def _score_candidate(params: Mapping[str, Any], X: np.ndarray, Y: np.ndarray, tr
 
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore")  # convergence notes of short candidates
-        model = make_pipeline(params, seed).fit(X[train], Y[train])
+        model = fitted(lambda: make_pipeline(params, seed).fit(X[train], Y[train]))
         P = model.predict(X[test])
         return float(np.mean([r2(Y[test][:, j], P[:, j]) for j in range(Y.shape[1])]))
 
