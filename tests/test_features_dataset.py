@@ -333,3 +333,17 @@ def test_the_track_laps_come_only_from_a_magny_cours_recording(tmp_path):
     (tmp_path / "sp.json").write_text(json.dumps({"file": "other.csv", "manoeuvre": "fishhook"}))  # (another's)
     assert set(split_track_laps(Run("sp", table, {}, path))) == {"dry", "wet"}
     assert set(split_track_laps(Run("mc", table, {"manoeuvre": "magny-cours"}))) == {"dry", "wet"}
+
+
+def test_a_paper_card_s_recipe_is_the_paper_recipe():
+    """evaluate takes a paper-recipe model's 'improved' column from the improved recipe; comparing the card's
+    recipe (JSON: lists) with the one in memory (tuples) never matched, so it evaluated the paper recipe twice,
+    once labelled 'improved'."""
+    import json
+
+    from virtsensor.assets import model_path
+    from virtsensor.learning.training import RECIPES, same_recipe
+
+    card = json.loads(model_path("paper").with_suffix(".card.json").read_text())
+    assert card["recipe"] != RECIPES["paper"] and same_recipe(card["recipe"], RECIPES["paper"])
+    assert not same_recipe(card["recipe"], RECIPES["improved"])

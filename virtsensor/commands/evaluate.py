@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.learning.evaluation import evaluate, held_out_runs, markdown_table
     from virtsensor.learning.gripscore import score_grip
     from virtsensor.learning.scoring import envelope_split
-    from virtsensor.learning.training import RECIPES
+    from virtsensor.learning.training import RECIPES, same_recipe
     from virtsensor.metrics import metrics
     from virtsensor.model.onnx import OnnxModel
 
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.model}: its card has no recipe this version can retrain")
     pressure = _pressure_inputs(model, args) if args.pressure_runs else None  # checked before any work
     recipes = {"paper": RECIPES["paper"]}
-    recipes["improved"] = recipe if recipe != RECIPES["paper"] else RECIPES["improved"]
+    recipes["improved"] = RECIPES["improved"] if same_recipe(recipe, RECIPES["paper"]) else recipe
     needed = {s for r in recipes.values() for s in SPECS[r["features"]].signals} | set(cat.OUTPUTS)
     runs = load_runs(args.data, needed=sorted(needed))
     track = load_runs([args.track], needed=sorted(needed))[0] if args.track else None

@@ -77,6 +77,16 @@ RECIPES: dict[str, dict[str, Any]] = {
 }
 
 
+def same_recipe(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    """Whether two recipes are one, as JSON (a card's recipe has been through JSON: its tuples are lists)."""
+    import json
+
+    def canon(r: Mapping[str, Any]) -> str:
+        return json.dumps(r, sort_keys=True, default=list)
+
+    return canon(json.loads(canon(a))) == canon(json.loads(canon(b)))
+
+
 def make_pipeline(params: Mapping[str, Any], random_state: int = 0) -> Pipeline:
     """``Pipeline(scaler, MLPRegressor)`` from a recipe's parameters."""
     p = dict(params)
