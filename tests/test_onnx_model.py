@@ -216,6 +216,44 @@ def test_export_is_byte_reproducible(mlp2, exported, tmp_path):
     assert onnx.load(tmp_path / "again.onnx").graph.name == ex.GRAPH_NAME
 
 
+def test_export_bytes_do_not_depend_on_the_process_s_string_hash(mlp2, tmp_path):
+    """skl2onnx lists the opsets in a set's order, which the string hash sets: with PYTHONHASHSEED 116 and 0 one
+    pipeline exported to different bytes, sha256 and VS_ModelId. Exported in two processes, one seed each."""
+    import os
+    import pickle
+    import subprocess
+    import sys
+
+    (tmp_path / "pipe.pkl").write_bytes(pickle.dumps((mlp2, _card_extra())))
+    script = ("import pickle, sys; from virtsensor.model import export as ex; "
+              "pipe, extra = pickle.load(open(sys.argv[1], 'rb')); "
+              f"ex.export_pipeline(pipe, {N_FEATURES}, sys.argv[2], card_extra=extra)")
+    procs = [subprocess.Popen([sys.executable, "-c", script, str(tmp_path / "pipe.pkl"), str(tmp_path / f"{h}.onnx")],
+                              env={**os.environ, "PYTHONHASHSEED": h}) for h in ("0", "116")]
+    assert [p.wait(timeout=120) for p in procs] == [0, 0]
+    assert (tmp_path / "0.onnx").read_bytes() == (tmp_path / "116.onnx").read_bytes()
+    domains = [d.domain for d in onnx.load(tmp_path / "0.onnx").opset_import]
+    assert domains == sorted(domains)
+
+
+def test_a_failed_write_leaves_the_model_and_its_card_as_they_were(mlp2, tmp_path, monkeypatch):
+    """The graph and its card were written one after the other: a full disk at the card left a new graph beside
+    the old card, a pair every load refuses (sha256 mismatch). Now both or neither."""
+    import errno
+
+    path = tmp_path / "m.onnx"
+    ex.export_pipeline(mlp2, N_FEATURES, path, card_extra=_card_extra())
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def full(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(ex.ModelCard, "text", full)
+    with pytest.raises(OSError, match="No space left"):
+        ex.export_pipeline(mlp2, N_FEATURES, path, card_extra={**_card_extra(), "metrics": {"rmse_nm": 9.0}})
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
 def test_double_precision_export(mlp2, tmp_path):
     X = _features(50, 6)
     card = ex.export_pipeline(mlp2, N_FEATURES, tmp_path / "d.onnx", card_extra=_card_extra(), parity_X=X,

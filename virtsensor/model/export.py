@@ -38,7 +38,7 @@ import numpy as np
 
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
-from virtsensor.fileio import atomic_write_bytes
+from virtsensor.fileio import staged_files
 from virtsensor.model import onnx as rt
 from virtsensor.model.card import ModelCard, card_path_for
 from virtsensor.model.onnx import INPUT_NAME, META_FEATURES, META_OUTPUTS, N_PARITY_INPUTS, OUTPUT_NAME
@@ -62,7 +62,9 @@ Precision = Literal["float32", "float64"]
 
 def export_pipeline(pipeline: Any, n_features: int, path: str | os.PathLike[str], **options: Any) -> ModelCard:
     """Convert a fitted pipeline to one ONNX file and write its sealed model card beside it: :func:`build_export`
-    (every check; arguments and errors as there), then the graph and the card written (each atomically).
+    (every check; arguments and errors as there), then the graph and the card written together (staged, put in
+    place once both are written: a failure while writing, a full disk say, leaves neither, an existing pair as
+    it was).
 
     Returns:
         The card as written.
@@ -70,8 +72,13 @@ def export_pipeline(pipeline: Any, n_features: int, path: str | os.PathLike[str]
     onnx_bytes, sealed = build_export(pipeline, n_features, path, **options)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, onnx_bytes)
-    sealed.write(card_path_for(path))
+    sealed.verify()
+    card_path = card_path_for(path)
+    with staged_files(path, card_path) as (graph, card):
+        assert graph is not None and card is not None
+        graph.write_bytes(onnx_bytes)
+        card.write_bytes(sealed.text().encode("utf-8"))
+    sealed.path = card_path
     return sealed
 
 
@@ -194,6 +201,13 @@ def _convert(pipeline: Any, n_features: int, n_outputs: int, precision: str, ops
     tensor_type = FloatTensorType if precision == "float32" else DoubleTensorType
     model = convert_sklearn(pipeline, initial_types=[(INPUT_NAME, tensor_type([None, n_features]))],
                             target_opset=dict(opset), name=GRAPH_NAME)
+    # skl2onnx lists the opsets in the order of a set of its own (the string hash's: it changes from one process to
+    # the next); sorted, one training gives the same bytes, sha256 and VS_ModelId in every process
+    opsets = sorted((d.domain, d.version) for d in model.opset_import)
+    del model.opset_import[:]
+    for domain, version in opsets:
+        entry = model.opset_import.add()
+        entry.domain, entry.version = domain, version
     _fix_output(model, n_outputs)
     for key, names in ((META_FEATURES, list(feature_names)), (META_OUTPUTS, [o["name"] for o in outputs])):
         entry = model.metadata_props.add()
