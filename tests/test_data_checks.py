@@ -581,3 +581,32 @@ def test_one_run_rounded_to_fewer_decimals_is_still_the_same_run(tmp_path, capsy
     assert find_repeat([_table(seed=i) for i in range(4)]) is None
     assert find_repeat([a, _table(seed=0), rounded]) == (0, 2)
     assert find_repeat([a, rounded], groups=[0, 0]) is None
+
+
+def test_the_grid_search_never_sees_the_runs_held_out(tmp_path, capsys, monkeypatch):
+    """train --grid searched the hyper-parameters by grouped folds over every run, then held runs out and reported
+    their score: each held-out run had been a fold's test set, so the score flattered. The search now gets the
+    training side only."""
+    from virtsensor.features import SPECS
+    from virtsensor.learning import training
+    from virtsensor.learning.dataset import build_dataset
+    from virtsensor.learning.evaluation import grouped_split
+
+    d = tmp_path / "runs"
+    d.mkdir()
+    for i in range(8):
+        write_csv(d / f"r{i}.csv", _table(seed=i))
+    seen: list[np.ndarray] = []
+
+    def fake_grid(X, Y, groups, **kw):
+        seen.append(np.unique(groups))
+        raise ValueError("stopped by the test")
+
+    monkeypatch.setattr(training, "grid_search", fake_grid)
+    assert main(["train", "--data", str(d), "--grid", "--recipe", "paper", "--out", str(tmp_path / "m.onnx"),
+                 "--quiet", "--seed", "4"]) == 2
+    assert "stopped by the test" in capsys.readouterr().err
+    ds = build_dataset(load_runs([d]), SPECS[training.RECIPES["paper"]["features"]])
+    tr, te = grouped_split(ds.groups, 4)
+    assert len(seen) == 1 and set(seen[0]) == set(np.unique(ds.groups[tr]))
+    assert not set(seen[0]) & set(np.unique(ds.groups[te])) and len(np.unique(ds.groups[te])) >= 1

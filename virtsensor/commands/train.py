@@ -77,10 +77,14 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         say(f"{unknown} run(s) without TPMS pressures: pressure unknown (not nominal), their rows not trained on")
     n_runs = len(np.unique(ds.groups))
-    if n_runs < 2 or (args.grid and n_runs < GRID_FOLDS):
-        need = GRID_FOLDS if args.grid else 2
-        raise UserError(f"--data: {n_runs} run(s) with usable rows; training holds whole runs out, so it "
-                        f"needs at least {need}{' (one per fold of --grid)' if args.grid else ''}")
+    if n_runs < 2:
+        raise UserError(f"--data: {n_runs} run(s) with usable rows; training holds whole runs out, so it needs at "
+                        "least 2")
+    tr, te = grouped_split(ds.groups, args.seed)  # (held out before the grid search: it never sees those runs)
+    n_fit = len(np.unique(ds.groups[tr]))
+    if args.grid and n_fit < GRID_FOLDS:
+        raise UserError(f"--data: {n_runs} run(s) with usable rows, {n_fit} of them besides the runs held out; --grid "
+                        f"searches on those alone, one per fold: it needs at least {GRID_FOLDS}")
     say(f"{len(ds.runs)} runs, {len(ds.X)} rows of {len(ds.feature_names)} features "
         f"({ds.dropped_nonfinite} non-finite rows dropped)")
     report: dict = {"recipe": args.recipe}
@@ -89,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
         warnings.simplefilter("ignore")  # convergence notes: the iteration counts go to the card instead
         if args.grid:
             try:
-                result = grid_search(ds.X, ds.Y, ds.groups, folds=GRID_FOLDS, max_rows=args.grid_rows or GRID_ROWS,
+                result = grid_search(ds.X[tr], ds.Y[tr], ds.groups[tr], folds=GRID_FOLDS,
+                                     max_rows=args.grid_rows or GRID_ROWS,
                                      seed=args.seed, n_jobs=args.jobs, progress=not args.quiet,
                                      base_params=recipe["params"])
             except ValueError as exc:  # (no candidate with a finite R2)
@@ -99,7 +104,6 @@ def run(args: argparse.Namespace) -> int:
                                      "folds": result.folds, "candidates": result.candidates}
             say(f"grid search: {len(result.candidates)} candidates in {result.seconds:.0f} s, "
                 f"best R2 {result.best_r2:.4f} with {json.dumps(result.best_params, default=str)}")
-        tr, te = grouped_split(ds.groups, args.seed)
         holdout = fitted(lambda: make_pipeline(recipe["params"], args.seed).fit(ds.X[tr], ds.Y[tr]))
         report["grouped_holdout"] = metrics(ds.Y[te], holdout.predict(ds.X[te]))
         held = report["grouped_holdout"]
