@@ -439,6 +439,7 @@ def test_a_message_quoting_a_file_never_sends_its_control_characters_to_the_term
     (["run", "-i", "virtual", "-c", "x", "--sync-every", "5", "--duration", "0.5"],
      "sync_every 5 goes with sync_id"),  # (an option that would do nothing)
     (["train", "--data", "{tmp}/a.csv", "--out", "{tmp}/m.onnx", "--grid-rows", "500"], "--grid-rows goes with --grid"),
+    (["train", "--data", "{tmp}/a.csv", "--out", "{tmp}/m.onnx", "--jobs", "7"], "--jobs goes with --grid"),
 ])
 def test_the_first_thing_wrong_is_the_thing_named(tmp_path, argv, needle):
     (tmp_path / "a.csv").write_text("time_s\n0\n")

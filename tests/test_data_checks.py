@@ -610,3 +610,32 @@ def test_the_grid_search_never_sees_the_runs_held_out(tmp_path, capsys, monkeypa
     tr, te = grouped_split(ds.groups, 4)
     assert len(seen) == 1 and set(seen[0]) == set(np.unique(ds.groups[tr]))
     assert not set(seen[0]) & set(np.unique(ds.groups[te])) and len(np.unique(ds.groups[te])) >= 1
+
+
+def test_a_run_too_short_for_the_features_is_named_not_counted(tmp_path, capsys):
+    """A 2-row run gives the improved features no row (their lags need more): train counted it ("5 runs", the
+    card too) and trained on the others; score and evaluate already refused it by name."""
+    d = tmp_path / "runs"
+    d.mkdir()
+    for i in range(4):
+        write_csv(d / f"r{i}.csv", _table(seed=i))
+    write_csv(d / "short.csv", _table(n=2, seed=9))
+    code = main(["train", "--data", str(d), "--recipe", "improved", "--out", str(tmp_path / "m.onnx"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.endswith(f"{d / 'short.csv'}: no sample with every input of the 'history' features "
+                                      "and both reference SATs finite"), err
+    assert not (tmp_path / "m.onnx").exists()
+
+
+def test_a_blank_line_between_rows_is_refused_so_that_every_line_number_is_right(tmp_path):
+    """A blank line was skipped without being counted: every later message named the line before the fault."""
+    from virtsensor.recordings.canlog import read_csv
+
+    path = tmp_path / "t.csv"
+    write_csv(path, _table())
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text("".join(lines) + "\n\n")  # (trailing blank lines end the table: read)
+    assert read_csv(path)["time_s"].size == 200
+    path.write_text("".join(lines[:40] + ["\n"] + lines[40:]))
+    with pytest.raises(UserError, match=rf"^{re.escape(str(path))}:41: a blank line between rows"):
+        read_csv(path)

@@ -40,8 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"with --grid: rows the grid search uses (100 to 10,000,000; default {GRID_ROWS})")
     parser.add_argument("--seed", type=t.seed(), default=0,
                         help="seed of the splits and the network's initialisation (0 to 2**32-1)")
-    parser.add_argument("--jobs", type=t.jobs(), default=-1, metavar="N",
-                        help="parallel workers of the grid search (1 to 1024, or -1: all cores; default -1)")
+    parser.add_argument("--jobs", type=t.jobs(), default=None, metavar="N",
+                        help="parallel workers of the grid search (with --grid; 1 to 1024, or -1: all cores; "
+                             "default -1)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -54,14 +55,15 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.features import SPECS
     from virtsensor.interrupt import fitted
     from virtsensor.learning.dataset import build_dataset, load_runs
-    from virtsensor.learning.evaluation import grouped_split
+    from virtsensor.learning.evaluation import grouped_split, require_rows
     from virtsensor.learning.training import RECIPES, grid_search, make_pipeline
     from virtsensor.metrics import metrics
 
     if args.recipe not in RECIPES:
         raise UserError(f"--recipe: unknown recipe {args.recipe!r}; choose one of: {', '.join(RECIPES)}")
-    if args.grid_rows is not None and not args.grid:
-        raise UserError("--grid-rows goes with --grid (the grid search's rows); add --grid or drop it")
+    for option, value, what in (("--grid-rows", args.grid_rows, "rows"), ("--jobs", args.jobs, "workers")):
+        if value is not None and not args.grid:
+            raise UserError(f"{option} goes with --grid (the grid search's {what}); add --grid or drop it")
     out = Path(args.out)  # kind, suffix and directory checked by the argument's type
 
     def say(msg: str) -> None:
@@ -73,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     fallback = _fallback(args, recipe, spec, out)
     runs = load_runs(args.data, needed=(*spec.signals, *cat.OUTPUTS))
     ds = build_dataset(runs, spec)
+    require_rows(ds, runs, recipe["features"])  # (a run too short for the features' lags, say: it counted as one)
     unknown = sum(1 for r in runs if r.meta.get("pressure_unknown"))
     if unknown:
         say(f"{unknown} run(s) without TPMS pressures: pressure unknown (not nominal), their rows not trained on")
@@ -95,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
             try:
                 result = grid_search(ds.X[tr], ds.Y[tr], ds.groups[tr], folds=GRID_FOLDS,
                                      max_rows=args.grid_rows or GRID_ROWS,
-                                     seed=args.seed, n_jobs=args.jobs, progress=not args.quiet,
+                                     seed=args.seed, n_jobs=-1 if args.jobs is None else args.jobs,
+                                     progress=not args.quiet,
                                      base_params=recipe["params"])
             except ValueError as exc:  # (no candidate with a finite R2)
                 raise UserError(f"--grid: {exc}") from None

@@ -109,11 +109,12 @@ def evaluate(
         ds = datasets[spec_name]
         lap_ds = {k: build_dataset([r], spec) for k, r in laps.items()}
         for k, d in lap_ds.items():
-            _require_rows(d, [laps[k]], spec_name)
+            require_rows(d, [laps[k]], spec_name)
         sizes[name] = {"rows": int(len(ds.X)), "runs": len(ds.runs), "dropped_nonfinite": ds.dropped_nonfinite,
                        "features": list(ds.feature_names)}
         extra = build_dataset(extra_of[name], spec) if extra_of.get(name) else None
         if extra is not None:
+            require_rows(extra, extra_of[name], spec_name)
             sizes[name]["train_extra"] = {"rows": int(len(extra.X)), "runs": len(extra.runs)}
 
         def fit(X: np.ndarray, Y: np.ndarray) -> Any:
@@ -160,7 +161,7 @@ def _datasets(runs: Sequence[Run], spec_names: set[str]) -> dict[str, Dataset]:
     out = {}
     for name in sorted(spec_names):
         ds = out[name] = build_dataset(runs, SPECS[name])
-        _require_rows(ds, runs, name)
+        require_rows(ds, runs, name)
         n = len(np.unique(ds.groups))
         if n < MIN_RUNS:
             raise UserError(f"--data: {n} run(s) with usable rows for the {name!r} features; evaluate holds "
@@ -169,11 +170,13 @@ def _datasets(runs: Sequence[Run], spec_names: set[str]) -> dict[str, Dataset]:
     return out
 
 
-def _require_rows(ds: Dataset, runs: Sequence[Run], spec_name: str) -> None:
-    """Refuse a run of ``ds`` (built from ``runs``) that gave it no row, naming its file (as ``score`` does)."""
+def require_rows(ds: Dataset, runs: Sequence[Run], spec_name: str) -> None:
+    """Refuse a run of ``ds`` (built from ``runs``) that gave it no row, naming its file (as ``score`` does); a
+    run whose TPMS pressures are unknown gives a pressure model none by design and is not refused."""
     from virtsensor.errors import UserError
 
-    empty = sorted(set(range(len(runs))) - set(np.unique(ds.groups).tolist()))
+    given = set(np.unique(ds.groups).tolist())
+    empty = [i for i in range(len(runs)) if i not in given and not runs[i].meta.get("pressure_unknown")]
     if empty:
         run = runs[empty[0]]
         raise UserError(f"{run.path or run.name}: no sample with every input of the {spec_name!r} features and both "

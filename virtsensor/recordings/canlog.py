@@ -799,7 +799,7 @@ def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Read a canonical table written by :func:`write_csv` (dict of float arrays, file column order).
 
     Raises:
-        UserError: naming the file and line of a malformed header or row, or of a
+        UserError: naming the file and line of a malformed header or row, of a blank line between rows, or of a
             last row the file ends inside (cut mid-row), with the last good row.
     """
     path = Path(path)
@@ -815,10 +815,15 @@ def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
             raise UserError(f"{path}:1: duplicate column names in the header")
         rows: list[list[float]] = []
         width = len(names)
+        blank = 0  # (the latest blank line: blank lines end a table, none lies between its rows)
         for lineno, line in enumerate(f, start=2):
             s = line.strip()
             if not s:
+                blank = blank or lineno
                 continue
+            if blank:
+                raise UserError(f"{path}:{blank}: a blank line between rows (a table has one row on every line, "
+                                "so that the line of a row is its number plus one)")
             if not line.endswith("\n"):
                 raise UserError(f"{path}:{lineno}: truncated: the file ends inside this row; "
                                 f"{_last_good_row(names, rows)} (a complete file ends with a newline)")
