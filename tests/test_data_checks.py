@@ -639,3 +639,18 @@ def test_a_blank_line_between_rows_is_refused_so_that_every_line_number_is_right
     path.write_text("".join(lines[:40] + ["\n"] + lines[40:]))
     with pytest.raises(UserError, match=rf"^{re.escape(str(path))}:41: a blank line between rows"):
         read_csv(path)
+
+
+def test_a_folder_of_runs_inside_a_data_folder_is_not_left_out_without_a_word(tmp_path, capsys):
+    """score --data nest read nest's two loose runs and skipped the complete campaign in nest/campaignA."""
+    d = tmp_path / "nest"
+    d.mkdir()
+    for i in range(2):
+        write_csv(d / f"r{i}.csv", _table(seed=i))
+    (d / "plots").mkdir()  # (a folder without recordings: nothing to leave out)
+    (d / "plots" / "a.png").write_bytes(b"")
+    assert [r.name for r in load_runs([d])] == ["r0", "r1"]
+    _campaign_dir(d / "campaignA")
+    code, err = _train(capsys, tmp_path, d)
+    assert code == 2 and err.endswith(f"{d / 'campaignA'}: a folder of recordings inside {d}, whose folders are not "
+                                      "read: give it too, or move it out"), err

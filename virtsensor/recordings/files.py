@@ -14,7 +14,9 @@ A directory is read as follows:
   file's sha256 as listed (:func:`virtsensor.recordings.manifest.listed_runs`);
 * otherwise: its visible files with a recording suffix, in name order (an entry
   with such a suffix that is no regular file, a link to nothing say, is refused:
-  a run it seems to hold and does not).
+  a run it seems to hold and does not; so is a folder in it that holds recordings
+  or a campaign's manifest: folders are not read, and its runs would be left out
+  without a word).
 
 A file given by name whose directory holds a manifest must be one of its runs,
 with its listed sha256.
@@ -117,6 +119,10 @@ def _directory(d: Path) -> list[Source]:
         if not out:
             raise UserError(f"{d / MANIFEST}: lists no runs")
         return out
+    for sub in sorted(e for e in d.iterdir() if not is_hidden(e) and e.is_dir()):
+        if (sub / MANIFEST).exists() or any(not is_hidden(f) and f.suffix.lower() in SUFFIXES for f in sub.iterdir()):
+            raise UserError(f"{sub}: a folder of recordings inside {d}, whose folders are not read: give it too, or "
+                            "move it out")
     found = sorted(f for f in d.iterdir() if not is_hidden(f) and f.suffix.lower() in SUFFIXES)
     for f in found:
         if not f.is_file():  # (a run the directory seems to hold and does not: never skipped without a word)
