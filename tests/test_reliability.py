@@ -69,10 +69,10 @@ def _restamp(m: can.Message, ts: float) -> can.Message:
                        data=bytes(m.data), dlc=m.dlc)
 
 
-def _drive_sync(model, stream) -> tuple[list[tuple[int, float, tuple, int]], VirtualSensor]:
-    """Feed ``stream`` to a sync-mode daemon by hand; per tick: (position in the stream, tick time,
-    statuses, health bitmap)."""
-    vs = VirtualSensor(_QueueBus(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False)
+def _drive_sync(model, stream, **options) -> tuple[list[tuple[int, float, tuple, int]], VirtualSensor]:
+    """Feed ``stream`` to a sync-mode daemon by hand (``options``: more of its arguments); per tick: (position in
+    the stream, tick time, statuses, health bitmap)."""
+    vs = VirtualSensor(_QueueBus(), model, MATRIX, sync_id=SYNC_ID, freeze_gc=False, **options)
     out = []
     for pos, m in enumerate(stream):
         n = vs.counters["ticks"]
@@ -776,3 +776,14 @@ def test_a_non_finite_feature_never_reaches_the_model_as_valid(model, frames, ba
     assert vs.tick(stream[-1].timestamp) == (INVALID, INVALID)
     assert len(calls) == n, "the model must not see a non-finite feature"
     assert all(math.isnan(vs._out.sat_values[w.estimate]) for w in vs.layout.wheels)
+
+
+def test_a_timeout_of_one_cycle_passes_frames_exactly_on_time(model, frames):
+    """timeout_cycles 1 (the least the config takes): frames one cycle apart, as float timestamps, were a hair
+    over the timeout for the E2E gap check (no tolerance there, 1 us in the frame-order check): every frame was
+    WRONGSEQUENCE and the daemon INVALID for good."""
+    merged, _ = with_sync(frames, frames[0].timestamp, frames[-1].timestamp)
+    ticks, vs = _drive_sync(model, merged, timeout_cycles=1.0)
+    late = [s for _, t, s, _ in ticks if t > frames[0].timestamp + 1.0]
+    assert late and all(s == (VALID, VALID) for s in late), collections.Counter(late)
+    assert vs.counters["e2e_wrongsequence"] == 0

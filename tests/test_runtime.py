@@ -660,7 +660,8 @@ def test_refuses_sha256_mismatch(model_path, tmp_path, capsys):
     ("sync_id = 4096\n", "sync_id"),
     ('timeout_cycles = "x"\n', "timeout_cycles"),
     # the file's values obey the options' own ranges and checks
-    ("timeout_cycles = 5000\n", "timeout_cycles must be in 1..1000"),
+    ("timeout_cycles = 5000\n", "timeout_cycles must be in 1..10"),
+    ("timeout_cycles = 11\n", "timeout_cycles must be in 1..10"),
     ("bitrate = 5\n", "bitrate must be in 1000..20000000"),
     ("duration = 1e300\n", "duration must be at most"),
     ('model = "nosuch.onnx"\n', "model "),

@@ -51,6 +51,7 @@ __all__ = [
     "CRC8_POLY",
     "CRC8_TABLE",
     "CRC8_XOROUT",
+    "GAP_TOLERANCE_S",
     "P11_CRC_START",
     "P11_CRC_XOROUT",
     "USABLE",
@@ -75,6 +76,9 @@ P11_CRC_XOROUT = 0x00
 #: largest valid alive counter; the counter counts 0..COUNTER_MAX and wraps to 0
 COUNTER_MAX = 14
 COUNTER_MODULO = COUNTER_MAX + 1
+#: The rounding of float timestamps a gap may carry beyond the timeout (s): a frame exactly one timeout after the
+#: previous one, ``0.01`` cycles apart summed as floats, is on time.
+GAP_TOLERANCE_S = 1e-6
 
 
 def _make_table(poly: int) -> bytes:
@@ -194,18 +198,21 @@ class E2EReceiver:
     Attributes:
         max_delta: ``MaxDeltaCounter``, 1..14 (default 3: up to 2 lost frames still OKSOMELOST).
         timeout_s: reception timeout in seconds for :meth:`poll` (e.g. 3 x the message cycle).
+        limit_s: ``timeout_s`` plus :data:`GAP_TOLERANCE_S`, the gap both checks allow (frames exactly
+            ``timeout_s`` apart pass, whatever the rounding of their float timestamps).
         counter: the last received counter (14 after init).
         last_rx_s: receive time (s, the frame timestamps' clock) of the last frame that passed the CRC.
         status: the most recent status.
     """
 
-    __slots__ = ("max_delta", "timeout_s", "counter", "last_rx_s", "status")
+    __slots__ = ("max_delta", "timeout_s", "limit_s", "counter", "last_rx_s", "status")
 
     def __init__(self, max_delta: int = 3, timeout_s: float = float("inf")) -> None:
         if not 1 <= max_delta <= COUNTER_MAX:
             raise ValueError(f"max_delta must be 1..{COUNTER_MAX}, got {max_delta}")
         self.max_delta = max_delta
         self.timeout_s = timeout_s
+        self.limit_s = timeout_s + GAP_TOLERANCE_S
         self.counter = COUNTER_MAX
         self.last_rx_s = _NEVER
         self.status: E2EStatus = _ERROR
@@ -232,7 +239,7 @@ class E2EReceiver:
         if d < 0:
             d += 15
         last = self.last_rx_s
-        if not (0.0 <= t - last <= self.timeout_s) and last != _NEVER:
+        if not (0.0 <= t - last <= self.limit_s) and last != _NEVER:
             st = _WRONGSEQUENCE  # time step back, gap past the timeout, or NaN time: the counter says nothing
         elif d == 1:
             st = _OK
@@ -250,6 +257,6 @@ class E2EReceiver:
     def poll(self, now: float) -> E2EStatus:
         """Timeout supervision at ``now`` (s): ``NONEWDATA`` unless ``0 <= now - last_rx_s <= timeout_s``
         (received, not overdue, not stamped after ``now``), else the last status."""
-        if not (0.0 <= now - self.last_rx_s <= self.timeout_s):
+        if not (0.0 <= now - self.last_rx_s <= self.limit_s):
             self.status = _NONEWDATA
         return self.status

@@ -26,9 +26,10 @@ __all__ = ["DURATION_MAX_S", "INT_RANGES", "TIMEOUT_CYCLES_RANGE", "RuntimeConfi
 INT_RANGES: dict[str, tuple[int, int]] = {"bitrate": (1000, 20_000_000), "sync_every": (1, 1000), "cpu": (0, 4095),
                                           "rt_priority": (1, 99), "model_id": (0, 255),
                                           "cpu_latency_us": (0, 2_000_000_000)}
-#: ``duration`` is in (0, DURATION_MAX_S] seconds; ``timeout_cycles`` in this inclusive range
+#: ``duration`` is in (0, DURATION_MAX_S] seconds; ``timeout_cycles`` in this inclusive range: a value is VALID
+#: only while fresh, and at 10 cycles a 10 ms message's value may be two ticks old, a 20 ms one's four
 DURATION_MAX_S = 1e9
-TIMEOUT_CYCLES_RANGE = (1.0, 1000.0)
+TIMEOUT_CYCLES_RANGE = (1.0, 10.0)
 #: the file kind of each path setting
 _PATH_SUFFIX = {"model": ".onnx", "dbc": ".dbc"}
 

@@ -466,15 +466,16 @@ def _model_inputs(self: VirtualSensor, x: list[float]) -> tuple[list[float], Any
 def _assess_time(self: VirtualSensor, t: float) -> float:
     """The time the tick at ``t`` judges its inputs at: ``t``, or inf (no input fresh) while the free-running
     clock mapping is not confirmed (:class:`~virtsensor.daemon.receive.ClockMap`: the first drains). A tick too
-    soon or too late after the previous one, or one of ticks whose mean spacing is off 50 ms, restarts the
-    inputs' histories (:mod:`virtsensor.daemon.tickrate`)."""
+    soon or too late after the previous one, or, in sync mode, one of sync ticks whose median spacing is off 50 ms,
+    restarts the inputs' histories (:mod:`virtsensor.daemon.tickrate`; free-running, the ticks are on absolute
+    deadlines of the daemon's own clock: a wake-up's lateness moves single gaps, never their rate)."""
     gap = t - self._tick_t
     self._tick_t = t
     if gap == math.inf or gap > MAX_TICK_GAP_S:  # (the first tick, or one after a gap: a new window of gaps)
         self._rate.restart()
         if gap != math.inf:
             _restart_history(self, t, gap)
-    elif not self._rate.regular(gap):
+    elif self.sync_id is not None and not self._rate.regular(gap):  # (free-running, the ticks keep their own clock)
         _restart_history(self, t, gap, median=self._rate.median_gap_s)
     elif gap < MIN_TICK_GAP_S:
         _restart_history(self, t, gap)

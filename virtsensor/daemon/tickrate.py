@@ -4,14 +4,14 @@ The features' rates and lags, the grip filters and the plausibility checks' per-
 they read as one tick apart. A tick that comes too soon or too late after the one before it
 (:data:`MIN_TICK_GAP_S`, :data:`MAX_TICK_GAP_S`: half a tick early or late) breaks that for the rows around
 it; sync frames that come at another rate (a sync id whose cycle times ``sync_every`` is not 50 ms, a gateway
-that forwards them every 40 ms) break it for every row, although each gap on its own looks like a tick. So the
-median of the latest :data:`WINDOW` gaps (judged once :data:`MIN_GAPS` are known) must lie within
-:data:`RATE_TOLERANCE` of the tick: 48 ms ticks (4 % fast) fail by the 10th, while a sync frame's jitter, or one
-step of its time base, moves single gaps and not their median. A gap too short is kept in the window (a sync
-twice as fast as the tick fails both ways); one too long starts a new window (the gap itself is the failure, and
-the ticks after it are regular). Either failure is a gap in the inputs' histories for the daemon
-(:func:`virtsensor.daemon.validity.restart_recovery`): no estimate is VALID until the ticks are regular again and
-the histories hold rows of regular ticks only.
+that forwards them every 40 ms) break it for every row, although each gap on its own looks like a tick. So, in
+sync mode (free-running, the daemon's deadlines keep the rate), the median of the latest :data:`WINDOW` gaps
+(judged once :data:`MIN_GAPS` are known) must lie within :data:`RATE_TOLERANCE` of the tick: 48 ms ticks (4 %
+fast) fail by the 10th, while a sync frame's jitter, or one step of its time base, moves single gaps and not
+their median. A gap too short is kept in the window (a sync twice as fast as the tick fails both ways); one too
+long starts a new window (the gap itself is the failure, and the ticks after it are regular). Either failure is
+a gap in the inputs' histories for the daemon (:func:`virtsensor.daemon.validity.restart_recovery`): no estimate
+is VALID until the ticks are regular again and the histories hold rows of regular ticks only.
 """
 
 from __future__ import annotations
