@@ -730,3 +730,13 @@ def test_output_frames_deep_copy_field_for_field_into_plain_messages():
     assert all(getattr(c, k) == getattr(ref, k) for k in can.Message.__slots__ if k != "__weakref__")
     m.data[0] = 99
     assert c.data[0] == 1
+
+
+def test_a_stopped_sensor_does_not_start_again(model):
+    """stop() before start(), then run(): it logged "started", returned 0 at once and ran no tick, its bus gone."""
+    vs = VirtualSensor(can.Bus(interface="virtual", channel=_channel()), model, MATRIX, freeze_gc=False)
+    vs.stop()
+    with pytest.raises(RuntimeError, match="after stop"):
+        vs.start()
+    with pytest.raises(RuntimeError, match="after stop"):
+        vs.run(0.1)

@@ -106,8 +106,11 @@ class BusLink:
             self.needs_reconnect.clear()
             c["reconnects"] += 1
             self._last_reconnect_ns = time.monotonic_ns()
-            event(logging.WARNING, "reconnect", ok=True, reopened=new is not None, delay_s=delay,
-                  reconnects=c["reconnects"])
+            if new is not None:
+                event(logging.WARNING, "reconnect", ok=True, reopened=True, delay_s=delay, reconnects=c["reconnects"])
+            else:  # (no factory: the same bus is tried again; whether it works, its next receive or send tells)
+                event(logging.WARNING, "bus_retry", delay_s=delay, reconnects=c["reconnects"],
+                      note="no bus factory: the same bus is used again")
             return
 
     def close(self) -> None:

@@ -78,6 +78,9 @@ class Runner:
     def start(self) -> None:
         if self._started:
             raise RuntimeError("VirtualSensor.start() called twice")
+        if self._stopped:  # (its bus is shut down and its stop event set: it would run no tick, and say it started)
+            raise RuntimeError("VirtualSensor.start() after stop(): a stopped sensor does not start again; build a "
+                               "new one")
         self._started = True
         self._tune_os()
         vs = self._sensor
