@@ -232,6 +232,31 @@ def test_free_running_backlog_is_aged_by_its_interface_timestamps(model, frames)
 
 
 
+def test_one_frame_stamped_seconds_ahead_does_not_age_every_other_frame(model, frames):
+    """Free-running: one frame whose interface timestamp is 5 s ahead (a device clock's glitch) pulled the clock
+    mapping's offset 5 s down for 20 drains: every input looked 5 s old, INVALID for 1.15 s. Now that frame alone
+    lies in the future (its message's sequence broken, INVALID for a tick or three, as any bad frame of a critical
+    message makes it), the others keep their ages."""
+    bus = _QueueBus()
+    vs = VirtualSensor(bus, model, MATRIX, freeze_gc=False, timeout_cycles=10)  # (a loaded machine's hiccups)
+    t0 = frames[0].timestamp
+    w0 = time.time() + 0.01
+    imu = MATRIX.messages["IMU_Motion"].frame_id
+    glitch = next(m for m in frames if m.arbitration_id == imu and m.timestamp > t0 + 1.52)
+
+    seen = []
+    for k in range(60):
+        time.sleep(max(0.0, w0 + (k + 1) * 0.05 - time.time()))
+        for m in frames:
+            if t0 + k * 0.05 < m.timestamp <= t0 + (k + 1) * 0.05:
+                bus.put(m, w0 + (m.timestamp - t0) + (5.0 if m is glitch else 0.0))
+        vs.drain()
+        seen.append(vs.tick())
+    bad = [st for st in seen[25:] if st != (VALID, VALID)]
+    assert len(bad) <= 4 and seen[-20:] == [(VALID, VALID)] * 20, seen[25:]  # (before: 23 ticks INVALID)
+    assert vs.counters["e2e_wrongsequence"] >= 1  # (the glitch breaks its own message's sequence: as it should)
+
+
 def test_a_backlog_queued_before_the_daemon_started_is_not_valid_at_start_up(model, frames):
     """Free-running start-up: the interface holds frames it got 4 s ago (the sender silent since) and hands them
     over across the first three drains. The first drains cannot tell them from live frames by their timestamps

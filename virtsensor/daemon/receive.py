@@ -80,6 +80,9 @@ def _nothing(timeout: float) -> tuple[Any, bool]:
 #: clock mapping to count as confirmed (:class:`ClockMap`): live frames are read within a few ms of their
 #: arrival at every drain; a backlog read out over several drains is not
 CONFIRM_S = 0.025
+#: How far below the offset in force (s) one frame's bound may pull it within a drain (:meth:`ReceivePath.drain`):
+#: a frame stamped further in the future (an interface that stamped one frame wrong) leaves the offset alone
+OUTLIER_S = 1.0
 
 
 class ClockMap:
@@ -88,9 +91,13 @@ class ClockMap:
     A frame cannot be read before it arrived, so ``read_time - timestamp`` bounds the clock offset from
     above for every frame; the offset is the smallest such bound over the last ``window`` drains that got
     frames (drains without frames leave it alone, so an interface that stalls and then releases a
-    backlog has the backlog aged by its own timestamps). A time base that steps back is followed after
-    ``window`` drains with frames; until then its frames look old (stale). Mapped times are never later
-    than the time the frame was read.
+    backlog has the backlog aged by its own timestamps). A drain's bound is its second smallest where it got
+    two stamped frames or more (:meth:`ReceivePath.drain`), so that one frame stamped wrong, seconds ahead,
+    does not pull every other frame's time back with it for ``window`` drains. A time base that steps back is
+    followed after ``window`` drains with frames; until then its frames look old (stale); one that steps
+    forward, at the next drain. Mapped times are never later than the time the frame was read, but for a frame
+    whose bound lies more than :data:`OUTLIER_S` below the offset (mapped into the future: refused as
+    future-stamped).
 
     The first drains cannot tell a backlog queued before the daemon started (frames long old, the sender
     silent since) from live frames: its newest frame would look just arrived. The mapping is *confirmed*
@@ -227,7 +234,7 @@ class ReceivePath:
         mono = time.monotonic
         handle = self.handle
         off = self.clock.offset
-        bmin = _INF
+        b1 = b2 = _INF  # (the drain's two smallest bounds)
         n = unstamped = 0
         while True:
             msg = read(0.0)[0]
@@ -238,9 +245,12 @@ class ReceivePath:
             ts = msg.timestamp
             if ts > 0.0:
                 d = now - ts
-                if d < bmin:
-                    bmin = d
-                    if d < off:
+                if d < b2:
+                    if d < b1:
+                        b1, b2 = d, b1
+                    else:
+                        b2 = d
+                    if d < off and (off - d <= OUTLIER_S or off == _INF):  # (the first frame ever: any bound)
                         off = d
                 t = ts + off
             else:
@@ -249,8 +259,8 @@ class ReceivePath:
             handle(msg, t)
         if unstamped:
             _count_unstamped(self.counters, unstamped)
-        if bmin < _INF:
-            self.clock.push(bmin)
+        if b1 < _INF:
+            self.clock.push(b2 if b2 < _INF else b1)
         else:
             self.clock.idle()
         return n
