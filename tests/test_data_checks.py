@@ -654,3 +654,25 @@ def test_a_folder_of_runs_inside_a_data_folder_is_not_left_out_without_a_word(tm
     code, err = _train(capsys, tmp_path, d)
     assert code == 2 and err.endswith(f"{d / 'campaignA'}: a folder of recordings inside {d}, whose folders are not "
                                       "read: give it too, or move it out"), err
+
+
+def test_a_run_cut_otherwise_is_the_same_run(tmp_path, capsys):
+    """A copy of a run without its first row (an export that starts a row later) had another digest and another
+    length, so train took it as a second run and evaluate as a circuit never trained on. Now it shares 199 rows
+    with the run, at one offset: refused, naming both. Runs that share no stretch are still read."""
+    from virtsensor.learning.dataset import check_disjoint
+
+    d = tmp_path / "runs"
+    d.mkdir()
+    for i in range(3):
+        write_csv(d / f"r{i}.csv", _table(seed=i))
+    runs = load_runs([d])
+    assert len(runs) == 3
+    cut = {k: v[1:] for k, v in _table(seed=1).items()}
+    write_csv(tmp_path / "trimmed.csv", cut)
+    code, err = _train(capsys, tmp_path, d, tmp_path / "trimmed.csv")
+    # (149 of the 199: the other rows repeat within the run, a periodic steer at a constant speed, and never count)
+    assert code == 2 and err.endswith(f"{tmp_path / 'trimmed.csv'}: 149 of its rows are {d / 'r1.csv'}'s, tick for "
+                                      "tick (one run, cut otherwise); a run must count once"), err
+    with pytest.raises(UserError, match=r"trimmed\.csv: given both as --data and as --circuits \(149 of its rows are "):
+        check_disjoint([("--data", runs), ("--circuits", load_runs([tmp_path / "trimmed.csv"]))], "never trained on")

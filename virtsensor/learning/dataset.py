@@ -30,7 +30,7 @@ from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 from virtsensor.recordings.check import check_table
 from virtsensor.recordings.files import read_table, recording_files
-from virtsensor.recordings.identity import find_repeat, refuse_repeats, table_digest
+from virtsensor.recordings.identity import find_overlap, find_repeat, refuse_repeats, table_digest
 from virtsensor.recordings.manifest import check_rows, file_sha256
 
 
@@ -143,6 +143,11 @@ def check_disjoint(named: Sequence[tuple[str, Sequence[Run]]], why: str) -> None
         (_, first, a), (_, second, b) = flat[pair[0]], flat[pair[1]]
         raise UserError(f"{b.path or b.name}: given both as {first} and as {second} ({a.path or a.name}, the same "
                         f"signals written with other decimals); {why}")
+    cut = find_overlap([r.table for _, _, r in flat], [k for k, _, _ in flat])
+    if cut is not None:
+        (_, first, a), (_, second, b) = flat[cut[0]], flat[cut[1]]
+        raise UserError(f"{b.path or b.name}: given both as {first} and as {second} ({cut[2]} of its rows are "
+                        f"{a.path or a.name}'s, tick for tick: one run, cut otherwise); {why}")
 
 
 @dataclass

@@ -7,6 +7,11 @@ would score the model on what it learned; :func:`refuse_repeats` refuses both.
 
 The digest is exact: one value written with fewer decimals (a table re-saved by another tool) changes it.
 :func:`same_run` compares two tables with that tolerance, and :func:`find_repeat` finds such a pair among many.
+
+Nor does either see a run cut otherwise: an export that starts one row later, or a stretch of a run saved as a
+run of its own, has other rows and another digest, yet the same rows tick for tick. :func:`find_overlap` finds two
+tables that share a stretch of :data:`OVERLAP_ROWS` rows or more (or half the shorter table), row for row in the
+same order, on the bus signals both carry in steps of their CAN resolution.
 """
 
 from __future__ import annotations
@@ -21,7 +26,8 @@ import numpy as np
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
 
-__all__ = ["TIME_TOL_S", "table_digest", "same_run", "find_repeat", "refuse_repeats"]
+__all__ = ["OVERLAP_ROWS", "TIME_TOL_S", "table_digest", "same_run", "find_overlap", "find_repeat",
+           "refuse_repeats"]
 
 #: what a non-finite value counts as in the digest (SNA, a gap): apart from every finite one and from each other
 _NAN, _POS_INF, _NEG_INF = 2.0**60, 2.0**61, -(2.0**61)
@@ -29,6 +35,9 @@ _NAN, _POS_INF, _NEG_INF = 2.0**60, 2.0**61, -(2.0**61)
 TIME_TOL_S = 1e-3
 #: relative slack on a tolerance (floating-point rounding of the values compared)
 _SLACK = 1e-6
+#: rows two tables share, one after the other at one offset, that make them one run cut otherwise (10 s at 20 Hz;
+#: or half the shorter table, if less); rows that repeat within a table (a car at rest) never count
+OVERLAP_ROWS = 200
 
 
 def table_digest(table: Mapping[str, Any]) -> str:
@@ -130,6 +139,52 @@ def find_repeat(tables: Sequence[Mapping[str, Any]], groups: Sequence[int] | Non
     return None
 
 
+def find_overlap(tables: Sequence[Mapping[str, Any]], groups: Sequence[int] | None = None
+                 ) -> tuple[int, int, int] | None:
+    """The first pair of ``tables`` that share a stretch of rows (module docstring), as ``(i, j, rows)``: ``i < j``
+    and how many rows they share; or None. With
+    ``groups``, only pairs from different groups count. A row's key is its bus signals (those every table holds) in
+    steps of their CAN resolution; rows whose key repeats within their table are left out; two tables overlap where
+    :data:`OVERLAP_ROWS` of their rows (or half the shorter one's, at least 20) share keys at one offset between
+    them. Cost: one hash per row and a sort of all rows."""
+    names = sorted(set.intersection(*(_bus_signals(t) for t in tables))) if tables else []
+    if not names:
+        return None
+    coeff = np.random.default_rng(20261128).integers(1, 2**63, size=len(names), dtype=np.int64).astype(np.uint64)
+    keys, owner, rows = [], [], []
+    for k, t in enumerate(tables):
+        h = np.zeros(len(t["time_s"]), dtype=np.uint64)
+        for c, name in zip(coeff, names, strict=True):
+            x = np.asarray(t[name], dtype=float)
+            steps = np.round(x / (cat.SIGNALS[name].resolution or 1e-9))
+            steps[~np.isfinite(x)] = _NAN
+            with np.errstate(over="ignore"):
+                h = h * np.uint64(1099511628211) + steps.astype(np.int64).view(np.uint64) * c
+        u, first, count = np.unique(h, return_index=True, return_counts=True)
+        keys.append(u[count == 1])
+        rows.append(first[count == 1])
+        owner.append(np.full(int((count == 1).sum()), k))
+    key, who, row = np.concatenate(keys), np.concatenate(owner), np.concatenate(rows)
+    order = np.argsort(key, kind="stable")
+    key, who, row = key[order], who[order], row[order]
+    pair = np.flatnonzero((key[1:] == key[:-1]) & (who[1:] != who[:-1]))
+    if groups is not None:
+        g = np.asarray(groups)
+        pair = pair[g[who[pair]] != g[who[pair + 1]]]
+    if not len(pair):
+        return None
+    a, b = who[pair], who[pair + 1]
+    i, j = np.minimum(a, b), np.maximum(a, b)
+    ri, rj = np.where(a < b, row[pair], row[pair + 1]), np.where(a < b, row[pair + 1], row[pair])
+    combos, count = np.unique(np.stack([i, j, rj - ri]), axis=1, return_counts=True)
+    found = []
+    for (ti, tj, _), n in zip(combos.T, count, strict=True):
+        shorter = min(len(tables[ti]["time_s"]), len(tables[tj]["time_s"]))
+        if n >= max(20, min(OVERLAP_ROWS, shorter // 2)):
+            found.append((int(ti), int(tj), int(n)))
+    return min(found) if found else None
+
+
 def _mean_speed(table: Mapping[str, Any]) -> float:
     v = np.asarray(table.get("vx_mps", ()), dtype=float)
     v = v[np.isfinite(v)]
@@ -139,11 +194,12 @@ def _mean_speed(table: Mapping[str, Any]) -> float:
 def refuse_repeats(runs: Iterable[tuple[str | Path, str, Mapping[str, Any]]], what: str = "a run must count once"
                    ) -> None:
     """Refuse a run given twice: ``runs`` are ``(file, table digest, table)``. A file whose digest an earlier one
-    has is refused, then a file whose table is an earlier one's written with other decimals (:func:`find_repeat`).
+    has is refused, then a file whose table is an earlier one's written with other decimals (:func:`find_repeat`),
+    then one that shares a stretch of rows with an earlier one (:func:`find_overlap`: one run cut otherwise).
 
     Raises:
         UserError: ``<file>: the same run as <earlier file> (the same signals, tick for tick[, written with other
-            decimals]); <what>``.
+            decimals]); <what>``, or ``<file>: <n> of its rows are <earlier file>'s, tick for tick ...``.
     """
     items = list(runs)
     seen: dict[str, str | Path] = {}
@@ -156,3 +212,8 @@ def refuse_repeats(runs: Iterable[tuple[str | Path, str, Mapping[str, Any]]], wh
         i, j = pair
         raise UserError(f"{items[j][0]}: the same run as {items[i][0]} (the same signals, tick for tick, written with "
                         f"other decimals); {what}")
+    cut = find_overlap([table for _, _, table in items])
+    if cut is not None:
+        i, j, n = cut
+        raise UserError(f"{items[j][0]}: {n} of its rows are {items[i][0]}'s, tick for tick (one run, cut otherwise); "
+                        f"{what}")
