@@ -676,3 +676,33 @@ def test_a_run_cut_otherwise_is_the_same_run(tmp_path, capsys):
                                       "tick (one run, cut otherwise); a run must count once"), err
     with pytest.raises(UserError, match=r"trimmed\.csv: given both as --data and as --circuits \(149 of its rows are "):
         check_disjoint([("--data", runs), ("--circuits", load_runs([tmp_path / "trimmed.csv"]))], "never trained on")
+
+
+def test_the_runs_a_model_was_trained_on_are_never_shown_as_unseen(tmp_path, capsys):
+    """A model's card now lists the table digests of its training runs. score says which of its runs those are
+    (in-sample, not a test); evaluate's and explain's circuits, "never trained on", refuse one."""
+    import json
+
+    d = tmp_path / "runs"
+    d.mkdir()
+    for i in range(4):
+        write_csv(d / f"r{i}.csv", _table(seed=i))
+    other = tmp_path / "other.csv"
+    write_csv(other, _table(seed=11))
+    model = tmp_path / "m.onnx"
+    assert main(["train", "--data", str(d), "--out", str(model), "--quiet"]) == 0
+    card = json.loads(model.with_suffix(".card.json").read_text())
+    assert len(card["training_data"]["run_digests"]) == 4
+    assert main(["score", "--model", str(model), "--data", str(d / "r2.csv"), str(other), "--json",
+                 str(tmp_path / "s.json")]) == 0
+    assert "1 of these runs the model was trained on" in capsys.readouterr().err
+    doc = json.loads((tmp_path / "s.json").read_text())
+    assert doc["overall"]["runs_trained_on"] == 1 and [r["trained_on"] for r in doc["runs"]] == [True, False]
+    for argv in (["evaluate", "--model", str(model), "--data", str(other), "--circuits", str(d / "r2.csv"),
+                  "--json", str(tmp_path / "e.json")],
+                 ["explain", "--model", str(model), "--data", str(other), "--circuits", str(d / "r2.csv"),
+                  "--out", str(tmp_path / "x")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"{d / 'r2.csv'}: {model} was trained on this run (its card lists it), given as --circuits" in err, err
+        assert not (tmp_path / "e.json").exists() and not (tmp_path / "x").exists()

@@ -53,7 +53,13 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.errors import UserError
     from virtsensor.features import SPECS, FeatureSpec
     from virtsensor.fileio import dumps, write_texts
-    from virtsensor.learning.dataset import build_dataset, check_disjoint, load_runs, split_track_laps
+    from virtsensor.learning.dataset import (
+        build_dataset,
+        check_disjoint,
+        load_runs,
+        refuse_trained_on,
+        split_track_laps,
+    )
     from virtsensor.learning.evaluation import evaluate, held_out_runs, markdown_table
     from virtsensor.learning.gripscore import score_grip
     from virtsensor.learning.scoring import envelope_split
@@ -79,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
     check_disjoint([("--data", runs), ("--train-extra", extra["improved"] if extra else []),
                     ("--track", [track] if track is not None else []), ("--circuits", circuits)],
                    "a run plays one part: the held-out runs, laps and circuits are never trained on")
+    refuse_trained_on(card, [("--track", [track] if track is not None else []), ("--circuits", circuits)],
+                      str(args.model), "its rows on the track's laps and the circuits are for runs it never saw")
 
     def log(msg: str) -> None:
         if not args.quiet:

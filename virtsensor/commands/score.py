@@ -48,6 +48,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"{o['pressure_unknown_rows']} sample(s) without a known front tyre pressure (no TPMS or a sensor "
               f"missing; not taken as nominal): scored with the pressure-free fallback {o['fallback']['file']}",
               file=sys.stderr)
+    if o.get("runs_trained_on"):
+        print(f"{o['runs_trained_on']} of these runs the model was trained on (its card lists them; \"trained_on\" in "
+              f"{args.json}): in-sample, not a test of it", file=sys.stderr)
     if o.get("grip") is not None:
         print(grip_markdown({"overall": o["grip"]}).strip(), file=sys.stderr)
     return 0

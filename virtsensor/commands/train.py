@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     parity_rows = ds.X[rng.choice(len(ds.X), min(5000, len(ds.X)), replace=False)]
     try:
-        card = _export(model, ds, out, parity_rows, args, recipe, spec, report, fallback)
+        card = _export(model, ds, out, parity_rows, args, recipe, spec, report, runs, fallback)
     except ValueError as exc:  # parity beyond 1e-3 Nm: nothing was written
         raise UserError(f"{out}: export refused: {exc}") from None
     say(f"wrote {out} (sha256 {card['sha256'][:12]}..., ONNX/sklearn parity {card.get('parity_max_abs_nm', 0):.2e} Nm)")
@@ -145,7 +145,8 @@ def _fallback(args, recipe, spec, out):
     return fallback_entry(Path(args.fallback), out, spec.names)
 
 
-def _export(model, ds, out, parity_rows, args, recipe, spec, report, fallback=None):
+def _export(model, ds, out, parity_rows, args, recipe, spec, report, runs, fallback=None):
+    from virtsensor.learning.dataset import trained_digests
     from virtsensor.model import ModelCard
     from virtsensor.model.envelope import Envelope
     from virtsensor.model.export import export_pipeline, pipeline_weights
@@ -155,6 +156,7 @@ def _export(model, ds, out, parity_rows, args, recipe, spec, report, fallback=No
         training_data={
             "fingerprint_sha256": ds.fingerprint(), "rows": int(len(ds.X)), "runs": len(ds.runs),
             "dropped_nonfinite": ds.dropped_nonfinite, "sources": [str(p) for p in args.data],
+            "run_digests": trained_digests(runs),
         },
         # the same weights as plain arrays: the numpy back-end and audits need no sklearn
         weights=pipeline_weights(model),

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -112,6 +112,34 @@ def _identity(run: Run) -> list[object]:
         keys.append(("table", run.digest))
     digest = run_digest(run)
     return keys if digest is None else [*keys, ("sha256", digest)]
+
+
+def trained_digests(runs: Sequence[Run]) -> list[str]:
+    """The table digests of the runs a model is trained on, sorted: a card records them
+    (``training_data.run_digests``) so that :func:`trained_on` can tell a run the model has seen."""
+    return sorted({r.digest for r in runs if r.digest})
+
+
+def trained_on(card: Mapping[str, Any], runs: Sequence[Run]) -> list[Run]:
+    """The ``runs`` the card's model was trained on (their table digest among its ``training_data.run_digests``);
+    none for a card that records no digests (the shipped models, trained before cards carried them)."""
+    digests = set((card.get("training_data") or {}).get("run_digests") or ())
+    return [r for r in runs if r.digest and r.digest in digests]
+
+
+def refuse_trained_on(card: Mapping[str, Any], named: Sequence[tuple[str, Sequence[Run]]], model: str,
+                      why: str) -> None:
+    """Refuse a run of ``named`` (``(option, runs)``) that the card's model was trained on (:func:`trained_on`).
+
+    Raises:
+        UserError: ``<file>: <model> was trained on this run (its card lists it), given as <option>; <why>``.
+    """
+    for option, runs in named:
+        seen = trained_on(card, runs)
+        if seen:
+            r = seen[0]
+            raise UserError(f"{r.path or r.name}: {model} was trained on this run (its card lists it), given as "
+                            f"{option}; {why}")
 
 
 def check_disjoint(named: Sequence[tuple[str, Sequence[Run]]], why: str) -> None:

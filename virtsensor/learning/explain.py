@@ -476,13 +476,17 @@ def _load_inputs(model_path: str | os.PathLike[str], data: Sequence[str | os.Pat
                  track: str | os.PathLike[str] | None, circuits: Sequence[str | os.PathLike[str]],
                  seed: int) -> _Inputs:
     """The model, the data, the track's laps and the circuits, each checked (see :func:`explain`'s Raises)."""
-    from virtsensor.learning.dataset import build_dataset, load_runs
+    from virtsensor.learning.dataset import build_dataset, check_disjoint, load_runs, refuse_trained_on
     from virtsensor.learning.evaluation import random_split
 
     model, spec, outputs = _load_model(model_path)
     needed = sorted(set(cat.INPUTS) | set(spec.signals) | set(outputs))
     runs = load_runs(data, needed=needed)
     track_run = load_runs([track], needed=sorted(set(spec.signals) | set(outputs)))[0] if track else None
+    circuit_runs = load_runs(circuits, needed=sorted(set(spec.signals) | set(outputs))) if circuits else []
+    unseen = [("--track", [track_run] if track_run is not None else []), ("--circuits", circuit_runs)]
+    check_disjoint([("--data", runs), *unseen], "the track's laps and the circuits are runs the model never saw")
+    refuse_trained_on(model.card, unseen, str(model_path), "its figures there are of runs it never saw")
     cols = table_columns([r.table for r in runs], (*cat.INPUTS, *cat.OUTPUTS))
     if len(cols) < 2:
         raise UserError("the data hold fewer than 2 finite rows: nothing to correlate")
@@ -492,7 +496,7 @@ def _load_inputs(model_path: str | os.PathLike[str], data: Sequence[str | os.Pat
         raise UserError(f"the data hold {len(ds.X)} usable rows: too few for a 70/30 split")
     laps = _track_laps(track_run, track, spec, outputs) if track_run is not None else {}
     return _Inputs(model, spec, outputs, runs, cols, ds, train_idx, test_idx, laps,
-                   _circuit_sets(circuits, spec, outputs) if circuits else {})
+                   _circuit_sets(circuit_runs, spec, outputs))
 
 
 def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str],
@@ -521,7 +525,8 @@ def explain(model_path: str | os.PathLike[str], data: Sequence[str | os.PathLike
 
     Raises:
         UserError: missing/invalid model, data lacking a signal, a track lap or a circuit with fewer than 2
-            usable rows, output directory not writable (or a directory where explain.json goes), shap or
+            usable rows, a track or circuit run that is also in the data or that the model was trained on (its
+            card lists it), output directory not writable (or a directory where explain.json goes), shap or
             matplotlib not installed, nothing to explain.
         OSError: the figures cannot be written (a full disk), naming ``out``; nothing of them is left.
     """
@@ -704,16 +709,16 @@ def _track_laps(track_run: Any, track: str | os.PathLike[str] | None, spec: Any,
     return out
 
 
-def _circuit_sets(circuits: Sequence[str | os.PathLike[str]], spec: Any, outputs: tuple[str, ...]) -> dict[str, Any]:
-    """The features of each recording of ``circuits``, by run name (one estimate-vs-truth figure each).
+def _circuit_sets(circuits: Sequence[Any], spec: Any, outputs: tuple[str, ...]) -> dict[str, Any]:
+    """The features of each run of ``circuits`` (loaded), by run name (one estimate-vs-truth figure each).
 
     Raises:
-        UserError: a recording lacks a signal or has fewer than 2 usable rows, or two have the same name.
+        UserError: a run has fewer than 2 usable rows, or two have the same name.
     """
-    from virtsensor.learning.dataset import build_dataset, load_runs
+    from virtsensor.learning.dataset import build_dataset
 
     out: dict[str, Any] = {}
-    for r in load_runs(circuits, needed=sorted(set(spec.signals) | set(outputs))):
+    for r in circuits:
         if r.name in out:
             raise UserError(f"--circuits {r.path}: a second circuit named {r.name} (its figure would replace the "
                             "first one's); rename one")

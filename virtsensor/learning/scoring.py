@@ -23,7 +23,7 @@ import numpy as np
 from virtsensor import signals as cat
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
-from virtsensor.learning.dataset import Run, build_dataset
+from virtsensor.learning.dataset import Run, build_dataset, trained_on
 from virtsensor.learning.gripscore import grip_markdown, score_grip
 from virtsensor.metrics import metrics
 from virtsensor.model.envelope import Envelope
@@ -54,8 +54,9 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
     """Score ``model`` (an :class:`~virtsensor.model.onnx.OnnxModel`) on each run and on all together.
 
     Returns:
-        ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite", "envelope", "grip"},
-        "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle", "dropped_nonfinite", "envelope", "grip"}, ...]}``
+        ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite", "envelope", "grip",
+        "runs_trained_on"}, "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle", "dropped_nonfinite",
+        "envelope", "grip", "trained_on"}, ...]}``
         in the order of ``runs``; ``envelope`` is :func:`envelope_split` (None when the card states none);
         ``grip`` the grip margin's figures (:mod:`virtsensor.learning.gripscore`; None for a run without the
         simulator's grip truth, and overall when no run has it).
@@ -107,8 +108,11 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
     overall["envelope"] = envelope_split(Y, P, None if env is None else np.concatenate(outs))
     grip = score_grip(model, runs)  # (the grip margin from these SATs, where a run carries its truth)
     overall["grip"] = None if grip is None else grip["overall"]
-    for r in per_run:
+    seen = {id(r) for r in trained_on(model.card, runs)}  # (in-sample: said, per run and overall)
+    for r, run in zip(per_run, runs, strict=True):
         r["grip"] = None if grip is None else grip["runs"][r["file"]]
+        r["trained_on"] = id(run) in seen
+    overall["runs_trained_on"] = len(seen)
     return {"model": {"file": str(getattr(model, "path", "")), "sha256": model.card.get("sha256")},
             "overall": overall, "runs": per_run}
 
