@@ -64,6 +64,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from virtsensor.errors import Terminated
+
+    class StoppedBeforeStart(Terminated):
+        """SIGTERM while the daemon loads (a supervisor's stop): nothing started, nothing sent, a clean stop."""
+
+        exit_code = 0
+
+    def on_sigterm(signum: int, frame: object) -> None:
+        raise StoppedBeforeStart
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    before = signal.signal(signal.SIGTERM, on_sigterm) if main_thread else None
+    try:
+        return _run(args)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, before)
+
+
+def _run(args: argparse.Namespace) -> int:
     import logging
 
     from virtsensor.daemon import VirtualSensor, configure_logging, load_config, log
