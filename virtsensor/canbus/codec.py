@@ -56,6 +56,7 @@ from virtsensor.canbus.e2e import (
     data_id_seed,
 )
 from virtsensor.errors import UserError
+from virtsensor.heldlog import held_records
 
 __all__ = [
     "DEFAULT_DBC",
@@ -354,35 +355,19 @@ def _load_db(path: Path | None):
     except OSError as exc:
         raise UserError(f"{path}: cannot read the DBC: {exc.strerror or exc}") from None
     if key not in _CACHE:
-        held = _HeldRecords()  # (cantools logs a message that replaces another by id: refused below, in one line)
-        cantools_log = logging.getLogger("cantools")
-        cantools_log.addHandler(held)
-        propagate, cantools_log.propagate = cantools_log.propagate, False
-        try:
-            db = cantools.database.load_file(str(path), database_format="dbc", strict=True)
-        except Exception as exc:  # cantools raises ParseError, UnsupportedDatabaseFormatError, ...
-            msg = " ".join(str(exc).split())
-            msg = msg if len(msg) <= 240 else msg[:240] + "..."  # (the parser quotes the text it stopped at)
-            raise UserError(f"{path}: not a valid DBC: {type(exc).__name__}: {msg}") from None
-        finally:
-            cantools_log.removeHandler(held)
-            cantools_log.propagate = propagate
+        # (cantools logs a message that replaces another by id: refused below, in one line)
+        with held_records("cantools") as notes:
+            try:
+                db = cantools.database.load_file(str(path), database_format="dbc", strict=True)
+            except Exception as exc:  # cantools raises ParseError, UnsupportedDatabaseFormatError, ...
+                msg = " ".join(str(exc).split())
+                msg = msg if len(msg) <= 240 else msg[:240] + "..."  # (the parser quotes the text it stopped at)
+                raise UserError(f"{path}: not a valid DBC: {type(exc).__name__}: {msg}") from None
         _check_ids(db, str(path))
-        for record in held.records:  # (anything else cantools noted goes on as it would have)
-            cantools_log.handle(record)
+        for record in notes:  # (anything else cantools noted goes on as it would have)
+            logging.getLogger(record.name).handle(record)
         _CACHE[key] = (db, _compile(db, str(path)), str(path))
     return _CACHE[key]
-
-
-class _HeldRecords(logging.Handler):
-    """Keeps the log records it is handed (to pass on once the DBC is judged)."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.DEBUG)
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
 
 
 def _check_ids(db, source: str) -> None:

@@ -59,11 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.learning.training import RECIPES, grid_search, make_pipeline
     from virtsensor.metrics import metrics
 
-    if args.recipe not in RECIPES:
-        raise UserError(f"--recipe: unknown recipe {args.recipe!r}; choose one of: {', '.join(RECIPES)}")
-    for option, value, what in (("--grid-rows", args.grid_rows, "rows"), ("--jobs", args.jobs, "workers")):
-        if value is not None and not args.grid:
-            raise UserError(f"{option} goes with --grid (the grid search's {what}); add --grid or drop it")
+    _check_options(args, RECIPES)
     out = Path(args.out)  # kind, suffix and directory checked by the argument's type
 
     def say(msg: str) -> None:
@@ -128,6 +124,17 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{out}: export refused: {exc}") from None
     say(f"wrote {out} (sha256 {card['sha256'][:12]}..., ONNX/sklearn parity {card.get('parity_max_abs_nm', 0):.2e} Nm)")
     return 0
+
+
+def _check_options(args: argparse.Namespace, recipes) -> None:
+    """Refuse an unknown recipe, and an option of the grid search without --grid (it would do nothing)."""
+    from virtsensor.errors import UserError
+
+    if args.recipe not in recipes:
+        raise UserError(f"--recipe: unknown recipe {args.recipe!r}; choose one of: {', '.join(recipes)}")
+    for option, value, what in (("--grid-rows", args.grid_rows, "rows"), ("--jobs", args.jobs, "workers")):
+        if value is not None and not args.grid:
+            raise UserError(f"{option} goes with --grid (the grid search's {what}); add --grid or drop it")
 
 
 def _fallback(args, recipe, spec, out):

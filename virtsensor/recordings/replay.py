@@ -152,34 +152,20 @@ def _bus_notes() -> Iterator[Callable[[], list[str]]]:
     import logging
     import warnings
 
-    class Held(logging.Handler):
-        def __init__(self) -> None:
-            super().__init__(logging.WARNING)
-            self.records: list[logging.LogRecord] = []
+    from virtsensor.heldlog import held_records
 
-        def emit(self, record: logging.LogRecord) -> None:
-            self.records.append(record)
+    with held_records("can", logging.WARNING) as records, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
 
-    log = logging.getLogger("can")
-    held, propagate = Held(), log.propagate
-    log.addHandler(held)
-    log.propagate = False
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
+        def notes() -> list[str]:
+            texts = [r.getMessage() for r in records] + [str(w.message) for w in caught]
+            return [" ".join(t.split()) for t in texts if t.strip()]
 
-            def notes() -> list[str]:
-                texts = [r.getMessage() for r in held.records] + [str(w.message) for w in caught]
-                return [" ".join(t.split()) for t in texts if t.strip()]
-
-            yield notes
-    finally:
-        log.removeHandler(held)
-        log.propagate = propagate
+        yield notes
     for w in caught:  # (reached only when the bus opened)
         warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-    for r in held.records:
-        log.handle(r)
+    for r in records:
+        logging.getLogger(r.name).handle(r)
 
 
 def simulated_frames(
