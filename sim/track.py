@@ -88,10 +88,11 @@ def numeric_csv(text: str, origin: str, columns: tuple[str, ...]) -> np.ndarray:
             no finite number (its column named), or a last row the text ends inside (no end of line: a file cut
             mid-row, whose last number may be cut too).
     """
-    rows = [(i, ln) for i, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
+    raw = text.splitlines(keepends=True)
+    rows = [(i, ln) for i, ln in enumerate(raw, 1) if ln.strip() and not ln.lstrip().startswith("#")]
     if not rows or tuple(c.strip() for c in rows[0][1].split(",")) != columns:
         raise TrackError(f"{origin}: expected a header line {','.join(columns)}")
-    if len(rows) > 1 and not text.endswith(("\n", "\r")):
+    if len(rows) > 1 and not rows[-1][1].endswith(("\n", "\r")):
         raise TrackError(f"{origin}, line {rows[-1][0]}: truncated: the file ends inside this row (a complete file "
                          f"ends every row with an end of line)")
     out = np.empty((len(rows) - 1, len(columns)))

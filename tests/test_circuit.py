@@ -286,6 +286,7 @@ def test_a_less_steerable_car_finds_a_wide_corner_too_tight(tmp_path: Path, caps
     ("x_m,y_m\n0,0\n10,zero\n", "line 3"),
     ("x_m,y_m\n0,0\n10,0\n", "at least 4 distinct points"),
     ("x_m,y_m\n0,0\n300,0\n300,300\n0,30", "line 5: truncated: the file ends inside this row"),
+    ("x_m,y_m\n0,0\n300,0\n# the end, no newline", "at least 4 distinct points"),  # (a comment is no row)
     ("s_m,x_m,y_m,heading_rad,curvature_1pm\n0,0,0,0,0\n1,1,0,0,x\n", "line 3: curvature_1pm 'x' is not a number"),
     ("s_m,x_m,y_m,heading_rad,curvature_1pm\n0,0,0,0,0\n1,1,0,0,0\n2,2,0,0,0", "line 4: truncated"),
     ("s_m,x_m,y_m,heading_rad,curvature_1pm\n0,0,0,0,0\n", "at least 3 samples"),

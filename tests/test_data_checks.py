@@ -706,3 +706,22 @@ def test_the_runs_a_model_was_trained_on_are_never_shown_as_unseen(tmp_path, cap
         err = capsys.readouterr().err
         assert f"{d / 'r2.csv'}: {model} was trained on this run (its card lists it), given as --circuits" in err, err
         assert not (tmp_path / "e.json").exists() and not (tmp_path / "x").exists()
+
+
+def test_an_unreadable_folder_inside_a_data_folder_holds_nothing_to_leave_out(tmp_path, monkeypatch):
+    """A data stick's root-only lost+found: the probe for recordings in it raised PermissionError (exit 1)."""
+    from pathlib import Path
+
+    d = tmp_path / "stick"
+    d.mkdir()
+    write_csv(d / "r0.csv", _table())
+    (d / "lost+found").mkdir()
+    exists = Path.exists
+
+    def guarded(self, *a, **k):
+        if self.parent.name == "lost+found":
+            raise PermissionError(13, "Permission denied", str(self))
+        return exists(self, *a, **k)
+
+    monkeypatch.setattr(Path, "exists", guarded)
+    assert [r.name for r in load_runs([d])] == ["r0"]

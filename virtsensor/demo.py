@@ -41,7 +41,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from virtsensor import plotting
+from virtsensor import interrupt, plotting
 from virtsensor.assets import bundled_recordings_dir, model_path, recording_path
 from virtsensor.demogrip import GRIP_SIGNALS, grip_line, grip_summary, plot_grip
 from virtsensor.errors import UserError
@@ -669,6 +669,7 @@ def _run(sensor: Any, listener: Any, tx: Any, opts: _Options, plan: _Plan, live:
         _listen(listener, rx, player)
     except KeyboardInterrupt:
         interrupted = True
+        interrupt.handled()  # (the summary, plot and JSON of what ran are written, with "interrupted": true)
     finally:
         stop.set()
         if player.thread.ident is not None:

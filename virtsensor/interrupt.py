@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
 
-__all__ = ["check", "fitted", "sigint_noted"]
+__all__ = ["check", "fitted", "handled", "sigint_noted"]
 
 _SEEN = threading.Event()
 #: scikit-learn's warning where its MLP swallowed a KeyboardInterrupt
@@ -30,6 +30,12 @@ def check() -> None:
     swallowed)."""
     if _SEEN.is_set():
         raise KeyboardInterrupt
+
+
+def handled() -> None:
+    """A command that catches the interrupt on purpose and goes on to write what it has (the demo's summary and
+    plot, replay's count) says so: the SIGINT noted so far no longer stops its outputs."""
+    _SEEN.clear()
 
 
 @contextmanager

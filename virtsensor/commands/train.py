@@ -153,6 +153,8 @@ def _fallback(args, recipe, spec, out):
 
 
 def _export(model, ds, out, parity_rows, args, recipe, spec, report, runs, fallback=None):
+    import numpy as np
+
     from virtsensor.learning.dataset import trained_digests
     from virtsensor.model import ModelCard
     from virtsensor.model.envelope import Envelope
@@ -163,7 +165,7 @@ def _export(model, ds, out, parity_rows, args, recipe, spec, report, runs, fallb
         training_data={
             "fingerprint_sha256": ds.fingerprint(), "rows": int(len(ds.X)), "runs": len(ds.runs),
             "dropped_nonfinite": ds.dropped_nonfinite, "sources": [str(p) for p in args.data],
-            "run_digests": trained_digests(runs),
+            "run_digests": trained_digests([runs[i] for i in np.unique(ds.groups)]),  # (runs that gave rows)
         },
         # the same weights as plain arrays: the numpy back-end and audits need no sklearn
         weights=pipeline_weights(model),

@@ -93,11 +93,12 @@ class ClockMap:
     frames (drains without frames leave it alone, so an interface that stalls and then releases a
     backlog has the backlog aged by its own timestamps). A drain's bound is its second smallest where it got
     two stamped frames or more (:meth:`ReceivePath.drain`), so that one frame stamped wrong, seconds ahead,
-    does not pull every other frame's time back with it for ``window`` drains. A time base that steps back is
-    followed after ``window`` drains with frames; until then its frames look old (stale); one that steps
-    forward, at the next drain. Mapped times are never later than the time the frame was read, but for a frame
-    whose bound lies more than :data:`OUTLIER_S` below the offset (mapped into the future: refused as
-    future-stamped).
+    does not pull every other frame's time back with it for ``window`` drains (a drain whose only stamped frame
+    lies more than :data:`OUTLIER_S` below the offset is not pushed). A time base that steps back is followed
+    after ``window`` drains with frames; until then its frames look old (stale); one that steps forward, within
+    the drain once two of its frames agree on the new offset (within :data:`CONFIRM_S`). Mapped times are never
+    later than the time the frame was read, but for a frame whose bound lies more than :data:`OUTLIER_S` below the
+    offset and that no second frame confirms (mapped into the future: refused as future-stamped).
 
     The first drains cannot tell a backlog queued before the daemon started (frames long old, the sender
     silent since) from live frames: its newest frame would look just arrived. The mapping is *confirmed*
@@ -233,8 +234,9 @@ class ReceivePath:
         read = self._read
         mono = time.monotonic
         handle = self.handle
-        off = self.clock.offset
+        off = start = self.clock.offset
         b1 = b2 = _INF  # (the drain's two smallest bounds)
+        far = _INF  # (a bound more than OUTLIER_S below the offset, waiting for a second frame to agree with it)
         n = unstamped = 0
         while True:
             msg = read(0.0)[0]
@@ -250,8 +252,13 @@ class ReceivePath:
                         b1, b2 = d, b1
                     else:
                         b2 = d
-                    if d < off and (off - d <= OUTLIER_S or off == _INF):  # (the first frame ever: any bound)
+                if d < off:
+                    if off - d <= OUTLIER_S or off == _INF:  # (the first frame ever: any bound)
                         off = d
+                    elif abs(d - far) <= CONFIRM_S:  # (two frames agree: the time base stepped forward)
+                        off = min(d, far)
+                    else:
+                        far = d
                 t = ts + off
             else:
                 t = now
@@ -259,9 +266,10 @@ class ReceivePath:
             handle(msg, t)
         if unstamped:
             _count_unstamped(self.counters, unstamped)
-        if b1 < _INF:
-            self.clock.push(b2 if b2 < _INF else b1)
-        else:
+        bound = b2 if b2 < _INF else b1
+        if bound < _INF and (start - bound <= OUTLIER_S or start == _INF or b2 < _INF):
+            self.clock.push(bound)
+        else:  # (no stamped frame, or one alone stamped far ahead: nothing to go on)
             self.clock.idle()
         return n
 

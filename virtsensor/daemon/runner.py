@@ -237,13 +237,15 @@ class Runner:
         return st
 
     def run(self, duration: float | None = None) -> int:
-        self.start()
+        if self._started or self._stopped:
+            self.start()  # (raises: started twice, or a stopped sensor, which does not start again)
         old: dict[int, Any] = {}
-        if threading.current_thread() is threading.main_thread():
+        if threading.current_thread() is threading.main_thread():  # (before start: a signal meanwhile stops it)
             for s in (signal.SIGTERM, signal.SIGINT):
                 old[s] = signal.signal(s, self._on_signal)
         rc = 0
         try:
+            self.start()
             end = None if duration is None else time.monotonic() + duration
             waiter = self.threads[0]
             while not self._stop.is_set():

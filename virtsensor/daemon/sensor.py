@@ -466,17 +466,17 @@ def _model_inputs(self: VirtualSensor, x: list[float]) -> tuple[list[float], Any
 def _assess_time(self: VirtualSensor, t: float) -> float:
     """The time the tick at ``t`` judges its inputs at: ``t``, or inf (no input fresh) while the free-running
     clock mapping is not confirmed (:class:`~virtsensor.daemon.receive.ClockMap`: the first drains). A tick too
-    soon or too late after the previous one, or, in sync mode, one of sync ticks whose median spacing is off 50 ms,
+    soon or too late after the previous one, or, in sync mode, one of sync ticks whose mean spacing is off 50 ms,
     restarts the inputs' histories (:mod:`virtsensor.daemon.tickrate`; free-running, the ticks are on absolute
     deadlines of the daemon's own clock: a wake-up's lateness moves single gaps, never their rate)."""
     gap = t - self._tick_t
     self._tick_t = t
-    if gap == math.inf or gap > MAX_TICK_GAP_S:  # (the first tick, or one after a gap: a new window of gaps)
-        self._rate.restart()
+    if gap == math.inf or gap > MAX_TICK_GAP_S:  # (the first tick, or one after a gap: a new window of ticks)
+        self._rate.restart(t)
         if gap != math.inf:
             _restart_history(self, t, gap)
-    elif self.sync_id is not None and not self._rate.regular(gap):  # (free-running, the ticks keep their own clock)
-        _restart_history(self, t, gap, median=self._rate.median_gap_s)
+    elif self.sync_id is not None and not self._rate.regular(t):  # (free-running, the ticks keep their own clock)
+        _restart_history(self, t, gap, mean=self._rate.mean_gap_s)
     elif gap < MIN_TICK_GAP_S:
         _restart_history(self, t, gap)
     if self.inputs.clock.confirmed:
@@ -485,18 +485,18 @@ def _assess_time(self: VirtualSensor, t: float) -> float:
     return math.inf
 
 
-def _restart_history(self: VirtualSensor, t: float, gap: float, median: float | None = None) -> None:
-    """After a tick too soon or too late (``median`` None), or one of ticks whose ``median`` gap (s) is off the
-    tick (:mod:`virtsensor.daemon.tickrate`): every input with a history recovers as after a stale tick, and the
-    grip estimate's filters restart (they too take their rows one tick apart); count and log it (the first 3,
-    then every 100th, of each kind)."""
+def _restart_history(self: VirtualSensor, t: float, gap: float, mean: float | None = None) -> None:
+    """After a tick too soon or too late (``mean`` None), or one of sync ticks whose ``mean`` spacing (s) over the
+    window is off the tick (:mod:`virtsensor.daemon.tickrate`): every input with a history recovers as after a
+    stale tick, and the grip estimate's filters restart (they too take their rows one tick apart); count and log it
+    (the first 3, then every 100th, of each kind)."""
     restart_recovery(self._rules, self._state)
     self._out.grip.restart()
-    key = "tick_gaps" if median is None else "tick_rate_off"
+    key = "tick_gaps" if mean is None else "tick_rate_off"
     n = self.counters[key] = self.counters[key] + 1
     if n <= 3 or n % 100 == 0:
-        more = {} if median is None else {"median_gap_ms": round(median * 1e3, 3)}
-        event(logging.WARNING, "tick_gap" if median is None else "tick_rate", t=round(t, 6), gap_ms=round(gap * 1e3, 3),
+        more = {} if mean is None else {"mean_gap_ms": round(mean * 1e3, 3)}
+        event(logging.WARNING, "tick_gap" if mean is None else "tick_rate", t=round(t, 6), gap_ms=round(gap * 1e3, 3),
               **more, **{key: n})
 
 

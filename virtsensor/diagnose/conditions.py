@@ -146,8 +146,9 @@ def read_csv(path: Path) -> dict[str, dict[str, tuple[float, float]]]:
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"{path}: cannot read ({type(exc).__name__})") from None
     rows = list(csv.reader(io.StringIO(text, newline="")))
-    if text.strip() and not text.endswith(("\n", "\r")):
-        raise UserError(f"{path}: line {len(text.splitlines())}: truncated: the file ends inside this row (a complete "
+    last = text.rstrip(" \t")  # (spaces after the last row's end of line are no row)
+    if last.strip() and not last.endswith(("\n", "\r")):
+        raise UserError(f"{path}: line {len(last.splitlines())}: truncated: the file ends inside this row (a complete "
                         f"file ends every row with an end of line)")
     if not rows or "file" not in [h.strip() for h in rows[0]]:
         raise UserError(f"{path}: line 1: the header needs a 'file' column")

@@ -120,7 +120,7 @@ def _directory(d: Path) -> list[Source]:
             raise UserError(f"{d / MANIFEST}: lists no runs")
         return out
     for sub in sorted(e for e in d.iterdir() if not is_hidden(e) and e.is_dir()):
-        if (sub / MANIFEST).exists() or any(not is_hidden(f) and f.suffix.lower() in SUFFIXES for f in sub.iterdir()):
+        if _holds_recordings(sub):
             raise UserError(f"{sub}: a folder of recordings inside {d}, whose folders are not read: give it too, or "
                             "move it out")
     found = sorted(f for f in d.iterdir() if not is_hidden(f) and f.suffix.lower() in SUFFIXES)
@@ -132,6 +132,16 @@ def _directory(d: Path) -> list[Source]:
     if not found:
         raise UserError(f"{d}: no recordings ({', '.join(SUFFIXES)}) in this directory")
     return [_linked(f, None) if f.is_symlink() else Source(f) for f in found]
+
+
+def _holds_recordings(folder: Path) -> bool:
+    """Whether ``folder`` holds a campaign's manifest or a visible file with a recording suffix; a folder that
+    cannot be read (a root-only ``lost+found`` on a data stick) holds none that could be read either."""
+    try:
+        return (folder / MANIFEST).exists() or any(
+            not is_hidden(f) and f.suffix.lower() in SUFFIXES for f in folder.iterdir())
+    except OSError:
+        return False
 
 
 def _file(p: Path) -> Source:

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from virtsensor import interrupt
 from virtsensor.canbus.codec import CanMatrix
 from virtsensor.errors import UserError
 
@@ -437,6 +438,7 @@ def replay(
             t_pass = player.next_pass_start(t_pass, done)
     except KeyboardInterrupt:
         player.interrupted = True
+        interrupt.handled()  # (a replay stopped by Ctrl-C reports what it sent)
         t_last_send = clock()
     finally:
         bar.update(player.pending)
