@@ -233,17 +233,24 @@ def test_free_running_backlog_is_aged_by_its_interface_timestamps(model, frames)
 
 
 @pytest.mark.parametrize("fault", ["one frame 5 s ahead", "time base 3 s forward"])
-def test_a_frame_stamped_seconds_ahead_ages_nothing_else_and_a_step_forward_is_followed(model, frames, fault):
+def test_a_frame_stamped_seconds_ahead_ages_nothing_else_and_a_step_forward_is_followed(model, frames, fault,
+                                                                                      monkeypatch):
     """Free-running. One frame whose interface timestamp is 5 s ahead (a device clock's glitch) pulled the clock
-    mapping's offset 5 s down for 20 drains: every input looked 5 s old, INVALID for 1.15 s. Now that frame alone
-    lies in the future (its message's sequence broken, INVALID for a tick or three, as any bad frame of a critical
-    message makes it), the others keep their ages. A time base that steps forward (every later frame 3 s ahead)
-    is followed within the drain, as soon as two frames agree on it (the first frame's message out of order for
-    its timeout, 10 cycles here: 5 ticks not VALID, where the code before followed it at once)."""
+    mapping's offset 5 s down for 20 drains: every input looked 5 s old, INVALID for 1.15 s (23 ticks). Now that
+    frame alone lies in the future (its message's sequence broken, INVALID for a tick or three, as any bad frame of
+    a critical message makes it), the others keep their ages. A time base that steps forward (every later frame 3 s
+    ahead) is followed within the drain, as soon as two frames agree on it (the first frame's message out of order
+    for its timeout, 10 cycles here: 5 ticks not VALID, where the code before followed it at once). Driven on a
+    simulated clock (the receive path's and the ticks'): no sleep, no loaded machine's late wake-up."""
+    import types
+
+    from virtsensor.daemon import receive
+
+    now = [1000.0]
+    monkeypatch.setattr(receive, "time", types.SimpleNamespace(monotonic=lambda: now[0]))
     bus = _QueueBus()
-    vs = VirtualSensor(bus, model, MATRIX, freeze_gc=False, timeout_cycles=10)  # (a loaded machine's hiccups)
+    vs = VirtualSensor(bus, model, MATRIX, freeze_gc=False, timeout_cycles=10)
     t0 = frames[0].timestamp
-    w0 = time.time() + 0.01
     imu = MATRIX.messages["IMU_Motion"].frame_id
     glitch = next(m for m in frames if m.arbitration_id == imu and m.timestamp > t0 + 1.52)
 
@@ -254,18 +261,15 @@ def test_a_frame_stamped_seconds_ahead_ages_nothing_else_and_a_step_forward_is_f
 
     seen = []
     for k in range(60):
-        time.sleep(max(0.0, w0 + (k + 1) * 0.05 - time.time()))
-        for m in frames:
+        for m in frames:  # (the interface stamps each frame on its own clock: here the daemon's, 5 s ahead or not)
             if t0 + k * 0.05 < m.timestamp <= t0 + (k + 1) * 0.05:
-                bus.put(m, w0 + (m.timestamp - t0) + ahead(m))
+                bus.put(m, 1000.0 + (m.timestamp - t0) + ahead(m))
+        now[0] = 1000.0 + (k + 1) * 0.05 + 0.002  # (read 2 ms after the tick's last frame)
         vs.drain()
-        seen.append(vs.tick())
+        seen.append(vs.tick(now[0]))
     bad = [st for st in seen[25:] if st != (VALID, VALID)]
-    # (a wake-up late by over 25 ms on a loaded machine restarts the histories by itself: those ticks are allowed)
-    hist = max(vs._rules.sig_hist, default=0)
-    # (the step's first frame lies in the future until a second agrees: its message out of order for its timeout)
-    allowed = (4 if fault == "one frame 5 s ahead" else 8) + (hist + 2) * vs.counters["tick_gaps"]
-    assert len(bad) <= allowed and seen[-15:] == [(VALID, VALID)] * 15, (seen[25:], vs.counters["tick_gaps"])
+    assert len(bad) == (3 if fault == "one frame 5 s ahead" else 5), seen[25:]
+    assert seen[:25][-5:] == seen[-20:][-5:] == [(VALID, VALID)] * 5 and vs.counters["tick_gaps"] == 0
     if fault == "one frame 5 s ahead":
         assert vs.counters["e2e_wrongsequence"] >= 1  # (the glitch breaks its own message's sequence, as it should)
 
