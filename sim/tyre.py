@@ -1157,34 +1157,37 @@ def _usual_range(model: MagicFormula61) -> tuple[TyreOutput, TyreOutput, FloatAr
     return side, longi, fz
 
 
-def non_finite_outputs(model: MagicFormula61) -> dict[str, int]:
+def non_finite_outputs(model: MagicFormula61, sweep: tuple[TyreOutput, TyreOutput, FloatArray] | None = None
+                       ) -> dict[str, int]:
     """The outputs that are not finite somewhere in the tyre's usual range (name -> how many points).
 
     The range: pure side slip to 30 deg (1 deg steps) and pure longitudinal slip to 0.3 (0.01 steps), at
     0.5, 1 and 1.5 x FNOMIN, 0.9, 1 and 1.1 x INFLPRES, zero camber, LONGVL (the range of the figures and
     plots of ``virtsensor tyre``). Finite coefficients can still overflow there (PKY1 = 1e308: Kya = inf),
-    and a model that does would make any simulation diverge.
+    and a model that does would make any simulation diverge. ``sweep``: :func:`_usual_range` of ``model`` if
+    already computed.
     """
-    side, longi, _ = _usual_range(model)
+    side, longi, _ = _usual_range(model) if sweep is None else sweep
     counts = {name: int(np.sum(~np.isfinite(getattr(side, key))) + np.sum(~np.isfinite(getattr(longi, key))))
               for key, name in _OUTPUT_NAMES.items()}
     return {name: n for name, n in counts.items() if n}
 
 
-def beyond_a_tyre(model: MagicFormula61) -> dict[str, float]:
+def beyond_a_tyre(model: MagicFormula61, sweep: tuple[TyreOutput, TyreOutput, FloatArray] | None = None
+                  ) -> dict[str, float]:
     """The outputs that are finite but no tyre's somewhere in the usual range of :func:`non_finite_outputs`
     (name -> the worst of them): ``Fx``, ``Fy`` over :data:`FORCE_RATIO_LIMIT` times the load (the worst ratio),
     ``Mz``, ``My`` with a lever ``|M| / Fz`` over the unloaded radius (the worst lever, m: the aligning moment's
     lever, pneumatic trail and residual, lies within the contact patch, itself shorter than the radius; the rolling
     resistance's is a hundredth of it). Such a tyre (PDY1 = 1e30 gives Fy of 1e30 times the load) would drive the
-    simulation anywhere but where a car goes."""
-    side, longi, fz = _usual_range(model)
+    simulation anywhere but where a car goes. ``sweep``: as for :func:`non_finite_outputs`."""
+    side, longi, fz = _usual_range(model) if sweep is None else sweep
     radius = model._p["UNLOADED_RADIUS"]
     out: dict[str, float] = {}
     with np.errstate(all="ignore"):
-        for key, name, scale, limit in (("fx", "Fx", fz, FORCE_RATIO_LIMIT), ("fy", "Fy", fz, FORCE_RATIO_LIMIT),
-                                        ("mz", "Mz", fz, radius), ("my", "My", fz, radius)):
-            ratios = [np.abs(getattr(o, key)) / scale for o in (side, longi)]
+        for key, name, limit in (("fx", "Fx", FORCE_RATIO_LIMIT), ("fy", "Fy", FORCE_RATIO_LIMIT),
+                                 ("mz", "Mz", radius), ("my", "My", radius)):
+            ratios = [np.abs(getattr(o, key)) / fz for o in (side, longi)]
             worst = max(float(np.max(np.where(np.isfinite(r), r, 0.0))) for r in ratios)
             if worst > limit:
                 out[name] = worst
@@ -1193,7 +1196,8 @@ def beyond_a_tyre(model: MagicFormula61) -> dict[str, float]:
 
 def _bad_outputs(model: MagicFormula61) -> int:
     """How many outputs of the usual range are not finite, plus how many kinds are beyond a tyre's."""
-    return sum(non_finite_outputs(model).values()) + len(beyond_a_tyre(model))
+    sweep = _usual_range(model)
+    return sum(non_finite_outputs(model, sweep).values()) + len(beyond_a_tyre(model, sweep))
 
 
 def _bad_with(params: Mapping[str, float | str], values: Mapping[str, float | str]) -> int:
@@ -1262,10 +1266,11 @@ def overflow_problem(model: MagicFormula61, given: Iterable[str] = (),
     """:func:`overflow_message` when some output is not finite in the tyre's usual range, or is no tyre's
     (:func:`beyond_a_tyre`), else None."""
     where = "at 0.5-1.5 FNOMIN, 0.9-1.1 INFLPRES"
-    bad = non_finite_outputs(model)
+    sweep = _usual_range(model)
+    bad = non_finite_outputs(model, sweep)
     if bad:
         return overflow_message(model, f"{', '.join(bad)} {where}", given, restore)
-    beyond = beyond_a_tyre(model)
+    beyond = beyond_a_tyre(model, sweep)
     if not beyond:
         return None
     radius = model._p["UNLOADED_RADIUS"]

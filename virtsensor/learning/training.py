@@ -81,10 +81,7 @@ def same_recipe(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
     """Whether two recipes are one, as JSON (a card's recipe has been through JSON: its tuples are lists)."""
     import json
 
-    def canon(r: Mapping[str, Any]) -> str:
-        return json.dumps(r, sort_keys=True, default=list)
-
-    return canon(json.loads(canon(a))) == canon(json.loads(canon(b)))
+    return json.dumps(a, sort_keys=True, default=list) == json.dumps(b, sort_keys=True, default=list)
 
 
 def make_pipeline(params: Mapping[str, Any], random_state: int = 0) -> Pipeline:
