@@ -34,6 +34,15 @@ def _table(n: int = 200, dt: float = 0.05, seed: int = 0) -> dict[str, np.ndarra
     return tab
 
 
+def _varied_table(n: int = 200, seed: int = 0) -> dict[str, np.ndarray]:
+    """:func:`_table` with every input varying a little, as on a car (train refuses a feature that never varies)."""
+    tab = _table(n, seed=seed)
+    rng = np.random.default_rng(seed + 1000)
+    for s in cat.INPUTS:
+        tab[s] = tab[s] + rng.uniform(0.0, 0.05, n)
+    return tab
+
+
 def _campaign_dir(d, n_runs: int = 3):
     """A directory as a complete campaign leaves it: runs, then the manifest."""
     d.mkdir()
@@ -595,7 +604,7 @@ def test_the_grid_search_never_sees_the_runs_held_out(tmp_path, capsys, monkeypa
     d = tmp_path / "runs"
     d.mkdir()
     for i in range(8):
-        write_csv(d / f"r{i}.csv", _table(seed=i))
+        write_csv(d / f"r{i}.csv", _varied_table(seed=i))
     seen: list[np.ndarray] = []
 
     def fake_grid(X, Y, groups, **kw):
@@ -686,9 +695,9 @@ def test_the_runs_a_model_was_trained_on_are_never_shown_as_unseen(tmp_path, cap
     d = tmp_path / "runs"
     d.mkdir()
     for i in range(4):
-        write_csv(d / f"r{i}.csv", _table(seed=i))
+        write_csv(d / f"r{i}.csv", _varied_table(seed=i))
     other = tmp_path / "other.csv"
-    write_csv(other, _table(seed=11))
+    write_csv(other, _varied_table(seed=11))
     model = tmp_path / "m.onnx"
     assert main(["train", "--data", str(d), "--out", str(model), "--quiet"]) == 0
     card = json.loads(model.with_suffix(".card.json").read_text())
@@ -725,3 +734,33 @@ def test_an_unreadable_folder_inside_a_data_folder_holds_nothing_to_leave_out(tm
 
     monkeypatch.setattr(Path, "exists", guarded)
     assert [r.name for r in load_runs([d])] == ["r0"]
+
+
+def test_an_infinite_value_in_a_simulator_truth_column_is_refused():
+    """Truth columns are not range-checked (a slip ratio past 1 is real), but no simulator state is infinite:
+    an inf there was read and trained beside."""
+    t = _table()
+    t["kappa_fl_1"] = np.full(200, 0.01)
+    t["kappa_fl_1"][7] = -np.inf
+    with pytest.raises(UserError, match=r"sim\.csv: column kappa_fl_1, row 8 \(line 9\): expected a finite value in "
+                                        r"1 or SNA \(the simulator's state\), got -inf \(1 rows\)"):
+        check_table("sim.csv", t)
+    t["kappa_fl_1"][7] = np.nan  # SNA passes
+    check_table("sim.csv", t)
+
+
+def test_train_refuses_a_feature_that_never_varies_naming_it(tmp_path, capsys):
+    """A signal constant over every run (a stuck sensor in every recording, a campaign that never changed it) was
+    trained on: the scaler divided by a variance of 0 and the model could not learn what it does."""
+    d = tmp_path / "runs"
+    d.mkdir()
+    for i in range(4):
+        t = _varied_table(seed=i)
+        t["motor_torque_nm"] = np.full(t["time_s"].size, 12.5)
+        write_csv(d / f"r{i}.csv", t)
+    code = main(["train", "--data", str(d), "--recipe", "paper", "--out", str(tmp_path / "m.onnx"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.count("\n") == 0, err
+    assert re.search(r"--data: feature \S*motor_torque\S* of the 'paper' features is 12\.5 in every one of the \d+ "
+                     r"rows of 4 run\(s\): a model cannot learn what it does", err), err
+    assert not (tmp_path / "m.onnx").exists()

@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from virtsensor.features import SPECS
     from virtsensor.interrupt import fitted
     from virtsensor.learning.dataset import build_dataset, load_runs
-    from virtsensor.learning.evaluation import grouped_split, require_rows
+    from virtsensor.learning.evaluation import grouped_split, require_rows, require_variation
     from virtsensor.learning.training import RECIPES, grid_search, make_pipeline
     from virtsensor.metrics import metrics
 
@@ -79,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     if n_runs < 2:
         raise UserError(f"--data: {n_runs} run(s) with usable rows; training holds whole runs out, so it needs at "
                         "least 2")
+    require_variation(ds, recipe["features"])
     tr, te = grouped_split(ds.groups, args.seed)  # (held out before the grid search: it never sees those runs)
     n_fit = len(np.unique(ds.groups[tr]))
     if args.grid and n_fit < GRID_FOLDS:

@@ -19,6 +19,7 @@ R2 and MAE per wheel, their mean (``r2``, ``mae_nm``) and for the axle sum.
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -167,6 +168,7 @@ def _datasets(runs: Sequence[Run], spec_names: set[str]) -> dict[str, Dataset]:
             raise UserError(f"--data: {n} run(s) with usable rows for the {name!r} features; evaluate holds "
                             f"whole runs out ({TEST_FRACTION * 100:g} % of them, at least one) and trains on the "
                             f"others, so it needs at least {MIN_RUNS}")
+        require_variation(ds, name)
     return out
 
 
@@ -181,6 +183,30 @@ def require_rows(ds: Dataset, runs: Sequence[Run], spec_name: str) -> None:
         run = runs[empty[0]]
         raise UserError(f"{run.path or run.name}: no sample with every input of the {spec_name!r} features and both "
                         "reference SATs finite")
+
+
+def require_variation(ds: Dataset, spec_name: str) -> None:
+    """Refuse a data set in which a feature takes one value in every row (a signal that never varied in any run):
+    a model cannot learn what it does, its scaler divides by a variance of zero (scikit-learn then takes 1) and the
+    card's validity envelope would mark any other value outside. NaN rows (an optional feature) are left out.
+
+    Raises:
+        UserError: ``--data: feature <name> of the <spec> features is <value> in every one of the <n> rows...``.
+    """
+    from virtsensor.errors import UserError
+
+    if not len(ds.X):
+        return
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # (an all-NaN optional column: no value, not constant)
+        lo, hi = np.nanmin(ds.X, axis=0), np.nanmax(ds.X, axis=0)
+    same = np.flatnonzero(lo == hi)
+    if same.size:
+        j = int(same[0])
+        also = f" (and {same.size - 1} more feature(s))" if same.size > 1 else ""
+        raise UserError(f"--data: feature {ds.feature_names[j]} of the {spec_name!r} features is {lo[j]:.6g} in every "
+                        f"one of the {len(ds.X)} rows of {len(np.unique(ds.groups))} run(s){also}: a model cannot "
+                        "learn what it does; give runs where it varies")
 
 
 def held_out_runs(track_laps: Mapping[str, Run], circuits: Sequence[Run]) -> dict[str, Run]:

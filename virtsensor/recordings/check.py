@@ -16,7 +16,8 @@ format, ``<file>: column <name>, row <k>: expected <what>, got <what>``:
 * a signal a car carries (catalogue roles input, output, aux) outside its
   catalogue range; NaN is SNA (signal not available) and passes; +-inf never
   does. The simulator's truth columns describe its state, not a sensor's
-  reading, and are not range-checked (a spinning wheel's slip ratio exceeds 1);
+  reading, and are not range-checked (a spinning wheel's slip ratio exceeds 1),
+  but must be finite or SNA too;
 * a target (reference SAT to train or score on) that is not finite, where the
   caller names targets.
 
@@ -102,9 +103,16 @@ def _check_one_run(path: Path, t: np.ndarray, dt: np.ndarray) -> None:
 def _check_ranges(path: Path, table: Mapping[str, np.ndarray]) -> None:
     for name, col in table.items():
         s = cat.SIGNALS.get(name)
-        if s is None or s.role not in _RANGE_CHECKED:
+        if s is None:
             continue
         col = np.asarray(col, dtype=np.float64)
+        if s.role not in _RANGE_CHECKED:  # (a truth column: any finite value of the simulator's state, or SNA)
+            inf = np.flatnonzero(np.isinf(col))
+            if inf.size:
+                i = int(inf[0])
+                raise table_error(path, name, i + 1, f"a finite value in {s.unit} or SNA (the simulator's state)",
+                                  f"{col[i]} ({inf.size} rows)")
+            continue
         with np.errstate(invalid="ignore"):
             out = ~np.isnan(col) & ~((col >= s.minimum) & (col <= s.maximum))
         bad = np.flatnonzero(out)
