@@ -286,11 +286,19 @@ def braking_in_turn(v: float, mu: float, rng: np.random.Generator, params: Mappi
 def _track_plan(name: str, tr: Any, laps: int, mu_laps: tuple[float, ...], v: float, label: dict) -> Plan:
     """Brisk laps of ``tr`` (a :class:`sim.track.Track`), lap i on friction ``mu_laps[i]``.
 
-    The car starts on the line heading +x at the speed profile's speed there; ``v`` caps
-    the speed (m/s) and the profile follows the curvature and each lap's friction.
+    The car starts on the line heading +x at the speed profile's speed there, going straight; ``v`` caps
+    the speed (m/s) and the profile follows the curvature and each lap's friction. A line inside a corner (a
+    circuit traced from its first GPS point, a random circuit) is moved on to the next straight
+    (:meth:`~sim.track.Track.next_straight`), recorded as ``line_moved_m`` in ``label``: a car in a corner is not
+    going straight, and the path follower asked for the whole corner's lock at once (0 to 120 degrees of steering
+    in 0.15 s at the robot's rate limit, with the hand torque near the CAN range).
     """
     from sim import track as trk
 
+    moved = tr.next_straight()
+    if moved:
+        tr = tr.started_at(moved)
+        label["line_moved_m"] = round(moved, 1)
     # the path runs on past the line by a lap: the run lasts the laps and one second more,
     # and the follower's preview point needs road ahead of the car to the very end
     path = tr.laps(laps + 1).aligned_to_start()

@@ -221,6 +221,34 @@ class Track:
             self.length,
         )
 
+    def started_at(self, s0: float) -> Track:
+        """The same circuit with its line moved to arc length ``s0`` (m, taken modulo the lap, snapped to the
+        nearest sample): the same positions, headings and curvatures, driven from there."""
+        n = len(self.s) - 1  # (samples of one lap, the closing one left out)
+        i0 = int(np.argmin(np.abs(self.s[:n] - float(s0) % self.length)))
+        if i0 == 0:
+            return self
+        order = np.r_[i0:n, 0:i0]
+        s = np.r_[self.s[i0:n] - self.s[i0], self.s[:i0] + self.length - self.s[i0], self.length]
+        wrap = np.r_[np.zeros(n - i0), np.ones(i0)] * self.turn_per_lap
+        heading = np.r_[self.heading[order] + wrap, self.heading[i0] + self.turn_per_lap]
+        return Track(s, np.r_[self.x[order], self.x[i0]], np.r_[self.y[order], self.y[i0]], heading,
+                     np.r_[self.curvature[order], self.curvature[i0]], self.length)
+
+    def next_straight(self, max_curvature: float = 0.002, length: float = 10.0) -> float:
+        """Arc length (m) of the first point, from the line on, where the next ``length`` m all bend less than
+        ``max_curvature`` (1/m): 0 when the line is on such a straight. A lap with no such stretch gives the start
+        of its least bent one (the smallest largest curvature over ``length`` m; 0 when none bends less than
+        the line's)."""
+        n = len(self.s) - 1
+        ds = float(np.median(np.diff(self.s)))
+        k = min(max(int(np.ceil(length / ds)), 1), n)
+        bend = np.abs(self.curvature[:n])
+        ahead = np.lib.stride_tricks.sliding_window_view(np.r_[bend, bend[:k]], k + 1).max(axis=1)[:n]
+        ok = np.flatnonzero(ahead <= max_curvature)
+        i = int(ok[0]) if ok.size else int(np.argmin(ahead))
+        return float(self.s[i]) if ahead[i] < ahead[0] or ok.size else 0.0
+
     # ------------------------------------------------------------------ I/O
     @classmethod
     def from_csv(cls, path: str | Path) -> Track:
