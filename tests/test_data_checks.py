@@ -703,10 +703,16 @@ def test_the_runs_a_model_was_trained_on_are_never_shown_as_unseen(tmp_path, cap
     card = json.loads(model.with_suffix(".card.json").read_text())
     assert len(card["training_data"]["run_digests"]) == 4
     assert main(["score", "--model", str(model), "--data", str(d / "r2.csv"), str(other), "--json",
-                 str(tmp_path / "s.json")]) == 0
+                 str(tmp_path / "s.json"), "--markdown", str(tmp_path / "s.md")]) == 0
     assert "1 of these runs the model was trained on" in capsys.readouterr().err
     doc = json.loads((tmp_path / "s.json").read_text())
     assert doc["overall"]["runs_trained_on"] == 1 and [r["trained_on"] for r in doc["runs"]] == [True, False]
+    # the figures that are a test, apart: the run never trained on alone (as scored by itself)
+    fresh = doc["overall"]["never_trained_on"]
+    assert fresh["runs"] == 1 and fresh["n"] == doc["runs"][1]["n"] and fresh["mae_nm"] == doc["runs"][1]["mae_nm"]
+    md = (tmp_path / "s.md").read_text()
+    assert f"| {d / 'r2.csv'} (trained on) |" in md and f"| {other} |" in md
+    assert "**the 1 runs never trained on**" in md and "in-sample, not a test" in md
     for argv in (["evaluate", "--model", str(model), "--data", str(other), "--circuits", str(d / "r2.csv"),
                   "--json", str(tmp_path / "e.json")],
                  ["explain", "--model", str(model), "--data", str(other), "--circuits", str(d / "r2.csv"),

@@ -295,13 +295,24 @@ def test_shading_marks_each_out_of_envelope_stretch():
 
 
 @pytest.mark.slow
-def test_evaluate_command_scores_unseen_circuits_with_the_shipped_model(tmp_path):
+def test_evaluate_command_scores_unseen_circuits_with_the_shipped_model(tmp_path, monkeypatch):
     import json
 
     from test_explain import _table
 
     from virtsensor.cli import main
+    from virtsensor.learning import gripscore as gs
     from virtsensor.recordings.canlog import write_csv
+
+    scored: list[list[str]] = []  # (the grip margin was pooled over --data too: mostly the model's training runs)
+    t = np.arange(200) * 0.05
+
+    def fake_grip(model, runs, params=None):
+        scored.append(sorted(r.name for r in runs))
+        m = gs.grip_metrics(t, np.full(200, 0.5), np.full(200, 0.5), np.full(200, 0.5), np.zeros(200, bool))
+        return {"overall": gs.pool([m]), "runs": {}}
+
+    monkeypatch.setattr(gs, "score_grip", fake_grip)
 
     rng = np.random.default_rng(7)
     (tmp_path / "data").mkdir()
@@ -324,3 +335,7 @@ def test_evaluate_command_scores_unseen_circuits_with_the_shipped_model(tmp_path
     assert shipped["circuit_spa"]["envelope"]["outside_share"] > shipped["circuit_monza"]["envelope"]["outside_share"]
     text = md.read_text()
     assert "| Circuit spa (never trained on) |" in text and "| circuit_monza | 300 |" in text
+    assert scored == [["monza", "spa"], ["run0", "run1", "run2", "run3"]]
+    assert "Grip (the track's laps and the circuits, never trained on: 1 runs" in text
+    assert "Grip (the --data runs, which the shipped model was likely trained on: in-sample, not a test: 1 runs" in text
+    assert res["grip"]["overall"]["runs"] == 1 and res["grip_data"]["overall"]["runs"] == 1

@@ -573,6 +573,22 @@ def test_lead_metric_cannot_be_gamed_by_a_held_warning_and_always_on_is_false():
     assert start["warning_lead_s"] is None
 
 
+def test_the_lead_is_scored_at_the_first_limit_only_and_an_unwarned_last_row_is_not_warned():
+    """The lead is before the axle FIRST reaches 0.95: a run that first reaches it in its start-up second is not
+    scored, not re-scored on a later corner (it was: a later corner's +0.35 to +1.8 s counted for 4 laps of a
+    study); and a limit reached unwarned on the run's last row scored 0.0, counted as warned."""
+    t = np.arange(200) * 0.05
+    twice = np.where((t >= 0.5) & (t < 0.8) | (t >= 6.0), 0.97, 0.3)  # (a limit in the start-up, one at 6 s)
+    m = gs.grip_metrics(t, twice, np.full(200, 0.5), np.full(200, np.nan), t >= 5.0)
+    assert m["warning_lead_s"] is None and not m["reaches_limit"]
+    last = gs.grip_metrics(t, np.where(t >= t[-1], 0.97, 0.3), np.full(200, 0.5), np.full(200, np.nan),
+                           np.zeros(200, bool))
+    assert last["warning_lead_s"] == pytest.approx(-0.05) and gs.pool([last])["limit_warned_share"] == 0.0
+    lateish = gs.grip_metrics(t, np.where(t >= 9.0, 0.97, 0.3), np.full(200, 0.5), np.full(200, np.nan),
+                              np.zeros(200, bool))
+    assert lateish["warning_lead_s"] == pytest.approx(9.0 - 9.95 - 0.05)
+
+
 @pytest.fixture(scope="module")
 def step_runs(model):
     """Seeded runs, offline with the daemon's code (``estimate_run``, tick for tick the daemon's VS_Grip, see

@@ -8,6 +8,7 @@ and estimated SATs of the front left and right wheels (Nm). R2 is the coefficien
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -16,10 +17,12 @@ __all__ = ["mae", "metrics", "r2"]
 
 
 def r2(y: np.ndarray, p: np.ndarray) -> float:
-    """Coefficient of determination of ``p`` against ``y``; for a constant ``y``: 1 for a perfect fit, else 0
-    (scikit-learn's convention)."""
+    """Coefficient of determination of ``p`` against ``y``; for a constant ``y``: 1 for a perfect fit, else 0;
+    NaN for fewer than two samples (scikit-learn's conventions)."""
     y = np.asarray(y, dtype=float)
     p = np.asarray(p, dtype=float)
+    if y.size < 2:
+        return math.nan
     ss_tot = float(((y - y.mean()) ** 2).sum())
     ss_res = float(((y - p) ** 2).sum())
     if ss_tot == 0.0:

@@ -109,7 +109,10 @@ def run(args: argparse.Namespace) -> int:
             shipped[key]["envelope"] = envelope_split(
                 ds.Y, P, None if env is None else env.outside_rows(ds.X, ds.feature_names))
         result["shipped_model"] = {"file": str(args.model), "sha256": card["sha256"], **shipped}
-    result["grip"] = score_grip(model, [*runs, *([track] if track is not None else []), *circuits])
+    # the grip margin of the shipped model's SATs: on the runs it never trained on (the track's laps and the
+    # circuits; refused above where its card lists one), and apart on --data, which it was likely trained on
+    result["grip"] = score_grip(model, [*([track] if track is not None else []), *circuits])
+    result["grip_data"] = score_grip(model, runs)
     if pressure is not None:
         result["pressure_protocol"] = _pressure(model, *pressure)
     table = markdown_table(result)

@@ -255,7 +255,9 @@ ROWS = (("train", "Training phase"), ("test", "Test phase (random 30 % of rows)"
 def markdown_table(result: Mapping[str, Any]) -> str:
     """A Table IV with the paper's figures beside ours (R2 / MAE Nm, mean of both wheels), one row per circuit
     never trained on; then, when the shipped model has an envelope split (:func:`envelope_table`), that; then the
-    shipped model's grip margin (``result["grip"]``, :func:`virtsensor.learning.gripscore.grip_markdown`)."""
+    shipped model's grip margin (:func:`virtsensor.learning.gripscore.grip_markdown`) on the runs it never trained
+    on (``result["grip"]``: the track's laps and the circuits) and, apart, on ``--data`` (``result["grip_data"]``,
+    in-sample for a model trained on them)."""
     cols = [("paper", result.get("paper")), ("improved", result.get("improved"))]
     base = result.get("baselines", {})
     cols += [("linear", base.get("linear")), ("eq. (1) observer", base.get("eq1_observer"))]
@@ -273,7 +275,10 @@ def markdown_table(result: Mapping[str, Any]) -> str:
             cells.append(f"{m['r2']:.3f} / {m['mae_nm']:.2f}" if m else "—")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     env = envelope_table(result)
-    grip = grip_markdown(result.get("grip"))  # (the shipped model's grip margin, where runs carry its truth)
+    # (the shipped model's grip margin, where runs carry its truth: held out, then --data apart)
+    grip = grip_markdown(result.get("grip"), "the track's laps and the circuits, never trained on")
+    grip += grip_markdown(result.get("grip_data"), "the --data runs, which the shipped model was likely trained on: "
+                                                   "in-sample, not a test")
     return "\n".join(lines) + "\n" + ("\n" + env if env else "") + ("\n" + grip if grip else "")
 
 

@@ -15,11 +15,12 @@ Figures (keys of :func:`grip_metrics` and of the pooled :func:`pool`):
   (``mu +- halfwidth``, meant to hold the truth in 9 of 10 samples) holds the true mu (null without half-widths);
 * ``mu_given_share_above_0_6``: of the samples whose true front utilisation exceeds 0.6, the share where the
   friction is given;
-* ``warning_lead_s``: for a run whose true front utilisation rises through 0.95 (from below, after its first
-  :data:`STARTUP_S`: a limit the run starts in, before the estimator has its inputs' history, is not one it
-  could anticipate), the time from the onset of the warning episode that is on at the first such instant to
-  that instant (s; negative: the warning came that late after it; a run never warned after reaching it scores
-  minus the time from then to the run's end); a warning held on through calm driving earns no lead for it:
+* ``warning_lead_s``: for a run whose true front utilisation first reaches 0.95 after its first
+  :data:`STARTUP_S` (a run that reaches it first in that time, or starts there, is not scored for the lead: the
+  estimator has no history of its inputs yet, and a later corner is not the run's first limit), the time from
+  the onset of the warning episode that is on at that first instant to that instant (s; negative: the warning
+  came that late after it; a run never warned after reaching it scores minus the time from then to one tick
+  after the run's end, so always below 0); a warning held on through calm driving earns no lead for it:
   where the true utilisation stayed below 0.7 for :data:`FALSE_WINDOW_S` or longer within the episode, the
   lead counts from the end of the latest such stretch (so a warning that is simply kept on, or held for long
   after an earlier corner, scores as if it came on when the driving left the calm); ``warning_lead_s_median``
@@ -73,10 +74,8 @@ def _onsets(warning: np.ndarray) -> np.ndarray:
 
 
 def _lead(time_s: np.ndarray, util: np.ndarray, warning: np.ndarray) -> float | None:
-    above = util >= LIMIT_UTIL
-    rise = above & ~np.concatenate(([True], above[:-1]))  # (from below: a limit the run starts in is not one)
-    hit = np.flatnonzero(rise & (time_s >= time_s[0] + STARTUP_S))
-    if not len(hit):
+    hit = np.flatnonzero(util >= LIMIT_UTIL)
+    if not len(hit) or time_s[hit[0]] < time_s[0] + STARTUP_S:  # (never, or first in the start-up: not scored)
         return None
     i = int(hit[0])
     on = _onsets(warning)
@@ -84,7 +83,10 @@ def _lead(time_s: np.ndarray, util: np.ndarray, warning: np.ndarray) -> float | 
         start = int(on[on <= i][-1]) if np.any(on <= i) else 0
         return float(time_s[i] - time_s[start + _calm_end(time_s[start:i + 1], util[start:i + 1])])
     later = on[on > i]
-    return float(time_s[i] - time_s[int(later[0])]) if len(later) else float(time_s[i] - time_s[-1])
+    if len(later):
+        return float(time_s[i] - time_s[int(later[0])])
+    tick = float(np.median(np.diff(time_s))) if len(time_s) > 1 else 0.0
+    return float(time_s[i] - time_s[-1]) - tick  # (never warned: as if at the first tick after the run, < 0)
 
 
 def _calm_end(time_s: np.ndarray, util: np.ndarray) -> int:
@@ -254,16 +256,17 @@ def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None
     return {"overall": pool(scored), "runs": per}
 
 
-def grip_markdown(result: Mapping[str, Any] | None) -> str:
-    """One Markdown line of the pooled grip figures (empty without any)."""
+def grip_markdown(result: Mapping[str, Any] | None, label: str = "") -> str:
+    """One Markdown line of the pooled grip figures (empty without any); ``label`` says which runs they are."""
     if not result:
         return ""
     o = result["overall"]
+    which = f"{label}: " if label else ""
 
     def f(v: Any, fmt: str) -> str:
         return "—" if v is None else format(v, fmt)
 
-    return (f"Grip ({o['runs']} runs with the truth): mu within +-0.1 {f(o['mu_within_0_1_share'], '.3f')} of "
+    return (f"Grip ({which}{o['runs']} runs with the truth): mu within +-0.1 {f(o['mu_within_0_1_share'], '.3f')} of "
             f"{o['mu_scored']} samples given (with a known true mu), p90 |error| {f(o['mu_abs_err_p90'], '.3f')}, "
             f"interval holds the truth in "
             f"{f(o.get('mu_interval_cover_share'), '.3f')}; given in "

@@ -55,9 +55,11 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
 
     Returns:
         ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite", "envelope", "grip",
-        "runs_trained_on"}, "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle", "dropped_nonfinite",
-        "envelope", "grip", "trained_on"}, ...]}``
-        in the order of ``runs``; ``envelope`` is :func:`envelope_split` (None when the card states none);
+        "runs_trained_on", ["never_trained_on"]}, "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle",
+        "dropped_nonfinite", "envelope", "grip", "trained_on"}, ...]}``
+        in the order of ``runs``; ``never_trained_on`` (only where the card lists some of the runs and not all):
+        wheel metrics, ``runs`` and ``grip`` of the runs the card does not list, the figures that are a test;
+        ``envelope`` is :func:`envelope_split` (None when the card states none);
         ``grip`` the grip margin's figures (:mod:`virtsensor.learning.gripscore`; None for a run without the
         simulator's grip truth, and overall when no run has it).
 
@@ -113,6 +115,13 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
         r["grip"] = None if grip is None else grip["runs"][r["file"]]
         r["trained_on"] = id(run) in seen
     overall["runs_trained_on"] = len(seen)
+    fresh = [i for i, run in enumerate(runs) if id(run) not in seen]
+    if seen and fresh:  # (the figures a reader can take as a test: the runs the card does not list)
+        unseen = metrics(np.concatenate([ys[i] for i in fresh]), np.concatenate([ps[i] for i in fresh]))
+        g = score_grip(model, [runs[i] for i in fresh])
+        unseen["grip"] = None if g is None else g["overall"]
+        unseen["runs"] = len(fresh)
+        overall["never_trained_on"] = unseen
     return {"model": {"file": str(getattr(model, "path", "")), "sha256": model.card.get("sha256")},
             "overall": overall, "runs": per_run}
 
@@ -155,13 +164,23 @@ def markdown(result: dict[str, Any]) -> str:
             text += f" {100 * e['outside_share']:.1f} % | {side[0]} | {side[1]} |"
         return text
 
-    lines += [row(r["file"], r) for r in result["runs"]]
+    lines += [row(r["file"] + (" (trained on)" if r.get("trained_on") else ""), r) for r in result["runs"]]
     lines.append(row("**all runs**", result["overall"]))
     o = result["overall"]
+    fresh = o.get("never_trained_on")
+    if fresh is not None:
+        lines.append(f"| **the {fresh['runs']} runs never trained on** | {fresh['n']} | {fresh['r2']:.3f} | "
+                     f"{fresh['mae_nm']:.2f} | {fresh['fl']['r2']:.3f} / {fresh['fr']['r2']:.3f} | "
+                     f"{fresh['axle']['r2']:.3f} / {fresh['axle']['mae_nm']:.2f} |" + (" — | — | — |" if env else ""))
+    if o.get("runs_trained_on"):
+        lines += ["", f"{o['runs_trained_on']} of these runs the model was trained on (its card lists them, marked "
+                      "\"trained on\"): in-sample, not a test; \"all runs\" includes them."]
     if "pressure_unknown_rows" in o:
         lines += ["", f"{o['pressure_unknown_rows']} of {o['n']} samples had no known front tyre pressure (no TPMS, "
                       f"or a sensor missing): estimated by the pressure-free fallback `{o['fallback']['file']}`, as "
                       "the daemon publishes them (DEGRADED)."]
     grip = o.get("grip")
     tail = "" if grip is None else "\n" + grip_markdown({"overall": grip})
+    if fresh is not None and fresh.get("grip") is not None:
+        tail += grip_markdown({"overall": fresh["grip"]}, "the runs never trained on")
     return "\n".join(lines) + "\n" + tail
