@@ -770,3 +770,19 @@ def test_train_refuses_a_feature_that_never_varies_naming_it(tmp_path, capsys):
     assert re.search(r"--data: feature \S*motor_torque\S* of the 'paper' features is 12\.5 in every one of the \d+ "
                      r"rows of 4 run\(s\): a model cannot learn what it does", err), err
     assert not (tmp_path / "m.onnx").exists()
+
+
+@pytest.mark.parametrize("column", ["ax_mps2", "time_s"])
+def test_a_huge_value_gives_the_one_line_and_no_numpy_warning_before_it(tmp_path, capsys, column):
+    """1e308 in a bus signal or the time overflowed the run's digest first: a numpy RuntimeWarning (two lines)
+    came before the one-line refusal."""
+    t = _table()
+    t[column][50] = 1e308
+    write_csv(tmp_path / "a.csv", t)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (what the command line shows as lines, raised here)
+        code = main(["score", "--data", str(tmp_path / "a.csv"), "--json", str(tmp_path / "o.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and f"column {column}, row 5" in err, err
