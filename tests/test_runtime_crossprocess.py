@@ -194,3 +194,33 @@ def test_socketcan_vcan0(setup):
     assert rc == 0, daemon.stderr.read()
     out = _check_outputs(got)
     assert out["both_valid"] >= 0.8 * REPLAY_S * 20, out
+
+
+@pytest.mark.slow
+def test_the_benchs_cross_process_daemon_ends_with_the_process_that_started_it(setup, tmp_path):
+    """``virtsensor bench`` interrupted alone (a supervisor's SIGINT, ``timeout``) killed its cross-process driver
+    with SIGKILL, and the daemon that driver had started ran on for good as an orphan (and SIGTERM left its files
+    in /tmp). Now the kernel stops the daemon (SIGTERM) when the driver dies, however it dies."""
+    prefix = _netns_prefix()
+    pytest.importorskip("msgpack", reason="python-can's udp_multicast interface needs msgpack (pip install msgpack)")
+    work = tmp_path / "w"
+    work.mkdir()
+    drv = subprocess.Popen([*prefix, sys.executable, "-m", "virtsensor.daemon.xproc", str(setup / "sat.onnx"),
+                            str(work / "x.json"), "100000", str(work)], env=_env(), stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL)
+    log = work / "daemon.log"
+    try:
+        for _ in range(300):
+            if log.exists() and '"event":"started"' in log.read_text():
+                break
+            time.sleep(0.1)
+        assert '"event":"started"' in log.read_text(), log.read_text()[-500:]
+        drv.kill()  # (SIGKILL: no finally of the driver's runs)
+        drv.wait(5)
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and '"event":"shutdown"' not in log.read_text():
+            time.sleep(0.1)
+        assert '"event":"shutdown"' in log.read_text(), log.read_text()[-500:]
+    finally:
+        if drv.poll() is None:
+            drv.kill()

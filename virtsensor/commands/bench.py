@@ -46,6 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from virtsensor.daemon.bench import run_bench, to_json, write_histogram, write_markdown
     from virtsensor.fileio import staged_files
+    from virtsensor.interrupt import sigterm_interrupts
 
     def say(text: str) -> None:
         if not args.quiet:
@@ -55,9 +56,10 @@ def run(args: argparse.Namespace) -> int:
         from virtsensor import plotting
 
         plotting.require("--histogram")  # (before minutes of measuring, not after)
-    r = run_bench(args.model, quick=args.quick, soak_ticks=args.soak_ticks,
-                  cross_process=not args.no_cross_process, progress=say,
-                  cpu_latency_us=None if args.no_cpu_latency else args.cpu_latency_us or 0)
+    with sigterm_interrupts():  # (a supervisor's stop ends the cross-process daemon and its files, as Ctrl-C)
+        r = run_bench(args.model, quick=args.quick, soak_ticks=args.soak_ticks,
+                      cross_process=not args.no_cross_process, progress=say,
+                      cpu_latency_us=None if args.no_cpu_latency else args.cpu_latency_us or 0)
     text = to_json(r)
     with staged_files(args.json, args.markdown, args.histogram) as (json_tmp, md_tmp, hist_tmp):  # (all or none)
         if json_tmp is not None:

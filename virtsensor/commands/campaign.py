@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 from virtsensor.commands._simargs import add_car_arguments, car_from_args, sim_errors
-from virtsensor.errors import Terminated, UserError
+from virtsensor.errors import UserError
+from virtsensor.interrupt import sigterm_interrupts
 from virtsensor.recordings.files import WRITE_FORMATS as FORMATS
 
 HELP = "simulate a whole data-set preset (e.g. the paper's Table I campaign) in parallel"
@@ -43,22 +40,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_car_arguments(parser)
 
 
-@contextmanager
-def _sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM ends the campaign like Ctrl-C: workers killed, files removed; exit 143 (Ctrl-C: 130)."""
-    def handler(signum, frame):
-        raise Terminated
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def run(args: argparse.Namespace) -> int:
     from sim.campaign import PRESETS, draw_pressures, outcome_tally
     from virtsensor.recordings.campaign import write_campaign
@@ -77,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     info = {"preset": args.preset, "seed": args.seed, "overrides": args.overrides,
             "param_files": args.param_files, "pressure_bar": args.pressure_bar,
             "pressures": "drawn per run" if drawn else "forced" if args.pressure_bar is not None else "the car's"}
-    with sim_errors(), _sigterm_interrupts():
+    with sim_errors(), sigterm_interrupts():
         manifest = write_campaign(requests, params, Path(args.out), fmt=args.format, info=info, n_jobs=args.jobs,
                                   batch_size=args.batch_size, backend=args.backend, progress=not args.quiet)
     runs, samples, simulated, wall = len(manifest["runs"]), manifest["samples"], manifest["simulated_s"], \

@@ -127,10 +127,22 @@ def _wait_started(log_path: Path, proc: subprocess.Popen, timeout_s: float = 30.
 def main(argv: list[str]) -> int:
     """Inside the namespace: ``MODEL OUT.json N_TICKS WORKDIR``. Loopback up for multicast, daemon started,
     ticks driven, daemon stopped; the daemon's stderr goes to ``WORKDIR/daemon.log``. Returns 0, or 1 when
-    the set-up or the daemon failed (the reason on stderr)."""
-    from virtsensor.daemon.layout import SYNC_ID
+    the set-up or the daemon failed (the reason on stderr). SIGTERM, or bench's end (the kernel's SIGTERM), stops
+    the daemon first."""
+    from virtsensor.interrupt import end_with_parent, sigterm_interrupts
 
     model, out, n_ticks, work = argv[0], Path(argv[1]), int(argv[2]), Path(argv[3])
+    end_with_parent(signal.SIGTERM)  # (bench gone, even by SIGKILL: this ends, and stops the daemon below)
+    with sigterm_interrupts():
+        return _run_daemon(model, out, n_ticks, work)
+
+
+def _run_daemon(model: str, out: Path, n_ticks: int, work: Path) -> int:
+    """Loopback up, the daemon started (ended by the kernel if this process dies first), ticks driven, daemon
+    stopped (SIGTERM, then SIGKILL after 10 s)."""
+    from virtsensor.daemon.layout import SYNC_ID
+    from virtsensor.interrupt import end_with_parent
+
     for args in _LO_SETUP:
         r = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=20)
         if r.returncode != 0:
@@ -140,7 +152,8 @@ def main(argv: list[str]) -> int:
     with open(log_path, "w") as log_file:
         daemon = subprocess.Popen([sys.executable, "-m", "virtsensor.cli", "run", "--model", model, "--interface",
                                    "udp_multicast", "--channel", MULTICAST_GROUP, "--sync-id", f"0x{SYNC_ID:X}",
-                                   "--log-level", "info"], stdout=subprocess.DEVNULL, stderr=log_file, cwd=work)
+                                   "--log-level", "info"], stdout=subprocess.DEVNULL, stderr=log_file, cwd=work,
+                                  preexec_fn=end_with_parent)  # (one thread here: prctl after the fork is safe)
         try:
             if not _wait_started(log_path, daemon):
                 print("the daemon did not start", file=sys.stderr)
