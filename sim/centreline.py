@@ -63,7 +63,7 @@ import scipy.sparse.linalg as sparse_linalg
 from scipy import interpolate
 from scipy.spatial import cKDTree
 
-from sim.track import MAX_LAP_M, MIN_LAP_M, Track, TrackError, check_lap_length, numeric_csv
+from sim.track import MAX_LAP_M, MIN_LAP_M, Track, TrackError, check_lap_length, check_readable, numeric_csv
 
 __all__ = [
     "BRIDGE_MIN_ANGLE_DEG", "BRIDGE_MIN_LOOP_M",
@@ -145,8 +145,7 @@ def read_points(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     suffix = p.suffix.lower()
     if suffix not in (".csv", ".geojson", ".json"):
         raise TrackError(f"{p}: unknown centreline format {suffix or '(none)'}; use .csv (x_m,y_m) or .geojson")
-    if not p.is_file():
-        raise TrackError(f"{p}: no such file")
+    check_readable(p)
     if suffix == ".csv":
         return _read_xy_csv(p), {"source": "csv"}
     lonlat, props = read_geojson_lonlat(p)

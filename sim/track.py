@@ -271,6 +271,23 @@ def load_magny_cours() -> Track:
     return load_track("magny-cours")
 
 
+def check_readable(path: Path) -> None:
+    """Refuse a centreline file that is missing, not a regular file (a directory, a pipe) or not readable, naming it.
+
+    Raises:
+        TrackError: ``<path>: no such file`` / ``not a regular file`` / ``not readable (<reason>)``.
+    """
+    if not path.exists():
+        raise TrackError(f"{path}: no such file")
+    if not path.is_file():
+        raise TrackError(f"{path}: not a regular file")
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        raise TrackError(f"{path}: not readable ({exc.strerror or exc})") from None
+
+
 def load_track(spec: str | Path, **derive_options: float) -> Track:
     """A circuit by bundled name (:data:`BUNDLED_TRACKS`), a random one (``random:SEED``,
     :mod:`sim.randomtrack`) or from a file.
@@ -298,7 +315,9 @@ def load_track(spec: str | Path, **derive_options: float) -> Track:
     if path.suffix == "" and not path.exists():
         raise TrackError(f"unknown circuit {name!r}: name one of {', '.join(BUNDLED_TRACKS)}, random:SEED, "
                          "or give a .csv or .geojson file")
-    if path.suffix.lower() == ".csv" and path.is_file():
+    if path.suffix.lower() in (".csv", ".geojson", ".json"):
+        check_readable(path)
+    if path.suffix.lower() == ".csv":
         text = path.read_text(encoding="utf-8-sig", errors="replace")
         header = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
         if tuple(c.strip() for c in header.split(",")) == COLUMNS:

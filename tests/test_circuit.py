@@ -528,3 +528,28 @@ def test_a_line_inside_a_corner_is_moved_on_to_the_next_straight(tmp_path: Path)
     head = np.hypot(*(plan.path[1:10] - plan.path[:9]).T)
     turn = np.abs(np.diff(np.unwrap(np.arctan2(*(plan.path[1:11] - plan.path[:10]).T[::-1]))))
     assert (turn / head).max() < 0.003  # (the path the car starts on is straight)
+
+
+def test_a_centreline_that_is_no_readable_file_is_named_as_such(tmp_path: Path, capsys, monkeypatch) -> None:
+    """A pipe was "no such file", and a file the user may not read ended the command as a machine failure (exit 1,
+    a bare "Permission denied")."""
+    import builtins
+    import os
+
+    pipe = tmp_path / "pipe.csv"
+    os.mkfifo(pipe)
+    with pytest.raises(TrackError, match=r"pipe\.csv: not a regular file$"):
+        load_track(str(pipe))
+    locked = write_xy(tmp_path / "locked.geojson", stadium())
+    real_open = builtins.open
+
+    def guarded(file, *a, **k):
+        if str(file) == str(locked):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", guarded)
+    assert main(["simulate", "circuit", "--track", str(locked), "--speed", "100", "--mu", "0.5", "--out",
+                 str(tmp_path / "o.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.strip().endswith("locked.geojson: not readable (Permission denied)") and err.count("\n") == 1, err

@@ -415,3 +415,18 @@ def test_the_bundled_recordings_are_what_the_simulator_makes_today(tmp_path, whi
         for sig in msg.signals:
             if not sig.name.endswith("CRC"):
                 assert abs(va[sig.name] - vb[sig.name]) <= abs(sig.scale) * (1 + 1e-9), (msg.name, sig.name)
+
+
+def test_the_default_plot_is_skipped_where_it_cannot_be_written_but_an_asked_one_is_refused(tmp_path, monkeypatch):
+    """``virtsensor demo`` in a read-only directory refused to run (its default figures/demo.png), though the user
+    had asked for no plot; the base install, without matplotlib, ran there. A --plot asked for is still refused."""
+    from virtsensor import demo as d
+    from virtsensor.errors import UserError
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "figures").write_text("a file where the folder would go\n")
+    monkeypatch.setattr(d, "_matplotlib_missing", lambda: None)  # (as with the plots extra installed)
+    opts = d._options(None, None, 1.0, d.DEFAULT_PLOT, None, plot_optional=True)
+    assert opts.plot_skip is not None and "figures" in opts.plot_skip and opts.limit_plot is None
+    with pytest.raises(UserError, match="--plot"):
+        d._options(None, None, 1.0, d.DEFAULT_PLOT, None)

@@ -394,3 +394,14 @@ def test_simulate_with_a_different_rear_tyre(tmp_path: Path) -> None:
     sat = t["sat_fr_nm"]
     assert float(np.sqrt(np.mean((sat - front) ** 2))) < 0.05 * float(np.sqrt(np.mean(sat**2)))
     assert float(np.max(np.abs(t["yaw_rate_radps"] - runs["default"]["yaw_rate_radps"]))) > 0.02
+
+
+def test_a_tyre_file_that_is_a_pipe_is_not_called_missing(tmp_path, capsys):
+    """``virtsensor tyre fifo.tir`` said "no such tyre property file" for a path that exists."""
+    import os
+
+    pipe = tmp_path / "fifo.tir"
+    os.mkfifo(pipe)
+    assert main(["tyre", str(pipe)]) == 2
+    err = capsys.readouterr().err
+    assert err.strip().endswith(f"{pipe}: not a regular file, give a .tir file") and err.count("\n") == 1, err

@@ -298,8 +298,10 @@ class _Plan:
 
 
 def _options(model: str | os.PathLike | None, recording: str | os.PathLike | None, rate: float | str | None,
-             plot: str | os.PathLike | None, json_path: str | os.PathLike | None) -> _Options:
-    """Resolve the defaults and refuse bad arguments before any work (UserError)."""
+             plot: str | os.PathLike | None, json_path: str | os.PathLike | None,
+             plot_optional: bool = False) -> _Options:
+    """Resolve the defaults and refuse bad arguments before any work (UserError); an optional plot (the default
+    one) that cannot be written is skipped with the reason instead."""
     from virtsensor.recordings.replay import parse_rate
 
     rate_f = parse_rate(rate) if isinstance(rate, str) else (None if rate is None else float(rate))
@@ -314,6 +316,12 @@ def _options(model: str | os.PathLike | None, recording: str | os.PathLike | Non
     plot_skip = _matplotlib_missing() if plot_path is not None else "no plot asked for"
     json_file = Path(json_path) if json_path is not None else None
     # refusals first, before any work
+    if plot_path is not None and plot_skip is None and plot_optional:
+        try:  # (a read-only working directory: the demo runs, without its default plot)
+            check_writable(plot_path, "the plot")
+            check_writable(limit_plot_path(plot_path), "the plot")
+        except UserError as exc:
+            plot_skip = f"{exc}; give --plot FILE.png elsewhere"
     if plot_path is not None and plot_skip is None:
         check_writable(plot_path, "--plot")
     if json_file is not None:
@@ -365,6 +373,7 @@ def run_demo(
     plot: str | os.PathLike | None = DEFAULT_PLOT,
     json_path: str | os.PathLike | None = None,
     out: TextIO | None = None,
+    plot_optional: bool = False,
 ) -> dict[str, Any]:
     """Replay ``recording`` (default: the bundled one) to the daemon running ``model`` and compare.
 
@@ -373,7 +382,8 @@ def run_demo(
         recording: CAN log with the model's inputs and ideally ``TE_WheelForceTransducer`` (the reference).
         rate: replay speed factor (1.0 real time) or ``"max"``/None.
         live: print a line about every :data:`LIVE_TTY_S` s (terminal) or :data:`LIVE_PIPE_S` s (pipe).
-        plot: PNG to write (None: none); skipped with a reason when matplotlib is missing.
+        plot: PNG to write (None: none); skipped with a reason when matplotlib is missing, or, with
+            ``plot_optional`` (the command line's default plot, not one asked for), when it cannot be written.
         json_path: write the figures as JSON there.
         out: where to print (default stdout).
 
@@ -390,7 +400,7 @@ def run_demo(
     """
     out = out or sys.stdout
     wall0 = time.monotonic()
-    opts = _options(model, recording, rate, plot, json_path)
+    opts = _options(model, recording, rate, plot, json_path, plot_optional)
     plan = _plan(opts.rec_path)
     result, model_sha256 = _run_daemon(opts, plan, live, out)
     ticks: _Ticks = result.pop("_ticks")

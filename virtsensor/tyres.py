@@ -77,6 +77,8 @@ def resolve_tyre_file(name: str | Path) -> Path:
                 return bundled_tir(candidate)
     if path.is_dir():
         raise UserError(f"{name}: is a directory, give a .tir file")
+    if path.exists():  # (a pipe, a device: there, but no file to read)
+        raise UserError(f"{name}: not a regular file, give a .tir file")
     raise UserError(f"{name}: no such tyre property file (bundled: {', '.join(bundled_tyres())})")
 
 

@@ -50,5 +50,6 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:  # (a plot asked for is drawn or refused; the default one is skipped with a note)
         plotting.require("--plot")
     result = run_demo(model=args.model, recording=args.recording, rate=args.rate, live=args.live,
-                      plot=DEFAULT_PLOT if args.plot is None else args.plot, json_path=args.json_path)
+                      plot=DEFAULT_PLOT if args.plot is None else args.plot, json_path=args.json_path,
+                      plot_optional=args.plot is None)
     return 130 if result["interrupted"] else 0
