@@ -786,3 +786,32 @@ def test_a_huge_value_gives_the_one_line_and_no_numpy_warning_before_it(tmp_path
         code = main(["score", "--data", str(tmp_path / "a.csv"), "--json", str(tmp_path / "o.json")])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and f"column {column}, row 5" in err, err
+
+
+def test_score_reads_the_can_logs_replay_plays_gzip_text_logs_and_python_cans_csv(tmp_path, capsys):
+    """``replay`` and ``demo`` played a ``.asc.gz``/``.log.gz`` log and python-can's CSV CAN log; ``score`` and
+    ``train`` refused the first as "unsupported file type '.gz'" and read the second as a table ("unknown column
+    'timestamp'"). They read them now, to the same figures as the original log; a .blf.gz stays refused."""
+    import can
+
+    src = "sim/data/recordings/random-steer_70kmh_mu0.7_seed4.blf"
+    from pathlib import Path
+
+    src = str(Path(__file__).resolve().parent.parent / src)
+    maes = []
+    for name in ("run.blf", "run.asc.gz", "run.log.gz", "run.csv"):
+        with can.LogReader(src) as r, can.Logger(str(tmp_path / name)) as w:
+            for m in r:
+                w.on_message_received(m)
+        out = tmp_path / f"{name}.json"
+        assert main(["score", "--data", str(tmp_path / name), "--json", str(out)]) == 0, capsys.readouterr().err
+        maes.append(json.loads(out.read_text())["overall"]["mae_nm"])
+    assert len(set(maes)) == 1, maes
+    folder = tmp_path / "logs"
+    folder.mkdir()
+    os.replace(tmp_path / "run.asc.gz", folder / "run.asc.gz")
+    assert main(["score", "--data", str(folder), "--json", str(tmp_path / "f.json")]) == 0  # (found in a folder)
+    (tmp_path / "x.blf.gz").write_bytes(b"\x1f\x8b")
+    capsys.readouterr()
+    assert main(["score", "--data", str(tmp_path / "x.blf.gz"), "--json", str(tmp_path / "o.json")]) == 2
+    assert "unsupported file type '.gz'" in capsys.readouterr().err

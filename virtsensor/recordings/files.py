@@ -48,8 +48,11 @@ TABLE_SUFFIXES: tuple[str, ...] = (".csv",)
 LOG_SUFFIXES: tuple[str, ...] = (".blf", ".asc", ".log", ".trc")
 #: ... an MDF4 file (the ``mdf`` extra).
 MDF_SUFFIXES: tuple[str, ...] = (".mf4", ".mdf")
-#: Every suffix a recording may have (lower case).
+#: Every suffix a recording may have (lower case); a text CAN log may also be gzip-compressed (``.asc.gz``:
+#: :func:`recording_kind`).
 SUFFIXES = TABLE_SUFFIXES + LOG_SUFFIXES + MDF_SUFFIXES
+#: CAN log formats that python-can reads gzip-compressed too (``<name>.asc.gz``), as ``replay`` and ``demo`` do
+GZ_LOG_SUFFIXES: tuple[str, ...] = (".asc", ".log", ".trc")
 #: What ``simulate`` and ``campaign`` write a run as (suffix without the dot): the table or a CAN log.
 WRITE_FORMATS: tuple[str, ...] = tuple(s[1:] for s in TABLE_SUFFIXES + LOG_SUFFIXES)
 
@@ -62,9 +65,19 @@ class Source:
     entry: dict[str, Any] | None = None
 
 
+def recording_kind(path: Path) -> str:
+    """The suffix that says how a recording is read (lower case): its last one, or for a gzip-compressed text CAN
+    log (``run.asc.gz``) the one before ``.gz``; ``""`` without one."""
+    sfx = [x.lower() for x in Path(path).suffixes]
+    if len(sfx) >= 2 and sfx[-1] == ".gz" and sfx[-2] in GZ_LOG_SUFFIXES:
+        return sfx[-2]
+    return sfx[-1] if sfx else ""
+
+
 def _unsupported(path: Path) -> UserError:
     return UserError(f"{path}: unsupported file type {path.suffix or '(none)'!r} "
-                     f"(a recording is one of {', '.join(SUFFIXES)})")
+                     f"(a recording is one of {', '.join(SUFFIXES)}; {', '.join(GZ_LOG_SUFFIXES)} also "
+                     "gzip-compressed, ending in .gz)")
 
 
 def _check_campaign(d: Path) -> None:
@@ -113,7 +126,7 @@ def _directory(d: Path) -> list[Source]:
     if (d / MANIFEST).exists():
         out = []
         for path, entry in listed_runs(d):
-            if path.suffix.lower() not in SUFFIXES:
+            if recording_kind(path) not in SUFFIXES:
                 raise _unsupported(path)
             out.append(_linked(path, entry) if path.is_symlink() else Source(path, entry))
         if not out:
@@ -123,7 +136,7 @@ def _directory(d: Path) -> list[Source]:
         if _holds_recordings(sub):
             raise UserError(f"{sub}: a folder of recordings inside {d}, whose folders are not read: give it too, or "
                             "move it out")
-    found = sorted(f for f in d.iterdir() if not is_hidden(f) and f.suffix.lower() in SUFFIXES)
+    found = sorted(f for f in d.iterdir() if not is_hidden(f) and recording_kind(f) in SUFFIXES)
     for f in found:
         if not f.is_file():  # (a run the directory seems to hold and does not: never skipped without a word)
             what = (f"a link to nothing ({f.readlink()}): the run it named is gone" if f.is_symlink() and
@@ -139,7 +152,7 @@ def _holds_recordings(folder: Path) -> bool:
     cannot be read (a root-only ``lost+found`` on a data stick) holds none that could be read either."""
     try:
         return (folder / MANIFEST).exists() or any(
-            not is_hidden(f) and f.suffix.lower() in SUFFIXES for f in folder.iterdir())
+            not is_hidden(f) and recording_kind(f) in SUFFIXES for f in folder.iterdir())
     except OSError:
         return False
 
@@ -147,7 +160,7 @@ def _holds_recordings(folder: Path) -> bool:
 def _file(p: Path) -> Source:
     if is_hidden(p):
         raise UserError(f"{p}: {_hidden(p)}")
-    if p.suffix.lower() not in SUFFIXES:
+    if recording_kind(p) not in SUFFIXES:
         raise _unsupported(p)
     source = _as_campaign_run(p)
     return _linked(p, source.entry) if p.is_symlink() else source
@@ -196,11 +209,13 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
     from virtsensor.recordings.sidecar import check_samples
 
     path = Path(path)
-    suffix = path.suffix.lower()
+    suffix = recording_kind(path)
     if suffix not in SUFFIXES:
         raise _unsupported(path)
     try:
-        if suffix in TABLE_SUFFIXES:
+        if suffix in TABLE_SUFFIXES and _is_can_csv(path):  # (python-can's CSV CAN log, as replay reads it)
+            table = dict(read_log(path).table)
+        elif suffix in TABLE_SUFFIXES:
             table = read_csv(path)
         elif suffix in MDF_SUFFIXES:
             from virtsensor.recordings.mdf import read_mdf
@@ -213,3 +228,13 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
     if "time_s" in table:  # (a table without time is the input check's to refuse, naming the column)
         check_samples(path, len(table["time_s"]))
     return table
+
+
+def _is_can_csv(path: Path) -> bool:
+    """Whether a ``.csv`` file is python-can's CSV CAN log (header ``timestamp,arbitration_id,...``), not a table."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as f:
+            head = f.readline(4096)
+    except OSError:
+        return False  # (the table reader names what is wrong)
+    return [c.strip() for c in head.split(",")[:2]] == ["timestamp", "arbitration_id"]
