@@ -45,23 +45,32 @@ def handled() -> None:
 
 
 @contextmanager
-def sigint_noted() -> Iterator[None]:
-    """For the block, a SIGINT is noted (see :func:`check`) and raises ``KeyboardInterrupt`` as Python's own
-    handler does. Outside the main thread (no signal handlers there) the block runs as it is."""
-    _SEEN.clear()
+def _handler(signum: int, handler: Callable[[int, Any], None]) -> Iterator[None]:
+    """``handler`` for ``signum`` for the block, the previous one after; outside the main thread (no signal
+    handlers there) nothing is installed."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    before = signal.signal(signum, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signum, before)
 
+
+@contextmanager
+def sigint_noted() -> Iterator[None]:
+    """For the block, a SIGINT is noted (see :func:`check`) and raises ``KeyboardInterrupt`` as Python's own
+    handler does. Outside the main thread (no signal handlers there) the block runs as it is."""
     def on_sigint(signum: int, frame: Any) -> None:
         _SEEN.set()
         raise KeyboardInterrupt
 
-    before = signal.signal(signal.SIGINT, on_sigint)
+    _SEEN.clear()
     try:
-        yield
+        with _handler(signal.SIGINT, on_sigint):
+            yield
     finally:
-        signal.signal(signal.SIGINT, before)
         _SEEN.clear()
 
 
@@ -107,15 +116,8 @@ def sigterm_interrupts() -> Iterator[None]:
     runs as it is."""
     from virtsensor.errors import Terminated
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
     def on_sigterm(signum: int, frame: Any) -> None:
         raise Terminated
 
-    before = signal.signal(signal.SIGTERM, on_sigterm)
-    try:
+    with _handler(signal.SIGTERM, on_sigterm):
         yield
-    finally:
-        signal.signal(signal.SIGTERM, before)
