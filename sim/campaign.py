@@ -41,7 +41,6 @@ from sim.api import Request, SimRun, simulate_many
 from sim.driver import Plan
 from sim.engine import OUTCOMES
 from sim.manoeuvres import MANOEUVRES, build_plan
-from virtsensor.interrupt import end_with_parent
 
 PAPER_MU = (1.0, 0.7, 0.5, 0.3, 0.2)
 PAPER_SPEEDS_PER_MANOEUVRE = 4
@@ -163,7 +162,22 @@ PRESETS: dict[str, Callable[[int], list[Request]]] = {
 
 #: polling period (s) of the watchdog that ends a worker whose parent is gone (where prctl is missing)
 WATCHDOG_S = 0.2
+_PR_SET_PDEATHSIG = 1
 _bound_to: int | None = None
+
+
+def _set_pdeathsig(sig: int) -> bool:
+    """Ask the Linux kernel to send ``sig`` to this process when its parent ends."""
+    import ctypes
+    import ctypes.util
+
+    if not os.uname().sysname == "Linux":
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        return libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
 
 
 def _watchdog(parent_pid: int) -> None:
@@ -186,7 +200,7 @@ def bind_to_parent(parent_pid: int) -> None:
     if _bound_to == parent_pid or os.getpid() == parent_pid or os.getppid() != parent_pid:
         return
     _bound_to = parent_pid
-    if not end_with_parent(signal.SIGKILL):
+    if not _set_pdeathsig(signal.SIGKILL):
         threading.Thread(target=_watchdog, args=(parent_pid,), daemon=True, name="campaign-watchdog").start()
     if os.getppid() != parent_pid:  # the parent ended before the binding took effect
         os._exit(1)

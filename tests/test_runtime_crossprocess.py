@@ -197,30 +197,51 @@ def test_socketcan_vcan0(setup):
 
 
 @pytest.mark.slow
-def test_the_benchs_cross_process_daemon_ends_with_the_process_that_started_it(setup, tmp_path):
-    """``virtsensor bench`` interrupted alone (a supervisor's SIGINT, ``timeout``) killed its cross-process driver
-    with SIGKILL, and the daemon that driver had started ran on for good as an orphan (and SIGTERM left its files
-    in /tmp). Now the kernel stops the daemon (SIGTERM) when the driver dies, however it dies."""
-    prefix = _netns_prefix()
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_bench_stopped_alone_leaves_no_daemon_and_no_files(setup, tmp_path, sig):
+    """``virtsensor bench`` interrupted alone (a supervisor's SIGINT, ``timeout``'s SIGTERM) killed its cross-process
+    driver with SIGKILL, and the daemon that driver had started ran on for good as an orphan; SIGTERM also left its
+    files in /tmp. Now bench ends the driver's process group (driver and daemon stop cleanly) and its files."""
+    import signal
+
+    _netns_prefix()
     pytest.importorskip("msgpack", reason="python-can's udp_multicast interface needs msgpack (pip install msgpack)")
-    work = tmp_path / "w"
-    work.mkdir()
-    drv = subprocess.Popen([*prefix, sys.executable, "-m", "virtsensor.daemon.xproc", str(setup / "sat.onnx"),
-                            str(work / "x.json"), "100000", str(work)], env=_env(), stdout=subprocess.DEVNULL,
-                           stderr=subprocess.DEVNULL)
-    log = work / "daemon.log"
+    model = tmp_path / "mine" / "sat.onnx"  # (a path of its own: its daemon is found by it)
+    model.parent.mkdir()
+    for f in ("sat.onnx", "sat.card.json"):
+        shutil.copy(setup / f, model.parent / f)
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+
+    def daemons() -> list[int]:
+        found = []
+        for p in Path("/proc").iterdir():
+            try:
+                cmd = (p / "cmdline").read_bytes() if p.name.isdigit() else b""
+                if b"virtsensor.cli\x00run\x00" in cmd and str(model).encode() in cmd:  # (the daemon, not the driver)
+                    found.append(int(p.name))
+            except OSError:
+                continue
+        return found
+
+    bench = subprocess.Popen([sys.executable, "-m", "virtsensor.cli", "bench", "--quick", "--model", str(model),
+                              "--no-cpu-latency", "--soak-ticks", "200"], env={**_env(), "TMPDIR": str(scratch)},
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        for _ in range(300):
-            if log.exists() and '"event":"started"' in log.read_text():
-                break
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and bench.poll() is None and not daemons():
+            time.sleep(0.2)
+        assert daemons(), "the cross-process daemon never started"
+        time.sleep(1.0)
+        bench.send_signal(getattr(signal, sig))  # (to bench alone, not its process group)
+        rc = bench.wait(30)
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end and daemons():
             time.sleep(0.1)
-        assert '"event":"started"' in log.read_text(), log.read_text()[-500:]
-        drv.kill()  # (SIGKILL: no finally of the driver's runs)
-        drv.wait(5)
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline and '"event":"shutdown"' not in log.read_text():
-            time.sleep(0.1)
-        assert '"event":"shutdown"' in log.read_text(), log.read_text()[-500:]
+        assert not daemons() and rc == {"SIGINT": 130, "SIGTERM": 143}[sig], (rc, bench.stderr.read()[-500:])
+        assert not list(scratch.glob("vs-bench-*"))  # (its temporary directory removed)
     finally:
-        if drv.poll() is None:
-            drv.kill()
+        if bench.poll() is None:
+            bench.kill()
+        for pid in daemons():
+            os.kill(pid, 9)

@@ -6,13 +6,11 @@ line notes every SIGINT it gets (:func:`sigint_noted`, the main thread, for the 
 raise it again once they return (:func:`fitted`), and every staged output checks it before it is put in place
 (:func:`check`, called by :func:`virtsensor.fileio.staged_files` and :func:`~virtsensor.fileio.staged_dir`).
 A command that starts processes of its own ends them with it: :func:`sigterm_interrupts` turns a SIGTERM into the
-same unwinding as Ctrl-C (:class:`~virtsensor.errors.Terminated`, exit 143), and :func:`end_with_parent` asks the
-kernel to signal a child when the process that started it dies (even by SIGKILL).
+same unwinding as Ctrl-C (:class:`~virtsensor.errors.Terminated`, exit 143).
 """
 
 from __future__ import annotations
 
-import os
 import signal
 import threading
 import warnings
@@ -20,11 +18,9 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
 
-__all__ = ["check", "end_with_parent", "fitted", "handled", "sigint_noted", "sigterm_interrupts"]
+__all__ = ["check", "fitted", "handled", "sigint_noted", "sigterm_interrupts"]
 
 _SEEN = threading.Event()
-#: prctl's option: the signal the kernel sends this process when its parent (the thread that started it) ends
-_PR_SET_PDEATHSIG = 1
 #: scikit-learn's warning where its MLP swallowed a KeyboardInterrupt
 _SWALLOWED = "Training interrupted by user"
 
@@ -91,22 +87,6 @@ def fitted(fit: Callable[[], T]) -> T:
         raise KeyboardInterrupt
     check()
     return out
-
-
-def end_with_parent(sig: int = signal.SIGTERM) -> bool:
-    """Ask the Linux kernel to send ``sig`` to the calling process when its parent ends (strictly: the parent's
-    thread that started it); kept across ``exec``. Returns False where that is not available (not Linux), for the
-    caller's fallback. Used as a ``preexec_fn`` or at a child's start."""
-    import ctypes
-    import ctypes.util
-
-    if os.uname().sysname != "Linux":
-        return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        return bool(libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0)
-    except (OSError, AttributeError):
-        return False
 
 
 @contextmanager

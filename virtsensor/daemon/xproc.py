@@ -65,17 +65,41 @@ def measure_e2e_cross_process(model_path: str | os.PathLike, n_ticks: int,
         out = Path(d) / "xproc.json"
         cmd = [*prefix, sys.executable, "-m", "virtsensor.daemon.xproc", str(Path(model_path).resolve()), str(out),
                str(int(n_ticks)), d]
+        # its own process group: the driver and the daemon it starts end with this call however it ends
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=d,
+                                start_new_session=True)
         try:
-            r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=env, cwd=d)
-        except subprocess.TimeoutExpired:
-            return None, f"the cross-process run did not finish within {timeout_s:.0f} s"
+            _, stderr = proc.communicate(timeout=timeout_s)
+        except BaseException as exc:  # (the timeout, Ctrl-C, bench's SIGTERM: no orphan, then the files go)
+            _end_group(proc)
+            if isinstance(exc, subprocess.TimeoutExpired):
+                return None, f"the cross-process run did not finish within {timeout_s:.0f} s"
+            raise
         logs = {n: (Path(d) / n).read_text()[-500:] for n in ("daemon.log",) if (Path(d) / n).exists()}
         if not out.exists():
-            return None, f"the cross-process run failed (rc {r.returncode}): {r.stderr[-500:]} {logs}"
+            return None, f"the cross-process run failed (rc {proc.returncode}): {stderr[-500:]} {logs}"
         res = json.loads(out.read_text())
         if not res.get("n"):
             return None, f"no SAT_FRONT came back across processes ({res.get('lost')} lost): {logs}"
     return res, None
+
+
+def _end_group(proc: subprocess.Popen) -> None:
+    """SIGTERM to ``proc``'s process group (the driver and its daemon: each stops cleanly), SIGKILL after 5 s."""
+    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            proc.wait(wait_s)
+        except subprocess.TimeoutExpired:
+            continue
+        if sig == signal.SIGTERM:  # (the driver is gone; its daemon may still be stopping: the group's last)
+            try:
+                os.killpg(proc.pid, 0)
+            except ProcessLookupError:
+                return
 
 
 def _drive(out_path: Path, n_ticks: int) -> None:
@@ -127,21 +151,19 @@ def _wait_started(log_path: Path, proc: subprocess.Popen, timeout_s: float = 30.
 def main(argv: list[str]) -> int:
     """Inside the namespace: ``MODEL OUT.json N_TICKS WORKDIR``. Loopback up for multicast, daemon started,
     ticks driven, daemon stopped; the daemon's stderr goes to ``WORKDIR/daemon.log``. Returns 0, or 1 when
-    the set-up or the daemon failed (the reason on stderr). SIGTERM, or bench's end (the kernel's SIGTERM), stops
-    the daemon first."""
-    from virtsensor.interrupt import end_with_parent, sigterm_interrupts
+    the set-up or the daemon failed (the reason on stderr). SIGTERM (bench ending the process group) stops the
+    daemon first."""
+    from virtsensor.interrupt import sigterm_interrupts
 
     model, out, n_ticks, work = argv[0], Path(argv[1]), int(argv[2]), Path(argv[3])
-    end_with_parent(signal.SIGTERM)  # (bench gone, even by SIGKILL: this ends, and stops the daemon below)
-    with sigterm_interrupts():
+    with sigterm_interrupts():  # (bench ends the group with SIGTERM: the daemon is stopped in the finally below)
         return _run_daemon(model, out, n_ticks, work)
 
 
 def _run_daemon(model: str, out: Path, n_ticks: int, work: Path) -> int:
-    """Loopback up, the daemon started (ended by the kernel if this process dies first), ticks driven, daemon
-    stopped (SIGTERM, then SIGKILL after 10 s)."""
+    """Loopback up, the daemon started (in this process group), ticks driven, daemon stopped (SIGTERM, then SIGKILL
+    after 10 s)."""
     from virtsensor.daemon.layout import SYNC_ID
-    from virtsensor.interrupt import end_with_parent
 
     for args in _LO_SETUP:
         r = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=20)
@@ -152,8 +174,7 @@ def _run_daemon(model: str, out: Path, n_ticks: int, work: Path) -> int:
     with open(log_path, "w") as log_file:
         daemon = subprocess.Popen([sys.executable, "-m", "virtsensor.cli", "run", "--model", model, "--interface",
                                    "udp_multicast", "--channel", MULTICAST_GROUP, "--sync-id", f"0x{SYNC_ID:X}",
-                                   "--log-level", "info"], stdout=subprocess.DEVNULL, stderr=log_file, cwd=work,
-                                  preexec_fn=end_with_parent)  # (one thread here: prctl after the fork is safe)
+                                   "--log-level", "info"], stdout=subprocess.DEVNULL, stderr=log_file, cwd=work)
         try:
             if not _wait_started(log_path, daemon):
                 print("the daemon did not start", file=sys.stderr)
