@@ -225,7 +225,8 @@ class Track:
         """The same circuit with its line moved to arc length ``s0`` (m, taken modulo the lap, snapped to the
         nearest sample): the same positions, headings and curvatures, driven from there."""
         n = len(self.s) - 1  # (samples of one lap, the closing one left out)
-        i0 = int(np.argmin(np.abs(self.s[:n] - float(s0) % self.length)))
+        d = np.abs(self.s[: n + 1] - float(s0) % self.length)
+        i0 = int(np.argmin(d)) % n  # (the closing sample is the line: s0 just short of a lap snaps to it)
         if i0 == 0:
             return self
         order = np.r_[i0:n, 0:i0]

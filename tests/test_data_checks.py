@@ -799,7 +799,7 @@ def test_score_reads_the_can_logs_replay_plays_gzip_text_logs_and_python_cans_cs
 
     src = str(Path(__file__).resolve().parent.parent / src)
     maes = []
-    for name in ("run.blf", "run.asc.gz", "run.log.gz", "run.csv"):
+    for name in ("run.blf", "run.asc.gz", "run.log.gz", "run.csv", "run.csv.gz"):
         with can.LogReader(src) as r, can.Logger(str(tmp_path / name)) as w:
             for m in r:
                 w.on_message_received(m)
@@ -807,6 +807,10 @@ def test_score_reads_the_can_logs_replay_plays_gzip_text_logs_and_python_cans_cs
         assert main(["score", "--data", str(tmp_path / name), "--json", str(out)]) == 0, capsys.readouterr().err
         maes.append(json.loads(out.read_text())["overall"]["mae_nm"])
     assert len(set(maes)) == 1, maes
+    from virtsensor.recordings.check import table_error  # (a CSV CAN log's rows are ticks, not its lines)
+
+    assert "(line" not in str(table_error(tmp_path / "run.csv", "ax_mps2", 50, "x", "y"))
+    assert "(line 51)" in str(table_error(tmp_path / "table.csv", "ax_mps2", 50, "x", "y"))
     folder = tmp_path / "logs"
     folder.mkdir()
     os.replace(tmp_path / "run.asc.gz", folder / "run.asc.gz")

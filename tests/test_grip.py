@@ -580,7 +580,11 @@ def test_the_lead_is_scored_at_the_first_limit_only_and_an_unwarned_last_row_is_
     t = np.arange(200) * 0.05
     twice = np.where((t >= 0.5) & (t < 0.8) | (t >= 6.0), 0.97, 0.3)  # (a limit in the start-up, one at 6 s)
     m = gs.grip_metrics(t, twice, np.full(200, 0.5), np.full(200, np.nan), t >= 5.0)
-    assert m["warning_lead_s"] is None and not m["reaches_limit"]
+    assert m["warning_lead_s"] is None and m["reaches_limit"] and m["limit_in_startup"]
+    pooled = gs.pool([m])
+    assert pooled["runs_reaching_limit"] == 0 and pooled["runs_limit_in_startup"] == 1
+    assert "over 0 runs reaching 0.95 after their start-up (1 more first at it in their first 1 s, not scored)" in \
+        gs.grip_markdown({"overall": pooled})
     last = gs.grip_metrics(t, np.where(t >= t[-1], 0.97, 0.3), np.full(200, 0.5), np.full(200, np.nan),
                            np.zeros(200, bool))
     assert last["warning_lead_s"] == pytest.approx(-0.05) and gs.pool([last])["limit_warned_share"] == 0.0

@@ -60,14 +60,14 @@ def run(args: argparse.Namespace) -> int:
         r = run_bench(args.model, quick=args.quick, soak_ticks=args.soak_ticks,
                       cross_process=not args.no_cross_process, progress=say,
                       cpu_latency_us=None if args.no_cpu_latency else args.cpu_latency_us or 0)
-    text = to_json(r)
-    with staged_files(args.json, args.markdown, args.histogram) as (json_tmp, md_tmp, hist_tmp):  # (all or none)
-        if json_tmp is not None:
-            json_tmp.write_text(text, encoding="utf-8")
-        if md_tmp is not None:
-            write_markdown(r, md_tmp)
-        if hist_tmp is not None:
-            write_histogram(r, hist_tmp)
+        text = to_json(r)
+        with staged_files(args.json, args.markdown, args.histogram) as (json_tmp, md_tmp, hist_tmp):  # (all or none)
+            if json_tmp is not None:
+                json_tmp.write_text(text, encoding="utf-8")
+            if md_tmp is not None:
+                write_markdown(r, md_tmp)
+            if hist_tmp is not None:
+                write_histogram(r, hist_tmp)
     t = r["targets"]
     for k, v in t.items():
         say(f"{k}: {v['value']} ({v['limit']}) {'met' if v['met'] else 'MISSED'}")

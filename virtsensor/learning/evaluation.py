@@ -187,8 +187,9 @@ def require_rows(ds: Dataset, runs: Sequence[Run], spec_name: str) -> None:
 
 def require_variation(ds: Dataset, spec_name: str) -> None:
     """Refuse a data set in which a feature takes one value in every row (a signal that never varied in any run):
-    a model cannot learn what it does, its scaler divides by a variance of zero (scikit-learn then takes 1) and the
-    card's validity envelope would mark any other value outside. NaN rows (an optional feature) are left out.
+    a model cannot learn what it does, its scaler has no spread to scale it by (scikit-learn then scales by 1) and
+    the card's validity envelope would mark any other value outside. NaN rows (an optional feature) are left out.
+    (A feature that varies in few rows passes: the check is for a signal that never moved.)
 
     Raises:
         UserError: ``--data: feature <name> of the <spec> features is <value> in every one of the <n> rows...``.
@@ -276,9 +277,10 @@ def markdown_table(result: Mapping[str, Any]) -> str:
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     env = envelope_table(result)
     # (the shipped model's grip margin, where runs carry its truth: held out, then --data apart)
-    grip = grip_markdown(result.get("grip"), "the track's laps and the circuits, never trained on")
-    grip += grip_markdown(result.get("grip_data"), "the --data runs, which the shipped model was likely trained on: "
-                                                   "in-sample, not a test")
+    held = grip_markdown(result.get("grip"), "the track's laps and the circuits, never trained on")
+    data = grip_markdown(result.get("grip_data"), "the --data runs, which the shipped model was likely trained on: "
+                                                  "in-sample, not a test")
+    grip = "\n".join(g for g in (held, data) if g)  # (two paragraphs)
     return "\n".join(lines) + "\n" + ("\n" + env if env else "") + ("\n" + grip if grip else "")
 
 

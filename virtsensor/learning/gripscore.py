@@ -24,8 +24,11 @@ Figures (keys of :func:`grip_metrics` and of the pooled :func:`pool`):
   where the true utilisation stayed below 0.7 for :data:`FALSE_WINDOW_S` or longer within the episode, the
   lead counts from the end of the latest such stretch (so a warning that is simply kept on, or held for long
   after an earlier corner, scores as if it came on when the driving left the calm); ``warning_lead_s_median``
-  pools the runs' leads (null where no run reaches 0.95); ``limit_warned_share`` (pooled only) is the share of
-  those runs whose warning was on by that instant (a lead >= 0: the limit was not reached unwarned);
+  pools the runs' leads (null where no run reaches 0.95; ``runs_reaching_limit`` counts the runs scored,
+  ``runs_limit_in_startup`` those first at the limit in their start-up; per run ``reaches_limit`` says whether it
+  reaches 0.95 at all, ``limit_in_startup`` whether first in the start-up); ``limit_warned_share`` (pooled only)
+  is the share of those runs whose warning was on by that instant (a lead >= 0: the limit was not reached
+  unwarned);
 * ``false_warnings_per_10min``: warning onsets while the true utilisation stays below 0.7 from
   :data:`FALSE_WINDOW_S` before to as long after the onset, per 10 minutes of driving below 0.7.
 
@@ -128,7 +131,9 @@ def grip_metrics(time_s: np.ndarray, util_true: np.ndarray, mu_true: np.ndarray,
         "mu_interval_cover_share": float(np.mean(covered)) if covered is not None and len(err) else None,
         "mu_given_share_above_0_6": float(given[excited].mean()) if excited.any() else None,
         "excited": int(excited.sum()), "excited_given": int((given & excited).sum()),
-        "reaches_limit": lead is not None, "warning_lead_s": lead,
+        "reaches_limit": bool(np.any(util_true >= LIMIT_UTIL)),
+        "limit_in_startup": bool(lead is None and np.any(util_true >= LIMIT_UTIL)),  # (first there: not scored)
+        "warning_lead_s": lead,
         "warning_lead_s_median": lead,
         "false_warnings": n_false, "calm_s": calm_s,
         "false_warnings_per_10min": 600.0 * n_false / calm_s if calm_s > 0 else None,
@@ -154,6 +159,7 @@ def pool(per_run: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "mu_given_share_above_0_6": sum(r["excited_given"] for r in per_run) / excited if excited else None,
         "excited": excited,
         "runs_reaching_limit": len(leads),
+        "runs_limit_in_startup": sum(bool(r.get("limit_in_startup")) for r in per_run),
         "warning_lead_s_median": float(np.median(leads)) if leads else None,
         "limit_warned_share": float(np.mean([x >= 0.0 for x in leads])) if leads else None,
         "warning_lead_s_min": float(np.min(leads)) if leads else None,
@@ -256,6 +262,11 @@ def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None
     return {"overall": pool(scored), "runs": per}
 
 
+def _startup_note(o: Mapping[str, Any]) -> str:
+    n = o.get("runs_limit_in_startup") or 0
+    return f" ({n} more first at it in their first {STARTUP_S:g} s, not scored)" if n else ""
+
+
 def grip_markdown(result: Mapping[str, Any] | None, label: str = "") -> str:
     """One Markdown line of the pooled grip figures (empty without any); ``label`` says which runs they are."""
     if not result:
@@ -271,5 +282,6 @@ def grip_markdown(result: Mapping[str, Any] | None, label: str = "") -> str:
             f"interval holds the truth in "
             f"{f(o.get('mu_interval_cover_share'), '.3f')}; given in "
             f"{f(o['mu_given_share_above_0_6'], '.3f')} of samples above 0.6 utilisation; warning lead median "
-            f"{f(o['warning_lead_s_median'], '.2f')} s over {o['runs_reaching_limit']} runs reaching 0.95; "
+            f"{f(o['warning_lead_s_median'], '.2f')} s over {o['runs_reaching_limit']} runs reaching 0.95 after their "
+            f"start-up{_startup_note(o)}; "
             f"{f(o['false_warnings_per_10min'], '.2f')} false warnings per 10 min below 0.7.\n")

@@ -55,9 +55,11 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
 
     Returns:
         ``{"model": {"file", "sha256"}, "overall": wheel_metrics + {"dropped_nonfinite", "envelope", "grip",
-        "runs_trained_on", ["never_trained_on"]}, "runs": [{"file", "r2", "mae_nm", "n", "fl", "fr", "axle",
-        "dropped_nonfinite", "envelope", "grip", "trained_on"}, ...]}``
-        in the order of ``runs``; ``never_trained_on`` (only where the card lists some of the runs and not all):
+        "runs_trained_on", ["never_trained_on"], ["trained_on_listed_for"]}, "runs": [{"file", "r2", "mae_nm", "n",
+        "fl", "fr", "axle", "dropped_nonfinite", "envelope", "grip", "trained_on"}, ...]}``
+        in the order of ``runs``; ``trained_on_listed_for``: the training folders whose runs the card lists, where
+        it lists only some (then no ``never_trained_on``); ``never_trained_on`` (only where the card lists some of
+        the runs and not all):
         wheel metrics, ``runs`` and ``grip`` of the runs the card does not list, the figures that are a test;
         ``envelope`` is :func:`envelope_split` (None when the card states none);
         ``grip`` the grip margin's figures (:mod:`virtsensor.learning.gripscore`; None for a run without the
@@ -116,7 +118,11 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
         r["trained_on"] = id(run) in seen
     overall["runs_trained_on"] = len(seen)
     fresh = [i for i, run in enumerate(runs) if id(run) not in seen]
-    if seen and fresh:  # (the figures a reader can take as a test: the runs the card does not list)
+    data = model.card.get("training_data") or {}
+    cover = data.get("run_digests_cover")
+    if cover is not None and set(cover) != set(data.get("sources") or cover):  # (a run not listed may be trained on)
+        overall["trained_on_listed_for"] = list(cover)
+    elif seen and fresh:  # (the figures a reader can take as a test: the runs the card does not list)
         unseen = metrics(np.concatenate([ys[i] for i in fresh]), np.concatenate([ps[i] for i in fresh]))
         g = score_grip(model, [runs[i] for i in fresh])
         unseen["grip"] = None if g is None else g["overall"]
@@ -172,6 +178,10 @@ def markdown(result: dict[str, Any]) -> str:
         lines.append(f"| **the {fresh['runs']} runs never trained on** | {fresh['n']} | {fresh['r2']:.3f} | "
                      f"{fresh['mae_nm']:.2f} | {fresh['fl']['r2']:.3f} / {fresh['fr']['r2']:.3f} | "
                      f"{fresh['axle']['r2']:.3f} / {fresh['axle']['mae_nm']:.2f} |" + (" — | — | — |" if env else ""))
+    if o.get("trained_on_listed_for"):
+        listed = ", ".join(o["trained_on_listed_for"])
+        lines += ["", f"The card lists the runs it was trained on only for {listed}: a run of its other training "
+                      "data is not marked, so no run here is shown as never trained on."]
     if o.get("runs_trained_on"):
         lines += ["", f"{o['runs_trained_on']} of these runs the model was trained on (its card lists them, marked "
                       "\"trained on\"): in-sample, not a test; \"all runs\" includes them."]
@@ -182,5 +192,5 @@ def markdown(result: dict[str, Any]) -> str:
     grip = o.get("grip")
     tail = "" if grip is None else "\n" + grip_markdown({"overall": grip})
     if fresh is not None and fresh.get("grip") is not None:
-        tail += grip_markdown({"overall": fresh["grip"]}, "the runs never trained on")
+        tail += "\n" + grip_markdown({"overall": fresh["grip"]}, "the runs never trained on")
     return "\n".join(lines) + "\n" + tail

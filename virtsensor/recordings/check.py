@@ -46,14 +46,25 @@ MIN_ROWS = 2
 _RANGE_CHECKED = ("input", "output", "aux")
 
 
+def is_can_csv(path: Path) -> bool:
+    """Whether a ``.csv`` file is python-can's CSV CAN log (header ``timestamp,arbitration_id,...``), not a table."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as f:
+            head = f.readline(4096)
+    except OSError:
+        return False  # (the table reader names what is wrong)
+    return [c.strip() for c in head.split(",")[:2]] == ["timestamp", "arbitration_id"]
+
+
 def table_error(path: Path | str, column: str, row: int | None, expected: str, got: str) -> UserError:
     """The one message format of a bad value: file, column, row (1-based; None: the
-    column as a whole), what was expected and what was found."""
+    column as a whole), what was expected and what was found; a CSV table's row also as its line (not a CSV CAN
+    log's: its rows are the 20 Hz ticks decoded from it)."""
     path = Path(path)
     where = f"column {column}"
     if row is not None:
         where += f", row {row}"
-        if path.suffix.lower() == ".csv":
+        if path.suffix.lower() == ".csv" and not is_can_csv(path):
             where += f" (line {row + 1})"
     return UserError(f"{path}: {where}: expected {expected}, got {got}")
 

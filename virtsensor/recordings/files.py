@@ -52,7 +52,7 @@ MDF_SUFFIXES: tuple[str, ...] = (".mf4", ".mdf")
 #: :func:`recording_kind`).
 SUFFIXES = TABLE_SUFFIXES + LOG_SUFFIXES + MDF_SUFFIXES
 #: CAN log formats that python-can reads gzip-compressed too (``<name>.asc.gz``), as ``replay`` and ``demo`` do
-GZ_LOG_SUFFIXES: tuple[str, ...] = (".asc", ".log", ".trc")
+GZ_LOG_SUFFIXES: tuple[str, ...] = (".asc", ".log", ".trc", ".csv")
 #: What ``simulate`` and ``campaign`` write a run as (suffix without the dot): the table or a CAN log.
 WRITE_FORMATS: tuple[str, ...] = tuple(s[1:] for s in TABLE_SUFFIXES + LOG_SUFFIXES)
 
@@ -206,6 +206,7 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
             naming it.
     """
     from virtsensor.recordings.canlog import read_csv, read_log
+    from virtsensor.recordings.check import is_can_csv
     from virtsensor.recordings.sidecar import check_samples
 
     path = Path(path)
@@ -213,7 +214,7 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
     if suffix not in SUFFIXES:
         raise _unsupported(path)
     try:
-        if suffix in TABLE_SUFFIXES and _is_can_csv(path):  # (python-can's CSV CAN log, as replay reads it)
+        if path.suffix.lower() == ".gz" or (suffix in TABLE_SUFFIXES and is_can_csv(path)):  # (CAN logs)
             table = dict(read_log(path).table)
         elif suffix in TABLE_SUFFIXES:
             table = read_csv(path)
@@ -229,12 +230,3 @@ def read_table(path: Path) -> dict[str, np.ndarray]:
         check_samples(path, len(table["time_s"]))
     return table
 
-
-def _is_can_csv(path: Path) -> bool:
-    """Whether a ``.csv`` file is python-can's CSV CAN log (header ``timestamp,arbitration_id,...``), not a table."""
-    try:
-        with open(path, encoding="utf-8-sig", errors="replace") as f:
-            head = f.readline(4096)
-    except OSError:
-        return False  # (the table reader names what is wrong)
-    return [c.strip() for c in head.split(",")[:2]] == ["timestamp", "arbitration_id"]
