@@ -316,9 +316,8 @@ def load_track(spec: str | Path, **derive_options: float) -> Track:
     if path.suffix == "" and not path.exists():
         raise TrackError(f"unknown circuit {name!r}: name one of {', '.join(BUNDLED_TRACKS)}, random:SEED, "
                          "or give a .csv or .geojson file")
-    if path.suffix.lower() in (".csv", ".geojson", ".json"):
+    if path.suffix.lower() == ".csv":  # (a GeoJSON is checked by read_points)
         check_readable(path)
-    if path.suffix.lower() == ".csv":
         text = path.read_text(encoding="utf-8-sig", errors="replace")
         header = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
         if tuple(c.strip() for c in header.split(",")) == COLUMNS:

@@ -10,6 +10,7 @@ daemon, waits for its ``started`` log line, drives the ticks and stops the daemo
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -85,21 +86,15 @@ def measure_e2e_cross_process(model_path: str | os.PathLike, n_ticks: int,
 
 
 def _end_group(proc: subprocess.Popen) -> None:
-    """SIGTERM to ``proc``'s process group (the driver and its daemon: each stops cleanly), SIGKILL after 5 s."""
-    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-        try:
-            os.killpg(proc.pid, sig)
-        except ProcessLookupError:
-            return
-        try:
-            proc.wait(wait_s)
-        except subprocess.TimeoutExpired:
-            continue
-        if sig == signal.SIGTERM:  # (the driver is gone; its daemon may still be stopping: the group's last)
-            try:
-                os.killpg(proc.pid, 0)
-            except ProcessLookupError:
-                return
+    """SIGTERM to ``proc``'s process group (the driver stops its daemon, then itself), SIGKILL to whatever of the
+    group is left after 5 s."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        proc.wait(5.0)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
 
 
 def _drive(out_path: Path, n_ticks: int) -> None:

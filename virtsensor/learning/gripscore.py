@@ -47,7 +47,7 @@ from virtsensor.grip import GRIP_INPUTS, GripParams, estimate_run, reads_pressur
 __all__ = ["GRIP_TRUTH", "FALSE_WINDOW_S", "LIMIT_UTIL", "EXCITED_UTIL", "CALM_UTIL", "has_grip_truth",
            "true_front_util", "grip_metrics", "pool", "public", "grip_of_run", "model_reads_pressure", "model_sats",
            "model_outside",
-           "score_grip", "grip_markdown"]
+           "grip_runs", "score_grip", "grip_markdown"]
 
 #: the truth columns a run needs to be scored for grip
 GRIP_TRUTH = ("road_mu", "util_fl_1", "util_fr_1")
@@ -123,6 +123,7 @@ def grip_metrics(time_s: np.ndarray, util_true: np.ndarray, mu_true: np.ndarray,
     covered = None if halfwidth is None else err <= np.asarray(halfwidth, float)[scored]
     excited = util_true > EXCITED_UTIL  # (an unknown true utilisation is neither excited nor calm)
     lead = _lead(time_s, util_true, warning)
+    reaches = bool(np.any(util_true >= LIMIT_UTIL))
     n_false, calm_s = _false_warnings(time_s, util_true, warning)
     return {
         "n": int(len(time_s)), "mu_given": int(given.sum()), "mu_scored": int(scored.sum()),
@@ -131,8 +132,8 @@ def grip_metrics(time_s: np.ndarray, util_true: np.ndarray, mu_true: np.ndarray,
         "mu_interval_cover_share": float(np.mean(covered)) if covered is not None and len(err) else None,
         "mu_given_share_above_0_6": float(given[excited].mean()) if excited.any() else None,
         "excited": int(excited.sum()), "excited_given": int((given & excited).sum()),
-        "reaches_limit": bool(np.any(util_true >= LIMIT_UTIL)),
-        "limit_in_startup": bool(lead is None and np.any(util_true >= LIMIT_UTIL)),  # (first there: not scored)
+        "reaches_limit": reaches,
+        "limit_in_startup": reaches and lead is None,  # (first there: not scored)
         "warning_lead_s": lead,
         "warning_lead_s_median": lead,
         "false_warnings": n_false, "calm_s": calm_s,
@@ -244,8 +245,17 @@ def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None
         ``{"overall": pooled figures, "runs": {file: figures | None}}`` (None for a run without the grip truth
         or without an input the estimate reads), or None when no run can be scored.
     """
-    per: dict[str, Any] = {}
-    scored = []
+    per = grip_runs(model, runs, params)
+    scored = [m for m in per.values() if m is not None]
+    if not scored:
+        return None
+    return {"overall": pool(scored), "runs": {k: None if m is None else public(m) for k, m in per.items()}}
+
+
+def grip_runs(model: Any, runs: Sequence[Any], params: GripParams | None = None) -> dict[str, dict[str, Any] | None]:
+    """Each run's grip figures (:func:`grip_metrics`, with the private arrays :func:`pool` needs), by its file (or
+    name); None for a run without the grip truth or an input the estimate reads (see :func:`score_grip`)."""
+    per: dict[str, dict[str, Any] | None] = {}
     reads = model_reads_pressure(model)
     for run in runs:
         where = str(run.path or run.name)
@@ -255,11 +265,8 @@ def score_grip(model: Any, runs: Sequence[Any], params: GripParams | None = None
         fl, fr = model_sats(model, run.table)
         res = grip_of_run(run.table, fl, fr, params, reads, model_outside(model, run.table))
         assert res is not None
-        scored.append(res[0])
-        per[where] = public(res[0])
-    if not scored:
-        return None
-    return {"overall": pool(scored), "runs": per}
+        per[where] = res[0]
+    return per
 
 
 def _startup_note(o: Mapping[str, Any]) -> str:

@@ -24,7 +24,7 @@ from virtsensor import signals as cat
 from virtsensor.errors import UserError
 from virtsensor.features import FeatureSpec
 from virtsensor.learning.dataset import Run, build_dataset, trained_on
-from virtsensor.learning.gripscore import grip_markdown, score_grip
+from virtsensor.learning.gripscore import grip_markdown, grip_runs, pool, public
 from virtsensor.metrics import metrics
 from virtsensor.model.envelope import Envelope
 from virtsensor.model.fallback import load_fallback
@@ -110,11 +110,13 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
         overall["pressure_unknown_rows"] = unknown
         overall["fallback"] = {"file": str(fallback.model.path), "sha256": fallback.model.card.get("sha256")}
     overall["envelope"] = envelope_split(Y, P, None if env is None else np.concatenate(outs))
-    grip = score_grip(model, runs)  # (the grip margin from these SATs, where a run carries its truth)
-    overall["grip"] = None if grip is None else grip["overall"]
+    grip = grip_runs(model, runs)  # (the grip margin from these SATs, where a run carries its truth)
+    scored = [m for m in grip.values() if m is not None]
+    overall["grip"] = pool(scored) if scored else None
     seen = {id(r) for r in trained_on(model.card, runs)}  # (in-sample: said, per run and overall)
     for r, run in zip(per_run, runs, strict=True):
-        r["grip"] = None if grip is None else grip["runs"][r["file"]]
+        g = grip[r["file"]]
+        r["grip"] = None if g is None else public(g)
         r["trained_on"] = id(run) in seen
     overall["runs_trained_on"] = len(seen)
     fresh = [i for i, run in enumerate(runs) if id(run) not in seen]
@@ -124,8 +126,8 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
         overall["trained_on_listed_for"] = list(cover)
     elif seen and fresh:  # (the figures a reader can take as a test: the runs the card does not list)
         unseen = metrics(np.concatenate([ys[i] for i in fresh]), np.concatenate([ps[i] for i in fresh]))
-        g = score_grip(model, [runs[i] for i in fresh])
-        unseen["grip"] = None if g is None else g["overall"]
+        fresh_grip = [fg for i in fresh if (fg := grip[per_run[i]["file"]]) is not None]
+        unseen["grip"] = pool(fresh_grip) if fresh_grip else None
         unseen["runs"] = len(fresh)
         overall["never_trained_on"] = unseen
     return {"model": {"file": str(getattr(model, "path", "")), "sha256": model.card.get("sha256")},
