@@ -119,19 +119,28 @@ def score_runs(model: Any, runs: Sequence[Run]) -> dict[str, Any]:
         r["grip"] = None if g is None else public(g)
         r["trained_on"] = id(run) in seen
     overall["runs_trained_on"] = len(seen)
-    fresh = [i for i, run in enumerate(runs) if id(run) not in seen]
-    data = model.card.get("training_data") or {}
+    _never_trained_on(overall, model.card, [r["trained_on"] for r in per_run], ys, ps,
+                      [grip[r["file"]] for r in per_run])
+    return {"model": {"file": str(getattr(model, "path", "")), "sha256": model.card.get("sha256")},
+            "overall": overall, "runs": per_run}
+
+
+def _never_trained_on(overall: dict[str, Any], card: Any, trained: Sequence[bool], ys: Sequence[np.ndarray],
+                      ps: Sequence[np.ndarray], grips: Sequence[dict[str, Any] | None]) -> None:
+    """Add to ``overall`` the figures of the runs the card does not list (``never_trained_on``: the ones a reader
+    can take as a test), where it lists some of them; or, where the card lists the runs of only some of its
+    training folders, ``trained_on_listed_for`` (an unlisted run may be in-sample too: no such figures)."""
+    fresh = [i for i, t in enumerate(trained) if not t]
+    data = card.get("training_data") or {}
     cover = data.get("run_digests_cover")
-    if cover is not None and set(cover) != set(data.get("sources") or cover):  # (a run not listed may be trained on)
+    if cover is not None and set(cover) != set(data.get("sources") or cover):
         overall["trained_on_listed_for"] = list(cover)
-    elif seen and fresh:  # (the figures a reader can take as a test: the runs the card does not list)
+    elif fresh and len(fresh) < len(trained):
         unseen = metrics(np.concatenate([ys[i] for i in fresh]), np.concatenate([ps[i] for i in fresh]))
-        fresh_grip = [fg for i in fresh if (fg := grip[per_run[i]["file"]]) is not None]
+        fresh_grip = [g for i in fresh if (g := grips[i]) is not None]
         unseen["grip"] = pool(fresh_grip) if fresh_grip else None
         unseen["runs"] = len(fresh)
         overall["never_trained_on"] = unseen
-    return {"model": {"file": str(getattr(model, "path", "")), "sha256": model.card.get("sha256")},
-            "overall": overall, "runs": per_run}
 
 
 def _envelope(model: Any) -> Envelope | None:
